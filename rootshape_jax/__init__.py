@@ -1,0 +1,1 @@
+"""rootshape_jax."""

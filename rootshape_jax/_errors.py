@@ -1,0 +1,33 @@
+"""The library's small exception hierarchy.
+
+Every error a user can trigger with bad input derives from :class:`RootShapeError` and from
+``ValueError``, so ``except ValueError`` keeps working for callers that do not know our types.
+"""
+
+
+class RootShapeError(Exception):
+    """Base class of every error raised on purpose by rootshape_jax."""
+
+
+class InvalidRootError(RootShapeError, ValueError):
+    """A root (or a curve, or a tree) is not valid input: too few points, NaN/inf, wrong shape."""
+
+
+class CapacityError(InvalidRootError):
+    """A root has more laterals than the padded capacity ``K`` (or more points than ``T``)."""
+
+
+class RSMLError(RootShapeError, ValueError):
+    """An RSML file is malformed, or one of its roots cannot be read."""
+
+
+class ImageError(RootShapeError, ValueError):
+    """A scanned image cannot be turned into roots (empty, wrong dimensions, no root found)."""
+
+
+class MissingDependencyError(RootShapeError, ImportError):
+    """An optional extra (``pip install 'rootshape_jax[EXTRA]'``) is needed for this feature."""
+
+
+class RSMLWarning(UserWarning):
+    """Part of an RSML file was skipped (non-strict reading): the message names file and root."""

@@ -1,0 +1,214 @@
+"""Classical root-architecture traits of a `Root` (numpy), and a CSV writer for trait tables.
+
+The trait regression of the paper (§5.2) uses ``main_length``, ``mean_lateral_length`` and
+``std_lateral_length``; those names are stable.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from collections.abc import Iterable, Mapping, Sequence
+
+import numpy as np
+import scipy.spatial
+
+from ._errors import InvalidRootError
+from ._root import Root, polyline_length
+
+TRAIT_NAMES: tuple[str, ...] = (
+    "main_length",
+    "n_laterals",
+    "lateral_density",
+    "mean_lateral_length",
+    "std_lateral_length",
+    "total_lateral_length",
+    "total_length",
+    "main_tortuosity",
+    "mean_insertion_angle",
+    "depth",
+    "width",
+    "convex_hull_area",
+    "convex_hull_volume",
+)
+
+
+def _point_at(points: np.ndarray, cum: np.ndarray, s: float) -> np.ndarray:
+    """Point of the polyline at arc length ``s`` (clipped to the polyline)."""
+    s = min(max(s, 0.0), float(cum[-1]))
+    return np.array([np.interp(s, cum, points[:, j]) for j in range(points.shape[1])])
+
+
+def _cumlen(points: np.ndarray) -> np.ndarray:
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+
+
+def _unit(v: np.ndarray) -> np.ndarray | None:
+    n = float(np.linalg.norm(v))
+    return v / n if n > 0 else None
+
+
+def _main_direction(main: np.ndarray, cum: np.ndarray, s: float, window: float | None):
+    if window is None:
+        # The segment containing arc length s (a vertex belongs to the segment that starts
+        # there; the tip to the last segment), skipping zero-length segments.
+        seg = min(int(np.searchsorted(cum, s, side="right")) - 1, len(main) - 2)
+        seg = max(seg, 0)
+        for k in list(range(seg, len(main) - 1)) + list(range(seg - 1, -1, -1)):
+            u = _unit(main[k + 1] - main[k])
+            if u is not None:
+                return u
+        return None
+    return _unit(_point_at(main, cum, s + window / 2) - _point_at(main, cum, s - window / 2))
+
+
+def _lateral_direction(lat: np.ndarray, window: float | None):
+    if window is None:
+        for k in range(len(lat) - 1):
+            u = _unit(lat[k + 1] - lat[k])
+            if u is not None:
+                return u
+        return None
+    return _unit(_point_at(lat, _cumlen(lat), window) - lat[0])
+
+
+def insertion_angles(root: Root, *, window: float | None = None) -> np.ndarray:
+    """Insertion angle of every lateral, in degrees (NaN where a direction is undefined).
+
+    The angle between the lateral's initial direction and the main root's local direction at
+    the lateral's attachment point (arc-length fraction ``root.attach``), in [0, 180].
+    With ``window=None`` the directions are those of the lateral's first segment and of the
+    main root's segment containing the attachment point (zero-length segments skipped).
+    With a ``window`` (arc length, in the root's units) they are chords: the lateral from its
+    base to the point ``window`` along it; the main root from ``window/2`` before to
+    ``window/2`` after the attachment point — smoother on noisy tracings.
+    """
+    if window is not None and not window > 0:
+        raise ValueError(f"`window` must be a positive arc length or None, got {window!r}.")
+    main = np.asarray(root.main, dtype=float)
+    cum = _cumlen(main)
+    angles = np.full(root.n_laterals, np.nan)
+    for k, (lat, a) in enumerate(zip(root.laterals, root.attach)):
+        t = _main_direction(main, cum, float(a) * cum[-1], window)
+        u = _lateral_direction(np.asarray(lat, dtype=float), window)
+        if t is not None and u is not None:
+            angles[k] = math.degrees(math.acos(float(np.clip(t @ u, -1.0, 1.0))))
+    return angles
+
+
+def _hull_measure(points: np.ndarray) -> float:
+    """Area (2D) or volume (3D) of the convex hull; 0 for degenerate (flat) point sets."""
+    pts = np.unique(points, axis=0)
+    if len(pts) <= pts.shape[1]:
+        return 0.0
+    centred = pts - pts.mean(axis=0)
+    if np.linalg.matrix_rank(centred, tol=1e-12 * max(1.0, float(np.abs(centred).max()))) < pts.shape[1]:
+        return 0.0
+    try:
+        return float(scipy.spatial.ConvexHull(pts).volume)
+    except scipy.spatial.QhullError:
+        return 0.0
+
+
+def _diameter(points: np.ndarray) -> float:
+    """Largest distance between two points (on the convex hull's vertices when 2D)."""
+    if points.shape[1] == 1:
+        return float(points.max() - points.min())
+    pts = np.unique(points, axis=0)
+    if len(pts) > 3 and _hull_measure(pts) > 0:
+        pts = pts[scipy.spatial.ConvexHull(pts).vertices]
+    diff = pts[:, None, :] - pts[None, :, :]
+    return float(np.sqrt(np.max(np.sum(diff * diff, axis=-1))))
+
+
+def _root_traits(root: Root, window: float | None) -> dict:
+    if not isinstance(root, Root):
+        raise InvalidRootError(
+            f"traits() expects a rootshape_jax.Root or a sequence of them, got {type(root).__name__}."
+        )
+    main = np.asarray(root.main, dtype=float)
+    d = main.shape[1]
+    lat_len = np.array([polyline_length(np.asarray(lat, dtype=float)) for lat in root.laterals])
+    main_len = polyline_length(main)
+    n = len(lat_len)
+    pts = np.concatenate([main] + [np.asarray(lat, dtype=float) for lat in root.laterals], axis=0)
+    chord = float(np.linalg.norm(main[-1] - main[0]))
+    angles = insertion_angles(root, window=window)
+    horizontal = pts[:, :-1]
+    return {
+        "name": root.name,
+        "main_length": main_len,
+        "n_laterals": n,
+        "lateral_density": n / main_len if main_len > 0 else math.nan,
+        "mean_lateral_length": float(lat_len.mean()) if n else 0.0,
+        "std_lateral_length": float(lat_len.std()) if n else 0.0,
+        "total_lateral_length": float(lat_len.sum()),
+        "total_length": main_len + float(lat_len.sum()),
+        "main_tortuosity": main_len / chord if chord > 0 else math.nan,
+        "mean_insertion_angle": float(np.nanmean(angles)) if np.any(np.isfinite(angles)) else math.nan,
+        "depth": float(pts[:, -1].max() - pts[:, -1].min()),
+        "width": _diameter(horizontal),
+        "convex_hull_area": _hull_measure(pts) if d == 2 else _hull_measure(horizontal),
+        "convex_hull_volume": _hull_measure(pts) if d == 3 else math.nan,
+    }
+
+
+def traits(root_or_roots: Root | Sequence[Root], *, window: float | None = None) -> dict | list[dict]:
+    """Architecture traits of one root (a dict) or of each root of a sequence (a list of dicts).
+
+    Lengths are in the root's own units (see ``root.metadata.get("unit")``), angles in degrees.
+    Gravity is along the last axis (y in 2D, z in 3D; up or down does not matter here), the
+    other axes are horizontal. Points are those of the main root and of every lateral.
+
+    - ``name``: ``root.name``.
+    - ``main_length``: polyline length of the main root.
+    - ``n_laterals``: number of first-order laterals.
+    - ``lateral_density``: ``n_laterals / main_length`` (laterals per unit main length).
+    - ``mean_lateral_length``, ``std_lateral_length``: mean and population standard deviation
+      (ddof = 0) of the lateral lengths; 0 when there are no laterals, so the regression traits
+      stay finite.
+    - ``total_lateral_length``: sum of the lateral lengths; ``total_length`` adds the main root.
+    - ``main_tortuosity``: main length / straight distance from base to tip (≥ 1; NaN if closed).
+    - ``mean_insertion_angle``: mean over laterals of `insertion_angles` (angle between the
+      lateral's initial direction and the main root's local direction, degrees, in [0, 180];
+      ``window`` as there); NaN without laterals.
+    - ``depth``: extent along the gravity axis (max − min of the last coordinate).
+    - ``width``: horizontal extent, the largest distance between two points projected on the
+      horizontal line (2D: max x − min x) or plane (3D).
+    - ``convex_hull_area``: 2D — area of the convex hull of all points; 3D — area of the convex
+      hull of the points projected on the horizontal plane (the root system's footprint, which
+      does not depend on how the plant is turned about the vertical). 0 for degenerate hulls.
+    - ``convex_hull_volume``: 3D — volume of the convex hull; NaN in 2D.
+    """
+    if isinstance(root_or_roots, Root):
+        return _root_traits(root_or_roots, window)
+    if isinstance(root_or_roots, (str, bytes, Mapping)) or not isinstance(root_or_roots, Iterable):
+        raise InvalidRootError(
+            "traits() expects a rootshape_jax.Root or a sequence of them, got "
+            f"{type(root_or_roots).__name__}."
+        )
+    return [_root_traits(r, window) for r in root_or_roots]
+
+
+def traits_to_csv(rows: dict | Sequence[Mapping], path: str | os.PathLike) -> None:
+    """Write trait rows (from `traits`, possibly with extra keys) to a CSV file with a header.
+
+    Columns are the union of the rows' keys in order of first appearance; missing cells are
+    empty. Floats are written with full precision (``repr``), so reading back is exact.
+    """
+    if isinstance(rows, Mapping):
+        rows = [rows]
+    rows = list(rows)
+    if not all(isinstance(r, Mapping) for r in rows):
+        raise ValueError("traits_to_csv expects a dict or a sequence of dicts (from traits()).")
+    columns: list[str] = []
+    for r in rows:
+        for key in r:
+            if key not in columns:
+                columns.append(key)
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns, restval="", lineterminator="\n")
+        writer.writeheader()
+        for r in rows:
+            writer.writerow({k: (repr(float(v)) if isinstance(v, (float, np.floating)) else v) for k, v in r.items()})

@@ -1,0 +1,358 @@
+"""Padded, fixed-size root trees: `RootTree` (geometry) and `SRVFTree` (shape).
+
+Both are frozen `eqx.Module`s whose array leaves have fixed capacities — ``T`` points per
+branch and ``K`` lateral slots — so every computation on them compiles once per (T, K, d, dtype)
+and vmaps over batches. A batch is the same Module with a leading axis on every leaf.
+
+Padding: a slot with ``mask = False`` is one of the paper's *null* (virtual) laterals. It holds
+finite zeros in the SRVF (``q = 0``) and, in a `RootTree`, a lateral collapsed to its attachment
+point. Never NaN: a NaN in a masked branch of ``jnp.where`` still poisons gradients.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from ._curves import interpolate_at_fraction, srvf, srvf_to_curve
+from ._errors import CapacityError, InvalidRootError
+from ._root import Root, check_polyline, polyline_length
+
+
+def _is_array(x) -> bool:
+    return isinstance(x, (jax.Array, np.ndarray))
+
+
+class RootTree(eqx.Module):
+    """Geometry of a root (or a batch of roots) resampled onto fixed capacities.
+
+    **Fields** (a batch adds leading axes ``*B`` to every field)
+
+    - `main`: ``[T, d]`` main root, ``T`` points uniform in arc length from base to tip.
+    - `laterals`: ``[K, T, d]`` lateral roots, each starting at the main root point at `attach`.
+      Null slots (``mask = False``) are collapsed to a single repeated point.
+    - `attach`: ``[K]`` arc-length fraction in [0, 1] of each lateral's attachment point.
+    - `mask`: ``[K]`` True for real laterals, False for padding (null laterals).
+    """
+
+    main: Float[Array, "*B T d"]
+    laterals: Float[Array, "*B K T d"]
+    attach: Float[Array, "*B K"]
+    mask: Bool[Array, "*B K"]
+
+    def __check_init__(self):
+        _check_shapes(
+            "RootTree", self.main, self.laterals, self.attach, self.mask, names=("main", "laterals")
+        )
+
+    @property
+    def n_points(self) -> int:
+        return self.main.shape[-2]
+
+    @property
+    def capacity(self) -> int:
+        return self.laterals.shape[-3]
+
+    @property
+    def dim(self) -> int:
+        return self.main.shape[-1]
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.main.shape[:-2])
+
+
+class SRVFTree(eqx.Module):
+    """Shape of a root (or a batch): the SRVF tree of DESIGN.md §2.
+
+    **Fields** (a batch adds leading axes ``*B`` to every field)
+
+    - `q0`: ``[T, d]`` SRVF of the main root.
+    - `q`: ``[K, T, d]`` SRVFs of the laterals; null slots are exactly 0.
+    - `s`: ``[K]`` attachment arc-length fractions along the main root.
+    - `mask`: ``[K]`` True for real laterals.
+    - `origin`: ``[d]`` start of the main root (SRVFs forget translation; kept to rebuild curves).
+    """
+
+    q0: Float[Array, "*B T d"]
+    q: Float[Array, "*B K T d"]
+    s: Float[Array, "*B K"]
+    mask: Bool[Array, "*B K"]
+    origin: Float[Array, "*B d"]
+
+    def __check_init__(self):
+        _check_shapes("SRVFTree", self.q0, self.q, self.s, self.mask, names=("q0", "q"))
+        if _is_array(self.origin) and _is_array(self.q0):
+            if self.origin.shape != self.q0.shape[:-2] + self.q0.shape[-1:]:
+                raise ValueError(
+                    f"SRVFTree: origin has shape {self.origin.shape}, expected "
+                    f"{self.q0.shape[:-2] + self.q0.shape[-1:]} (batch + (d,))."
+                )
+
+    @property
+    def n_points(self) -> int:
+        return self.q0.shape[-2]
+
+    @property
+    def capacity(self) -> int:
+        return self.q.shape[-3]
+
+    @property
+    def dim(self) -> int:
+        return self.q0.shape[-1]
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.q0.shape[:-2])
+
+
+def _check_shapes(cls, main, lats, attach, mask, *, names):
+    if not all(_is_array(x) for x in (main, lats, attach, mask)):
+        return  # leaves replaced by placeholders (e.g. inside jax transformations)
+    if main.ndim < 2 or main.shape[-1] not in (2, 3):
+        raise ValueError(f"{cls}: {names[0]} must be (..., T, d) with d in (2, 3), got {main.shape}.")
+    batch = main.shape[:-2]
+    T, d = main.shape[-2:]
+    if lats.ndim != main.ndim + 1 or lats.shape[:-3] != batch or lats.shape[-2:] != (T, d):
+        raise ValueError(
+            f"{cls}: {names[1]} has shape {lats.shape}, expected {batch} + (K, {T}, {d}) to match "
+            f"{names[0]} {main.shape}."
+        )
+    K = lats.shape[-3]
+    for nm, x in (("attach" if cls == "RootTree" else "s", attach), ("mask", mask)):
+        if x.shape != batch + (K,):
+            raise ValueError(f"{cls}: {nm} has shape {x.shape}, expected {batch + (K,)}.")
+    if mask.dtype != jnp.bool_:
+        raise ValueError(f"{cls}: mask must be boolean, got {mask.dtype}.")
+
+
+# --------------------------------------------------------------------------------------------
+# Root (numpy, unpadded) <-> RootTree (padded)
+
+
+def resample_polyline(points: np.ndarray, n_points: int) -> np.ndarray:
+    """numpy: resample a polyline to ``n_points`` points uniform in arc length."""
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    if cum[-1] <= 0:
+        return np.repeat(points[:1], n_points, axis=0)
+    keep = np.concatenate([[True], seg > 0])  # drop repeated points so cum is increasing
+    cum, pts = cum[keep], points[keep]
+    target = np.linspace(0.0, cum[-1], n_points)
+    return np.stack([np.interp(target, cum, pts[:, k]) for k in range(points.shape[1])], axis=1)
+
+
+def _point_at_fraction(main: np.ndarray, fraction: float) -> np.ndarray:
+    seg = np.linalg.norm(np.diff(main, axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    if cum[-1] <= 0:
+        return main[0]
+    target = fraction * cum[-1]
+    return np.array([np.interp(target, cum, main[:, k]) for k in range(main.shape[1])])
+
+
+def root_to_arrays(
+    root: Root, *, n_points: int, capacity: int, normalise_scale: bool = False, dtype=np.float64
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """numpy arrays (main, laterals, attach, mask) for one root at the given capacities."""
+    if not isinstance(root, Root):
+        raise TypeError(f"expected a rootshape_jax.Root, got {type(root).__name__}.")
+    if root.n_laterals > capacity:
+        raise CapacityError(
+            f"root {root.name!r} has {root.n_laterals} laterals but the capacity is K = {capacity}; "
+            "pass a larger `max_laterals` (registration needs K >= n_a + n_b)."
+        )
+    main = root.main.astype(np.float64)
+    scale = 1.0
+    if normalise_scale:
+        length = polyline_length(main)
+        if length <= 0:
+            raise InvalidRootError(f"root {root.name!r}: main root has zero length; cannot normalise scale.")
+        scale = 1.0 / length
+    o = main[0]
+    main = o + (main - o) * scale
+    d = main.shape[1]
+    lats = np.zeros((capacity, n_points, d))
+    attach = np.zeros((capacity,))
+    mask = np.zeros((capacity,), dtype=bool)
+    for k, (lat, s) in enumerate(zip(root.laterals, root.attach)):
+        lat = o + (lat.astype(np.float64) - o) * scale
+        base = _point_at_fraction(main, float(s))
+        # A lateral emerges from the main root: join its first point to the attachment point.
+        if np.linalg.norm(lat[0] - base) > 1e-9 * max(1.0, np.abs(main).max()):
+            lat = np.concatenate([base[None], lat], axis=0)
+        lats[k] = resample_polyline(lat, n_points)
+        attach[k] = s
+        mask[k] = True
+    for k in range(root.n_laterals, capacity):
+        lats[k] = np.repeat(main[:1], n_points, axis=0)
+    return (
+        resample_polyline(main, n_points).astype(dtype),
+        lats.astype(dtype),
+        attach.astype(dtype),
+        mask,
+    )
+
+
+def batch(
+    roots: Root | Sequence[Root],
+    *,
+    n_points: int = 100,
+    max_laterals: int | None = None,
+    normalise_scale: bool = False,
+    dtype=None,
+) -> RootTree:
+    """Resample and pad roots into one batched `RootTree` (leading axis = roots).
+
+    - `n_points`: ``T``, points per branch (uniform in arc length).
+    - `max_laterals`: ``K``, lateral slots. Default ``2 × (most laterals of any root)`` (at least
+      2), enough to register any pair (DESIGN.md §2).
+    - `normalise_scale`: divide each root by its main-root length (the paper's scale invariance;
+      leave off for growth studies).
+    - `dtype`: float dtype of the arrays; default JAX's default float (float32 unless x64 is on).
+
+    A single `Root` gives an unbatched `RootTree`.
+    """
+    single = isinstance(roots, Root)
+    roots_list = [roots] if single else list(roots)
+    if not roots_list:
+        raise ValueError("batch() needs at least one Root; got an empty sequence.")
+    for i, r in enumerate(roots_list):
+        if not isinstance(r, Root):
+            raise TypeError(f"batch(): item {i} is a {type(r).__name__}, expected a Root.")
+    dims = {r.dim for r in roots_list}
+    if len(dims) != 1:
+        raise InvalidRootError(
+            f"batch(): roots mix dimensions {sorted(dims)}; convert 2D roots to 3D (z = 0) first."
+        )
+    if not isinstance(n_points, int) or n_points < 2:
+        raise ValueError(f"n_points must be an integer >= 2, got {n_points!r}.")
+    if max_laterals is None:
+        max_laterals = max(2, 2 * max(r.n_laterals for r in roots_list))
+    if dtype is None:
+        dtype = jnp.zeros(()).dtype  # JAX's default float: respects jax_enable_x64
+    arrays = [
+        root_to_arrays(
+            r, n_points=n_points, capacity=max_laterals, normalise_scale=normalise_scale, dtype=dtype
+        )
+        for r in roots_list
+    ]
+    main, lats, attach, mask = (np.stack(a) for a in zip(*arrays))
+    tree = RootTree(jnp.asarray(main), jnp.asarray(lats), jnp.asarray(attach), jnp.asarray(mask))
+    return unstack(tree)[0] if single else tree
+
+
+def to_roots(tree: RootTree, *, names: Sequence[str] | None = None) -> list[Root]:
+    """Unpadded `Root`s from a (batched or single) `RootTree`; null slots are dropped."""
+    if not isinstance(tree, RootTree):
+        raise TypeError(f"to_roots expects a RootTree, got {type(tree).__name__}.")
+    main = np.asarray(tree.main)
+    lats = np.asarray(tree.laterals)
+    attach = np.asarray(tree.attach)
+    mask = np.asarray(tree.mask)
+    if main.ndim == 2:
+        main, lats, attach, mask = main[None], lats[None], attach[None], mask[None]
+    else:
+        n = int(np.prod(main.shape[:-2]))
+        main = main.reshape((n,) + main.shape[-2:])
+        lats = lats.reshape((n,) + lats.shape[-3:])
+        attach = attach.reshape(n, -1)
+        mask = mask.reshape(n, -1)
+    out = []
+    for i in range(main.shape[0]):
+        keep = np.flatnonzero(mask[i])
+        out.append(
+            Root(
+                main=main[i],
+                laterals=tuple(lats[i, k] for k in keep),
+                attach=np.clip(attach[i, keep], 0.0, 1.0),
+                name=names[i] if names is not None else "",
+            )
+        )
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Batches of Modules
+
+
+def stack(trees: Sequence[eqx.Module]) -> eqx.Module:
+    """Stack Modules of the same type and shapes along a new leading axis."""
+    trees = list(trees)
+    if not trees:
+        raise ValueError("stack() needs at least one tree.")
+    shapes = {jax.tree.map(lambda x: tuple(x.shape), t).__repr__() for t in trees}
+    if len(shapes) != 1:
+        raise ValueError(
+            "stack(): trees have different capacities or shapes; build them with the same "
+            "n_points / max_laterals (e.g. one call to batch())."
+        )
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *trees)
+
+
+def unstack(tree: eqx.Module) -> list:
+    """Split a batched Module along its leading axis."""
+    leaves = jax.tree.leaves(tree)
+    n = leaves[0].shape[0]
+    return [jax.tree.map(lambda x: x[i], tree) for i in range(n)]
+
+
+def batch_size(tree: RootTree | SRVFTree) -> int:
+    shape = tree.batch_shape
+    if len(shape) != 1:
+        raise ValueError(f"expected a batch with one leading axis, got batch shape {shape}.")
+    return shape[0]
+
+
+# --------------------------------------------------------------------------------------------
+# RootTree <-> SRVFTree
+
+
+def to_srvf(tree: RootTree | SRVFTree) -> SRVFTree:
+    """SRVF tree of a (batched) `RootTree`; an `SRVFTree` is returned unchanged."""
+    if isinstance(tree, SRVFTree):
+        return tree
+    if not isinstance(tree, RootTree):
+        raise TypeError(
+            f"expected a RootTree or SRVFTree, got {type(tree).__name__}; "
+            "use rootshape_jax.batch(roots) to build one from Root objects."
+        )
+    q0 = srvf(tree.main)
+    q = srvf(tree.laterals) * tree.mask[..., None, None]
+    return SRVFTree(q0=q0, q=q, s=tree.attach, mask=tree.mask, origin=tree.main[..., 0, :])
+
+
+def _to_curves_single(t: SRVFTree) -> RootTree:
+    main = srvf_to_curve(t.q0, t.origin)
+    bases = interpolate_at_fraction(main, t.s)  # (K, d)
+    q = t.q * t.mask[:, None, None]
+    lats = jax.vmap(srvf_to_curve)(q, bases)
+    return RootTree(main=main, laterals=lats, attach=t.s, mask=t.mask)
+
+
+def to_curves(tree: SRVFTree | RootTree) -> RootTree:
+    """Curves of a (batched) `SRVFTree`: integrate the main root from `origin`, then each
+    lateral from the main-root point at arc-length fraction `s` (DESIGN.md §5)."""
+    if isinstance(tree, RootTree):
+        return tree
+    if not isinstance(tree, SRVFTree):
+        raise TypeError(f"expected an SRVFTree, got {type(tree).__name__}.")
+    fn = _to_curves_single
+    for _ in tree.batch_shape:
+        fn = jax.vmap(fn)
+    return fn(tree)
+
+
+def check_compatible(a: RootTree | SRVFTree, b: RootTree | SRVFTree, what: str = "trees") -> None:
+    """Raise a clear ValueError when two trees cannot be compared (capacities, d, dtype)."""
+    if (a.n_points, a.capacity, a.dim) != (b.n_points, b.capacity, b.dim):
+        raise ValueError(
+            f"{what} have different capacities: (T, K, d) = {(a.n_points, a.capacity, a.dim)} vs "
+            f"{(b.n_points, b.capacity, b.dim)}. Build them in one call to batch() or pass the same "
+            "n_points and max_laterals."
+        )

@@ -1,0 +1,2 @@
+def simulated_roots(): pass
+def available_species(): pass
