@@ -1,1 +1,51 @@
-"""rootshape_jax."""
+"""rootshape_jax: statistical shape analysis of plant root systems, in JAX.
+
+A root is a main root plus first-order laterals; each branch is an SRVF and the tree is padded
+with null laterals to fixed capacities, so the elastic metric, registration, distance matrices
+and Karcher means are jit/vmap-compiled. See README.md and DESIGN.md.
+"""
+
+from ._errors import (
+    CapacityError as CapacityError,
+    ImageError as ImageError,
+    InvalidRootError as InvalidRootError,
+    MissingDependencyError as MissingDependencyError,
+    RootShapeError as RootShapeError,
+    RSMLError as RSMLError,
+)
+from ._root import Root as Root
+from ._curves import (
+    curve_length as curve_length,
+    l2_norm_squared as l2_norm_squared,
+    resample_curve as resample_curve,
+    srvf as srvf,
+    srvf_to_curve as srvf_to_curve,
+)
+from ._rotation import optimal_rotation as optimal_rotation
+from ._tree import (
+    RootTree as RootTree,
+    SRVFTree as SRVFTree,
+    batch as batch,
+    stack as stack,
+    to_curves as to_curves,
+    to_roots as to_roots,
+    to_srvf as to_srvf,
+    unstack as unstack,
+)
+from ._metric import (
+    MetricTerms as MetricTerms,
+    Weights as Weights,
+    preshape_distance_squared as preshape_distance_squared,
+)
+from ._registration import (
+    Registration as Registration,
+    distance as distance,
+    register as register,
+)
+from ._pairwise import (
+    cross_distances as cross_distances,
+    pairwise_distances as pairwise_distances,
+)
+from ._geodesic import geodesic as geodesic
+
+__version__ = "0.1.0"

@@ -25,7 +25,7 @@ import jax.lax as lax
 import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
-from jaxtyping import Array, ArrayLike, Float, Int, Scalar
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._errors import RootShapeError
 
@@ -208,7 +208,7 @@ def linear_assignment(
 
 def assignment_cost(
     cost: Float[ArrayLike, "K K"], perm: Int[ArrayLike, " K"]
-) -> Float[Scalar, ""]:
+) -> Float[Array, ""]:
     """Total cost `sum_i cost[i, perm[i]]` of an assignment, gathered in JAX.
 
     Differentiable in `cost`: the gradient is the 0/1 matrix with ones at `(i, perm[i])`.

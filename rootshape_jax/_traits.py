@@ -116,8 +116,14 @@ def _diameter(points: np.ndarray) -> float:
     if points.shape[1] == 1:
         return float(points.max() - points.min())
     pts = np.unique(points, axis=0)
-    if len(pts) > 3 and _hull_measure(pts) > 0:
+    if _hull_measure(pts) > 0:
         pts = pts[scipy.spatial.ConvexHull(pts).vertices]
+    else:
+        # Collinear (or a single point): the extent along the principal direction.
+        centred = pts - pts.mean(axis=0)
+        axis = np.linalg.svd(centred, full_matrices=False)[2][0]
+        proj = centred @ axis
+        return float(proj.max() - proj.min())
     diff = pts[:, None, :] - pts[None, :, :]
     return float(np.sqrt(np.max(np.sum(diff * diff, axis=-1))))
 

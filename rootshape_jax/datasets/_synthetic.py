@@ -146,7 +146,7 @@ CONDITIONS: dict[str, RootParameters] = {
         main_length_mean=95.0,
         main_length_sd=12.0,
         apical_zone=15.0,
-        lateral_density=0.30,
+        lateral_density=0.34,
         lateral_length_base=55.0,
         lateral_length_tip=8.0,
     ),

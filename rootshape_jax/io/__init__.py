@@ -1,0 +1,4 @@
+"""Reading and writing root systems: RSML files and scanned images."""
+
+from ._image import roots_from_image as roots_from_image
+from ._rsml import read_rsml as read_rsml, write_rsml as write_rsml

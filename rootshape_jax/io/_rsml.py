@@ -1,0 +1,741 @@
+"""RSML (Root System Markup Language) reading and writing.
+
+RSML stores a scene of plants; each plant holds roots (``<root>``), each root a
+``<geometry><polyline>`` of ``<point x= y= [z=]/>`` and its child roots nested inside it.
+This module maps every top-level root of every plant to one `Root`: its direct children are the
+laterals, deeper orders go to `Root.children` (one `Root` per lateral, recursively).
+
+Only ``xml.etree`` is used. Tags and attribute names are matched on their local name,
+case-insensitively, so ``point``/``Point``, ``id``/``ID`` and namespaced files all read.
+"""
+
+from __future__ import annotations
+
+import datetime
+import math
+import os
+import warnings
+import xml.etree.ElementTree as ET
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._errors import RSMLError, RSMLWarning
+from .._root import Root
+
+_PO_NS = "http://www.plantontology.org/xml-dtd/po.dtd"
+_PIXEL_UNITS = ("pixel", "pixels", "px")
+
+
+# --------------------------------------------------------------------------------------------
+# Small XML helpers: local names, case-insensitive.
+
+
+def _local(name: Any) -> str:
+    if not isinstance(name, str):  # comments / processing instructions
+        return ""
+    return name.rsplit("}", 1)[-1].rsplit(":", 1)[-1].lower()
+
+
+def _attr(elem: ET.Element, name: str) -> str | None:
+    for key, value in elem.attrib.items():
+        if _local(key) == name:
+            return value
+    return None
+
+
+def _children(elem: ET.Element, name: str) -> list[ET.Element]:
+    return [c for c in elem if _local(c.tag) == name]
+
+
+def _child(elem: ET.Element | None, name: str) -> ET.Element | None:
+    if elem is None:
+        return None
+    for c in elem:
+        if _local(c.tag) == name:
+            return c
+    return None
+
+
+def _text(elem: ET.Element | None) -> str | None:
+    if elem is None or elem.text is None:
+        return None
+    text = elem.text.strip()
+    return text or None
+
+
+def _number(text: str | None) -> int | float | str | None:
+    """Property values: int or float when they parse, else the stripped text."""
+    if text is None:
+        return None
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            pass
+    return text
+
+
+# --------------------------------------------------------------------------------------------
+# Reading.
+
+
+@dataclass
+class _Node:
+    """One parsed ``<root>`` element, before the file's dimension is known."""
+
+    where: str  # human-readable location, used in every message about this root
+    rid: str | None
+    label: str | None
+    accession: str | None
+    properties: dict
+    functions: dict
+    parent_node: int | None
+    points: np.ndarray | None = None  # (n, 3), z = 0 where absent; None when unreadable
+    has_z: bool = False
+    problem: str | None = None
+    children: list["_Node"] = field(default_factory=list)
+    position: str = ""  # "1", "1.3", ... (1-based position among sibling roots)
+
+    def n_descendants(self) -> int:
+        return sum(1 + c.n_descendants() for c in self.children)
+
+
+class _Problems:
+    """Collects unreadable parts; raises at once when strict."""
+
+    def __init__(self, source: str, strict: bool):
+        self.source = source
+        self.strict = strict
+        self.items: list[str] = []
+
+    def report(self, where: str, message: str) -> None:
+        if self.strict:
+            raise RSMLError(f"{self.source}: {where}: {message}")
+        self.items.append(f"{where}: {message}")
+
+    def warn(self, stacklevel: int) -> None:
+        if not self.items:
+            return
+        shown = self.items[:20]
+        more = f"; ... and {len(self.items) - 20} more" if len(self.items) > 20 else ""
+        warnings.warn(
+            RSMLWarning(
+                f"{self.source}: skipped {len(self.items)} unreadable part(s) "
+                f"(pass strict=True to raise instead): " + "; ".join(shown) + more
+            ),
+            stacklevel=stacklevel,
+        )
+
+
+def _parse_points(polyline: ET.Element) -> tuple[np.ndarray, bool]:
+    """Points of a ``<polyline>`` as (n, 3) with z = 0 where absent; raises ValueError."""
+    rows = []
+    z_flags = []
+    for k, pt in enumerate(_children(polyline, "point")):
+        coords = {}
+        for axis in ("x", "y", "z"):
+            raw = _attr(pt, axis)
+            if raw is None:  # older writers: <point><x>1</x><y>2</y></point>
+                raw = _text(_child(pt, axis))
+            coords[axis] = raw
+        for axis in ("x", "y"):
+            if coords[axis] is None:
+                raise ValueError(f"point {k} has no {axis} coordinate")
+        values = []
+        for axis in ("x", "y", "z"):
+            raw = coords[axis]
+            if raw is None:
+                values.append(0.0)
+                continue
+            try:
+                v = float(raw)
+            except ValueError:
+                raise ValueError(f"point {k}: {axis}={raw!r} is not a number") from None
+            if not math.isfinite(v):
+                raise ValueError(f"point {k}: {axis}={raw!r} is not finite")
+            values.append(v)
+        rows.append(values)
+        z_flags.append(coords["z"] is not None)
+    if len(rows) < 2:
+        raise ValueError(f"polyline has {len(rows)} point(s); a root needs at least 2")
+    if any(z_flags) and not all(z_flags):
+        raise ValueError("some points have a z coordinate and others do not")
+    pts = np.asarray(rows, dtype=np.float64)
+    if not np.any(np.linalg.norm(np.diff(pts, axis=0), axis=1) > 0):
+        raise ValueError("all points of the polyline coincide (zero length)")
+    return pts, all(z_flags)
+
+
+def _parse_functions(root_el: ET.Element) -> dict:
+    out = {}
+    for fns in _children(root_el, "functions"):
+        for fn in _children(fns, "function"):
+            name = _attr(fn, "name") or f"function{len(out)}"
+            domain = (_attr(fn, "domain") or "polyline").strip().lower()
+            values, positions = [], []
+            for s in _children(fn, "sample"):
+                raw = _attr(s, "value")
+                if raw is None:
+                    raw = _text(s)
+                try:
+                    values.append(float(raw) if raw is not None else math.nan)
+                except ValueError:
+                    values.append(math.nan)
+                pos = _attr(s, "position")
+                try:
+                    positions.append(float(pos) if pos is not None else math.nan)
+                except ValueError:
+                    positions.append(math.nan)
+            entry = {"domain": domain, "values": np.asarray(values, dtype=np.float64)}
+            origin = _attr(fn, "origin")
+            if origin is not None:
+                entry["origin"] = origin
+            if domain == "length" or not all(math.isnan(p) for p in positions):
+                entry["positions"] = np.asarray(positions, dtype=np.float64)
+            out[name] = entry
+    return out
+
+
+def _parse_properties(elem: ET.Element) -> dict:
+    out = {}
+    for props in _children(elem, "properties"):
+        for p in props:
+            key = _local(p.tag)
+            if not key:
+                continue
+            raw = _attr(p, "value")
+            out[key] = _number(raw if raw is not None else _text(p))
+    return out
+
+
+def _parse_root(el: ET.Element, where_prefix: str, position: str) -> _Node:
+    rid = _attr(el, "id")
+    rid = rid.strip() if rid and rid.strip() else None
+    label = _attr(el, "label")
+    label = label.strip() if label and label.strip() else None
+    name_bit = f"root id={rid!r}" if rid else (f"root label={label!r}" if label else "root")
+    where = f"{where_prefix}, {name_bit} (root #{position})"
+    props = _parse_properties(el)
+    pn = props.get("parent-node")
+    node = _Node(
+        where=where,
+        rid=rid,
+        label=label,
+        accession=_attr(el, "accession"),
+        properties=props,
+        functions=_parse_functions(el),
+        parent_node=pn if isinstance(pn, int) else None,
+        position=position,
+    )
+    geometry = _child(el, "geometry")
+    polyline = _child(geometry, "polyline")
+    if geometry is None:
+        node.problem = "has no <geometry>" if len(el) else "is empty (no <geometry>)"
+    elif polyline is None:
+        node.problem = "<geometry> has no <polyline>"
+    else:
+        try:
+            node.points, node.has_z = _parse_points(polyline)
+        except ValueError as e:
+            node.problem = str(e)
+    for k, c in enumerate(_children(el, "root")):
+        node.children.append(_parse_root(c, where_prefix, f"{position}.{k + 1}"))
+    return node
+
+
+def _closest(poly: np.ndarray, p: np.ndarray) -> tuple[float, float]:
+    """(arc length along ``poly`` of its point closest to ``p``, distance to it)."""
+    seg = np.diff(poly, axis=0)
+    seg_len2 = np.sum(seg * seg, axis=1)
+    rel = p[None, :] - poly[:-1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = np.where(seg_len2 > 0, np.sum(rel * seg, axis=1) / seg_len2, 0.0)
+    u = np.clip(u, 0.0, 1.0)
+    dist = np.linalg.norm(poly[:-1] + u[:, None] * seg - p[None, :], axis=1)
+    best = int(np.argmin(dist))
+    cum = np.concatenate([[0.0], np.cumsum(np.sqrt(seg_len2))])
+    return float(cum[best] + u[best] * np.sqrt(seg_len2[best])), float(dist[best])
+
+
+def attachment_fraction(
+    parent: np.ndarray, lateral: np.ndarray, parent_node: int | None
+) -> tuple[float, str]:
+    """Arc-length fraction of a lateral's attachment on its parent, and how it was found.
+
+    The RSML ``parent-node`` (index of a parent polyline point) is used when it agrees with the
+    geometry: the lateral's first point must be no farther from the parent's polyline around
+    that node (the two segments touching it, which tolerates an off-by-one index) than from the
+    whole parent, plus half a local segment length. The fraction is then the projection of the
+    lateral's first point onto those two segments. Otherwise — no ``parent-node``, an index out
+    of range, or one that points elsewhere — the first point is projected onto the whole parent.
+    Returns ``(fraction, "parent-node" | "projection")``.
+    """
+    base = lateral[0]
+    seg_len = np.linalg.norm(np.diff(parent, axis=0), axis=1)
+    total = float(np.sum(seg_len))
+    s_all, d_all = _closest(parent, base)
+    n = parent.shape[0]
+    if parent_node is not None and 0 <= parent_node <= n:  # == n: a 1-based last index
+        centre = min(parent_node, n - 1)
+        lo, hi = max(centre - 1, 0), min(centre + 1, n - 1)
+        window = parent[lo : hi + 1]
+        s_win, d_win = _closest(window, base)
+        tol = 0.5 * float(np.max(seg_len[lo:hi])) + 1e-9 * max(total, 1.0)
+        if d_win <= d_all + tol:
+            s = float(np.sum(seg_len[:lo])) + s_win
+            return min(max(s / total, 0.0), 1.0), "parent-node"
+    return min(max(s_all / total, 0.0), 1.0), "projection"
+
+
+def _source_name(path: Any) -> tuple[str, str]:
+    """(label used in messages and metadata, stem used in generated names)."""
+    if isinstance(path, (str, os.PathLike)):
+        p = Path(path)
+        return str(p), p.stem
+    name = getattr(path, "name", None)
+    if isinstance(name, str):
+        return name, Path(name).stem
+    return "<stream>", "rsml"
+
+
+def _file_metadata(meta_el: ET.Element | None, problems: _Problems, physical_units: bool):
+    """Metadata shared by every root of the file, and the coordinate scale factor."""
+    info: dict[str, Any] = {}
+    unit_raw = _text(_child(meta_el, "unit"))
+    res_raw = _text(_child(meta_el, "resolution"))
+    resolution = None
+    if res_raw is not None:
+        try:
+            resolution = float(res_raw)
+        except ValueError:
+            resolution = None
+        if resolution is not None and not (math.isfinite(resolution) and resolution > 0):
+            resolution = None
+        if resolution is None:
+            problems.report("<metadata>", f"<resolution> {res_raw!r} is not a positive number")
+    for tag in ("version", "software", "last-modified", "user", "file-key"):
+        value = _text(_child(meta_el, tag))
+        if value is not None:
+            info[tag.replace("-", "_")] = value
+    ts = _child(meta_el, "time-sequence")
+    if ts is not None:
+        label = _text(_child(ts, "label"))
+        index = _number(_text(_child(ts, "index")))
+        unified = _text(_child(ts, "unified"))
+        if label is not None:
+            info["time_sequence"] = label
+        if index is not None:
+            info["time_index"] = index
+        if unified is not None:
+            info["time_unified"] = unified.lower() == "true"
+    image = _child(meta_el, "image")
+    if image is not None:
+        info["image"] = {_local(c.tag): _text(c) for c in image if _local(c.tag)}
+    species = _text(_child(meta_el, "species"))
+    if species is not None:
+        info["species"] = species
+
+    scale = 1.0
+    is_pixel = unit_raw is None or unit_raw.lower() in _PIXEL_UNITS
+    info["file_unit"] = unit_raw
+    info["resolution"] = resolution
+    if not physical_units or is_pixel:
+        info["unit"] = "pixel"
+    elif resolution is None:
+        if res_raw is None:
+            problems.report(
+                "<metadata>", f"unit {unit_raw!r} without <resolution>; coordinates kept in pixels"
+            )
+        info["unit"] = "pixel"
+    else:
+        info["unit"] = unit_raw
+        scale = 1.0 / resolution
+    return info, scale
+
+
+def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: bool = True) -> list[Root]:
+    """Read every root system of an RSML file.
+
+    **Arguments**
+
+    - `path`: the ``.rsml`` file (a path or an open binary file).
+    - `strict`: if True, anything unreadable raises `RSMLError` (naming the file and the root).
+      If False (default), unreadable roots are skipped with one `RSMLWarning` per file that
+      lists them, and everything else is returned.
+    - `physical_units`: convert coordinates to the file's unit (see below). If False, keep the
+      stored pixel coordinates and report ``unit = "pixel"``.
+
+    **Returns** a list of `Root`, one per top-level (order-1) root of every plant, in file
+    order. A plant with several top-level roots (seminal / nodal axes, several seedlings) gives
+    several `Root`s sharing ``metadata["plant_id"]``.
+
+    - `Root.laterals` are the order-2 roots inside the top-level root; `Root.children` holds
+      one `Root` per lateral (its `main` is that lateral, its laterals are the order-3 roots,
+      and so on), so deeper orders are kept.
+    - `Root.attach`: from the RSML ``parent-node`` property when it agrees with the geometry,
+      otherwise by projecting the lateral's first point onto its parent (see
+      `attachment_fraction`); each child records ``metadata["attach_method"]``.
+    - Units: RSML stores pixel coordinates, ``<unit>`` names a physical unit and
+      ``<resolution>`` the number of pixels per that unit (SmartRoot: ``inch`` and dpi). With
+      ``physical_units=True`` the returned coordinates are ``stored / resolution`` in that
+      unit. Files in ``pixel`` (or with no ``<unit>``) are returned as stored. A physical unit
+      without a usable resolution keeps pixels (with a warning). ``metadata["unit"]`` always
+      names the unit of the returned coordinates; ``metadata["resolution"]`` and
+      ``metadata["file_unit"]`` are the file's values. Function samples (e.g. diameters) are
+      never rescaled.
+    - Dimension: the file is 3D if any polyline point has a non-zero ``z``; otherwise roots are
+      returned 2D (``z = 0`` is dropped). In a 3D file a root without ``z`` lies in ``z = 0``.
+    - Names: the root's ``label`` when it is set and unique in the file, else
+      ``"{file stem}/{plant id}/{root id or position}"``.
+    - Metadata on every `Root`: ``file``, ``plant_id``, ``plant_label``, ``root_id``,
+      ``root_label``, ``order``, ``unit``, ``resolution``, ``file_unit`` and, where present,
+      ``accession`` (``po:accession``), ``species``, ``software``, ``time_index``,
+      ``time_sequence``, ``properties``, ``functions`` (``{name: {"domain", "values",
+      ["positions", "origin"]}}``), ``parent_node``.
+
+    Unreadable (skipped or raising): malformed XML, no ``<scene>``, a root without geometry
+    or with an empty ``<root/>``, a polyline with fewer than 2 points or coinciding points,
+    a non-numeric / NaN / inf coordinate. A bad lateral drops only that lateral (and its own
+    sub-roots). A file with nothing readable raises with ``strict=True`` and warns and returns
+    ``[]`` otherwise. Extra geometry (``<rootnavspline>``, ...) is ignored.
+    """
+    source, stem = _source_name(path)
+    problems = _Problems(source, strict)
+    if isinstance(path, (str, os.PathLike)) and not Path(path).is_file():
+        raise FileNotFoundError(f"RSML file not found: {source}")
+
+    try:
+        doc = ET.parse(path)
+    except ET.ParseError as e:
+        return _nothing(problems, f"not well-formed XML ({e})")
+    top = doc.getroot()
+    scene = top if _local(top.tag) == "scene" else _child(top, "scene")
+    if scene is None:
+        return _nothing(problems, f"no <scene> element (top element is <{_local(top.tag)}>)")
+
+    info, scale = _file_metadata(_child(top, "metadata"), problems, physical_units)
+    info["file"] = source
+
+    # Pass 1: parse every root, geometry still (n, 3).
+    plants = []
+    for i, plant_el in enumerate(_children(scene, "plant")):
+        pid = _attr(plant_el, "id")
+        pid = pid.strip() if pid and pid.strip() else str(i + 1)
+        plabel = _attr(plant_el, "label")
+        prefix = f"plant {pid!r}"
+        nodes = [
+            _parse_root(r, prefix, str(k + 1)) for k, r in enumerate(_children(plant_el, "root"))
+        ]
+        plant_info = {"plant_id": pid, "plant_label": plabel.strip() if plabel else None}
+        pprops = _parse_properties(plant_el)
+        species = pprops.get("species", _attr(plant_el, "species"))
+        if species is not None:
+            plant_info["species"] = str(species)
+        accession = _attr(plant_el, "accession")
+        if accession is not None:
+            plant_info["plant_accession"] = accession
+        plants.append((plant_info, nodes))
+    # Roots directly under <scene> (seen in hand-made files): one anonymous plant.
+    loose = _children(scene, "root")
+    if loose:
+        nodes = [_parse_root(r, "scene", str(k + 1)) for k, r in enumerate(loose)]
+        plants.append(({"plant_id": str(len(plants) + 1), "plant_label": None}, nodes))
+
+    all_nodes = [n for _, nodes in plants for n in _walk(nodes)]
+    is_3d = any(
+        n.points is not None and n.has_z and np.any(n.points[:, 2] != 0) for n in all_nodes
+    )
+    dim = 3 if is_3d else 2
+    label_count: dict[str, int] = {}
+    for n in all_nodes:
+        if n.label:
+            label_count[n.label] = label_count.get(n.label, 0) + 1
+
+    def name_of(node: _Node, pid: str) -> str:
+        if node.label and label_count[node.label] == 1:
+            return node.label
+        return f"{stem}/{pid}/{node.rid or node.position}"
+
+    def build(node: _Node, plant_info: dict, order: int, extra: dict) -> Root:
+        main = node.points[:, :dim] * scale
+        lats, attach, kids = [], [], []
+        for child in node.children:
+            if child.problem is not None:
+                problems.report(child.where, _problem_text(child))
+                continue
+            lat = child.points[:, :dim] * scale
+            frac, method = attachment_fraction(main, lat, child.parent_node)
+            kids.append(build(child, plant_info, order + 1, {"attach_method": method}))
+            lats.append(kids[-1].main)
+            attach.append(frac)
+        meta = dict(info)
+        meta.update(plant_info)
+        meta.update(root_id=node.rid, root_label=node.label, order=order)
+        if "species" in node.properties:
+            meta["species"] = str(node.properties["species"])
+        if node.accession is not None:
+            meta["accession"] = node.accession
+        if node.properties:
+            meta["properties"] = node.properties
+        if node.functions:
+            meta["functions"] = node.functions
+        if node.parent_node is not None:
+            meta["parent_node"] = node.parent_node
+        meta.update(extra)
+        return Root(
+            main=main,
+            laterals=tuple(lats),
+            attach=np.asarray(attach, dtype=np.float64),
+            name=name_of(node, plant_info["plant_id"]),
+            metadata=meta,
+            children=tuple(kids),
+        )
+
+    roots = []
+    n_top = 0
+    for plant_info, nodes in plants:
+        for node in nodes:
+            n_top += 1
+            if node.problem is not None:
+                problems.report(node.where, _problem_text(node))
+                continue
+            roots.append(build(node, plant_info, 1, {}))
+    if not roots:
+        what = "no root" if n_top == 0 else f"none of its {n_top} top-level root(s) has usable geometry"
+        if strict:
+            raise RSMLError(f"{source}: nothing readable: {what}.")
+        problems.items.insert(0, f"nothing readable: {what}")
+    problems.warn(stacklevel=3)
+    return roots
+
+
+def _problem_text(node: _Node) -> str:
+    k = node.n_descendants()
+    return node.problem + (f" (its {k} sub-root(s) are skipped with it)" if k else "")
+
+
+def _walk(nodes: Iterable[_Node]):
+    for n in nodes:
+        yield n
+        yield from _walk(n.children)
+
+
+def _nothing(problems: _Problems, message: str) -> list[Root]:
+    if problems.strict:
+        raise RSMLError(f"{problems.source}: {message}.")
+    problems.items.append(message)
+    problems.warn(stacklevel=4)
+    return []
+
+
+# --------------------------------------------------------------------------------------------
+# Writing.
+
+
+def _fmt(v: float) -> str:
+    return repr(float(v))  # shortest exact round-trip form
+
+
+def _common(roots: Sequence[Root], key: str):
+    values = {repr(r.metadata.get(key)) for r in roots}
+    return roots[0].metadata.get(key) if len(values) == 1 else None
+
+
+def _nearest_node(poly: np.ndarray, fraction: float) -> int:
+    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    return int(np.argmin(np.abs(cum - fraction * cum[-1])))
+
+
+def write_rsml(
+    roots: Root | Sequence[Root],
+    path: str | os.PathLike,
+    *,
+    unit: str | None = None,
+    resolution: float | None = None,
+    software: str = "rootshape_jax",
+) -> None:
+    """Write roots to an RSML 1.0 file that `read_rsml` (and other RSML tools) read back.
+
+    **Arguments**
+
+    - `roots`: a `Root` or a sequence of them.
+    - `path`: the output file.
+    - `unit`: unit of the roots' coordinates. Default: their common ``metadata["unit"]``,
+      else ``"pixel"``.
+    - `resolution`: pixels per `unit` written in the file. RSML stores pixel coordinates, so
+      the coordinates are multiplied by it (and `read_rsml` divides them back). Default: the
+      roots' common ``metadata["resolution"]`` for a physical unit, else 1. Must be 1 (or None)
+      for pixel units.
+    - `software`: written in ``<metadata><software>``.
+
+    **Layout**: roots sharing ``metadata["plant_id"]`` are written in one ``<plant>`` (in
+    first-seen order); a root without it gets its own plant. Each root's ``name`` is its
+    ``label``, its id is ``metadata["root_id"]`` when set and unused, else a generated unique
+    id. Laterals are child ``<root>``s with a ``parent-node`` property (index of the main
+    polyline point nearest to the attachment); `Root.children` are written recursively (a
+    child's `main` must equal its lateral). 2D roots are written without ``z``; if any root is
+    3D, 2D roots get ``z = 0``. Functions kept in ``metadata["functions"]`` are written back
+    (polyline-domain ones only when their sample count still matches the polyline).
+
+    The attachment fractions read back equal `Root.attach` when each lateral starts on the main
+    root (as from `read_rsml`, `roots_from_image` and `Root(attach=None)`); RSML stores only
+    the parent node, so a lateral starting away from its attachment reads back projected.
+    """
+    if isinstance(roots, Root):
+        roots = [roots]
+    roots = list(roots)
+    if not roots:
+        raise RSMLError("write_rsml: no roots to write (got an empty sequence).")
+    for i, r in enumerate(roots):
+        if not isinstance(r, Root):
+            raise TypeError(f"write_rsml: item {i} is a {type(r).__name__}, expected a Root.")
+
+    if unit is None:
+        units = {r.metadata.get("unit") for r in roots} - {None}
+        if len(units) > 1:
+            raise RSMLError(
+                f"write_rsml: the roots carry different units {sorted(units)}; convert them to "
+                "one unit first (or pass unit= to state the unit of all coordinates)."
+            )
+        unit = units.pop() if units else "pixel"
+    is_pixel = unit.lower() in _PIXEL_UNITS
+    if resolution is None:
+        common = _common(roots, "resolution")
+        if is_pixel or common is None or _common(roots, "unit") != unit:
+            resolution = 1.0
+        else:
+            resolution = float(common)
+    resolution = float(resolution)
+    if not (math.isfinite(resolution) and resolution > 0):
+        raise RSMLError(f"write_rsml: resolution must be a positive number, got {resolution}.")
+    if is_pixel and resolution != 1.0:
+        raise RSMLError(
+            f"write_rsml: unit {unit!r} is pixels, so resolution must be 1 (got {resolution}); "
+            "pass a physical unit (e.g. unit='mm') to write a pixel density."
+        )
+    dim3 = any(r.dim == 3 for r in roots)
+
+    top = ET.Element("rsml", {"xmlns:po": _PO_NS})
+    meta = ET.SubElement(top, "metadata")
+    for tag, text in (
+        ("version", "1.0"),
+        ("unit", unit),
+        ("resolution", _fmt(resolution)),
+        ("last-modified", datetime.datetime.now().replace(microsecond=0).isoformat()),
+        ("software", software),
+    ):
+        ET.SubElement(meta, tag).text = text
+    defs = ET.SubElement(meta, "property-definitions")
+    pdef = ET.SubElement(defs, "property-definition")
+    ET.SubElement(pdef, "label").text = "parent-node"
+    ET.SubElement(pdef, "type").text = "integer"
+    t_index, t_label = _common(roots, "time_index"), _common(roots, "time_sequence")
+    if t_index is not None or t_label is not None:
+        ts = ET.SubElement(meta, "time-sequence")
+        if t_label is not None:
+            ET.SubElement(ts, "label").text = str(t_label)
+        if t_index is not None:
+            ET.SubElement(ts, "index").text = str(t_index)
+    scene = ET.SubElement(top, "scene")
+
+    # Plants: group by metadata plant id, keep first-seen order.
+    groups: dict[str, list[Root]] = {}
+    plant_meta: dict[str, Root] = {}
+    used_pids = {str(r.metadata["plant_id"]) for r in roots if r.metadata.get("plant_id") is not None}
+    next_pid = 1
+    for r in roots:
+        pid = r.metadata.get("plant_id")
+        if pid is None:
+            while str(next_pid) in used_pids:
+                next_pid += 1
+            pid = str(next_pid)
+            used_pids.add(pid)
+        pid = str(pid)
+        groups.setdefault(pid, []).append(r)
+        plant_meta.setdefault(pid, r)
+
+    used_ids: set[str] = set()
+    for pid, members in groups.items():
+        first = plant_meta[pid]
+        attrs = {"id": pid}
+        if first.metadata.get("plant_label"):
+            attrs["label"] = str(first.metadata["plant_label"])
+        plant_el = ET.SubElement(scene, "plant", attrs)
+        for k, r in enumerate(members):
+            _write_root(plant_el, r.main, r, f"{pid}.{k + 1}", None, resolution, dim3, used_ids)
+
+    ET.indent(top, space="  ")
+    ET.ElementTree(top).write(path, encoding="UTF-8", xml_declaration=True)
+
+
+def _unique_id(wanted: Any, fallback: str, used: set[str]) -> str:
+    if wanted is not None and str(wanted).strip() and str(wanted) not in used:
+        rid = str(wanted)
+    else:
+        rid, n = fallback, 1
+        while rid in used:
+            n += 1
+            rid = f"{fallback}-{n}"
+    used.add(rid)
+    return rid
+
+
+def _write_root(parent_el, polyline, root, fallback_id, parent_node, resolution, dim3, used_ids):
+    """One ``<root>``: ``polyline`` is its geometry; ``root`` (or None) gives names and laterals."""
+    meta = root.metadata if root is not None else {}
+    attrs = {"id": _unique_id(meta.get("root_id"), fallback_id, used_ids)}
+    if root is not None and root.name:
+        attrs["label"] = root.name
+    if meta.get("accession"):
+        attrs["po:accession"] = str(meta["accession"])
+    el = ET.SubElement(parent_el, "root", attrs)
+    if parent_node is not None:
+        props = ET.SubElement(el, "properties")
+        ET.SubElement(props, "parent-node", {"value": str(parent_node)})
+    geom = ET.SubElement(ET.SubElement(el, "geometry"), "polyline")
+    pts = np.asarray(polyline, dtype=np.float64) * resolution
+    for p in pts:
+        a = {"x": _fmt(p[0]), "y": _fmt(p[1])}
+        if dim3:
+            a["z"] = _fmt(p[2]) if p.shape[0] == 3 else "0.0"
+        ET.SubElement(geom, "point", a)
+    functions = meta.get("functions") or {}
+    written = {
+        name: f
+        for name, f in functions.items()
+        if f.get("domain", "polyline") != "polyline" or len(f["values"]) == pts.shape[0]
+    }
+    if written:
+        fns = ET.SubElement(el, "functions")
+        for name, f in written.items():
+            fa = {"name": str(name), "domain": f.get("domain", "polyline")}
+            if f.get("origin") is not None:
+                fa["origin"] = str(f["origin"])
+            fn = ET.SubElement(fns, "function", fa)
+            positions = f.get("positions")
+            for j, v in enumerate(f["values"]):
+                sa = {"value": _fmt(v)}
+                if positions is not None and not math.isnan(positions[j]):
+                    sa["position"] = _fmt(positions[j])
+                ET.SubElement(fn, "sample", sa)
+    if root is None:
+        return
+    for k, lat in enumerate(root.laterals):
+        child = root.children[k] if root.children else None
+        if child is not None and (
+            child.main.shape != lat.shape or not np.allclose(child.main, lat, rtol=1e-12, atol=0)
+        ):
+            raise RSMLError(
+                f"write_rsml: root {root.name!r}: children[{k}].main differs from laterals[{k}]; "
+                "a child Root must describe the same polyline as its lateral."
+            )
+        if child is None:
+            # Named so that the lateral keeps an identity when read back.
+            child = Root(main=lat, name=f"{root.name}/{k + 1}" if root.name else "")
+        node = _nearest_node(root.main, float(root.attach[k]))
+        _write_root(el, lat, child, f"{attrs['id']}.{k + 1}", node, resolution, dim3, used_ids)

@@ -1,0 +1,431 @@
+"""Shared drawing machinery: slot colours, input conversion, one root on one Axes, layout.
+
+Nothing here touches matplotlib's global state: figures are `matplotlib.figure.Figure`
+objects (no GUI, no backend choice) unless the user already imported `matplotlib.pyplot`, in
+which case they are made through pyplot so that notebooks and `plt.show()` display them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+import matplotlib
+import matplotlib.colors as mcolors
+import numpy as np
+from matplotlib.collections import LineCollection
+from matplotlib.figure import Figure
+
+from .._root import Root
+from .._tree import RootTree, SRVFTree, to_curves
+
+MAIN_COLOR = "#1a1a1a"
+LATERAL_COLOR = "#a0622d"  # every lateral, when slot colours are off
+NEUTRAL_COLOR = "#6e6e6e"
+
+
+def _palette() -> tuple[str, ...]:
+    tab10 = matplotlib.colormaps["tab10"].colors
+    tab20 = matplotlib.colormaps["tab20"].colors
+    # Grey is dropped: it reads as the (dark) main root or as a null.
+    dark = [c for i, c in enumerate(tab10) if i != 7]
+    light = [c for i, c in enumerate(tab20) if i % 2 == 1 and i != 15]
+    return tuple(mcolors.to_hex(c) for c in dark + light)
+
+
+SLOT_PALETTE = _palette()
+
+
+def slot_color(k: int) -> str:
+    """Colour of lateral slot ``k``: fixed, so one slot has one colour in every plot.
+
+    The palette is matplotlib's qualitative ``tab10`` (without grey) followed by the light
+    half of ``tab20``: 18 colours, then it repeats.
+    """
+    return SLOT_PALETTE[int(k) % len(SLOT_PALETTE)]
+
+
+# --------------------------------------------------------------------------------------------
+# Inputs -> plain numpy drawings
+
+
+@dataclasses.dataclass(frozen=True)
+class Drawing:
+    """One root as numpy polylines: what the plotting code draws."""
+
+    main: np.ndarray  # (n, d)
+    laterals: tuple[tuple[int, np.ndarray], ...]  # (slot, (m, d)) for real laterals
+    nulls: tuple[tuple[int, np.ndarray], ...]  # (slot, (d,)) position of padding slots
+    unit: str | None = None
+    name: str = ""
+
+    @property
+    def dim(self) -> int:
+        return int(self.main.shape[1])
+
+
+def _from_root(root: Root) -> Drawing:
+    unit = root.metadata.get("unit")
+    return Drawing(
+        main=np.asarray(root.main, dtype=float),
+        laterals=tuple((k, np.asarray(lat, dtype=float)) for k, lat in enumerate(root.laterals)),
+        nulls=(),
+        unit=str(unit) if unit is not None else None,
+        name=root.name,
+    )
+
+
+def _from_arrays(main, lats, mask) -> Drawing:
+    return Drawing(
+        main=main,
+        laterals=tuple((k, lats[k]) for k in range(lats.shape[0]) if mask[k]),
+        nulls=tuple((k, lats[k, 0]) for k in range(lats.shape[0]) if not mask[k]),
+    )
+
+
+def _curves(x: Any, what: str) -> RootTree:
+    if isinstance(x, SRVFTree):
+        return to_curves(x)
+    if isinstance(x, RootTree):
+        return x
+    raise TypeError(
+        f"{what}: expected a rootshape_jax.Root or RootTree, got {type(x).__name__}. "
+        "Build a RootTree with rootshape_jax.batch(roots)."
+    )
+
+
+def _tree_drawings(tree: RootTree) -> np.ndarray:
+    """Object array of Drawings with the tree's batch shape (one host transfer per field)."""
+    main = np.asarray(tree.main, dtype=float)
+    lats = np.asarray(tree.laterals, dtype=float)
+    mask = np.asarray(tree.mask, dtype=bool)
+    batch = main.shape[:-2]
+    out = np.empty(batch, dtype=object)
+    for idx in np.ndindex(*batch):
+        out[idx] = _from_arrays(main[idx], lats[idx], mask[idx])
+    return out
+
+
+def as_drawing(x: Any, *, what: str) -> Drawing:
+    """One root: a `Root`, or an unbatched `RootTree` / `SRVFTree`."""
+    if isinstance(x, Root):
+        return _from_root(x)
+    tree = _curves(x, what)
+    if tree.batch_shape != ():
+        raise ValueError(
+            f"{what}: expected one root, got a batched RootTree with batch shape "
+            f"{tree.batch_shape}. Pick one with rootshape_jax.unstack(tree)[i], or use a plot "
+            "made for several roots (plot_geodesic, plot_mean, ...)."
+        )
+    return _tree_drawings(tree)[()]
+
+
+def as_drawing_list(xs: Any, *, what: str) -> list[Drawing]:
+    """Several roots: a batched `RootTree` (one leading axis) or a sequence of single roots."""
+    if isinstance(xs, (RootTree, SRVFTree)):
+        tree = _curves(xs, what)
+        if len(tree.batch_shape) != 1:
+            raise ValueError(
+                f"{what}: expected a RootTree with one leading batch axis, got batch shape "
+                f"{tree.batch_shape}. Use rootshape_jax.batch(roots) or stack(trees)."
+            )
+        out = list(_tree_drawings(tree))
+    elif isinstance(xs, Root):
+        raise TypeError(f"{what}: expected several roots, got one Root; wrap it in a list.")
+    elif isinstance(xs, Sequence) or isinstance(xs, np.ndarray):
+        out = [as_drawing(x, what=f"{what}[{i}]") for i, x in enumerate(xs)]
+    else:
+        raise TypeError(
+            f"{what}: expected a batched RootTree or a list of roots, got {type(xs).__name__}."
+        )
+    if not out:
+        raise ValueError(f"{what}: no roots to draw.")
+    dims = {d.dim for d in out}
+    if len(dims) != 1:
+        raise ValueError(f"{what}: roots mix dimensions {sorted(dims)}; draw 2D and 3D roots apart.")
+    return out
+
+
+def as_drawing_grid(xs: Any, *, what: str) -> list[list[Drawing]]:
+    """Rows of roots: a RootTree with two batch axes, or a sequence of rows."""
+    if isinstance(xs, (RootTree, SRVFTree)):
+        tree = _curves(xs, what)
+        if len(tree.batch_shape) != 2:
+            raise ValueError(
+                f"{what}: expected a RootTree with batch shape (rows, columns), got "
+                f"{tree.batch_shape}."
+            )
+        grid = _tree_drawings(tree)
+        return [list(row) for row in grid]
+    if isinstance(xs, Root) or not isinstance(xs, Sequence):
+        raise TypeError(
+            f"{what}: expected a RootTree of batch shape (rows, columns) or a list of rows, got "
+            f"{type(xs).__name__}."
+        )
+    rows = [as_drawing_list(row, what=f"{what}[{i}]") for i, row in enumerate(xs)]
+    if not rows:
+        raise ValueError(f"{what}: no roots to draw.")
+    return rows
+
+
+def common_unit(drawings: Sequence[Drawing]) -> str | None:
+    units = {d.unit for d in drawings}
+    return units.pop() if len(units) == 1 else None
+
+
+# --------------------------------------------------------------------------------------------
+# Projections and colours
+
+_COLUMNS = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2), "3d": (0, 1, 2)}
+_LABELS = {
+    (2, "xy"): ("x", "y (depth)"),
+    (3, "xz"): ("x", "z (depth)"),
+    (3, "yz"): ("y", "z (depth)"),
+    (3, "xy"): ("x", "y"),
+    (3, "3d"): ("x", "y", "z (depth)"),
+}
+
+
+def resolve_projection(dim: int, projection: str | None) -> str:
+    """``None`` means ``"xy"`` for 2D roots and the side view ``"xz"`` (x, depth) for 3D."""
+    if projection is None:
+        return "xy" if dim == 2 else "xz"
+    allowed = ("xy",) if dim == 2 else ("xz", "yz", "xy", "3d")
+    if projection not in allowed:
+        raise ValueError(
+            f"projection={projection!r} is not available for {dim}D roots; choose one of "
+            f"{allowed} (None picks {allowed[0]!r})."
+        )
+    return projection
+
+
+def axis_labels(dim: int, projection: str, unit: str | None) -> tuple[str, ...]:
+    suffix = f" [{unit}]" if unit else ""
+    return tuple(lab + suffix for lab in _LABELS[(dim, projection)])
+
+
+def _is_single_color(colors: Any) -> bool:
+    if isinstance(colors, str):
+        return True
+    return (
+        isinstance(colors, tuple)
+        and len(colors) in (3, 4)
+        and all(isinstance(c, (int, float)) for c in colors)
+    )
+
+
+def check_colors(colors: Any) -> None:
+    if colors is None:
+        return
+    if _is_single_color(colors):
+        if not mcolors.is_color_like(colors):
+            raise ValueError(f"colors={colors!r} is not a matplotlib colour.")
+        return
+    if not isinstance(colors, Sequence) or not all(mcolors.is_color_like(c) for c in colors):
+        raise ValueError(
+            "colors must be None (slot colours), one matplotlib colour (the whole root), or a "
+            f"sequence of colours indexed by lateral slot; got {colors!r}."
+        )
+
+
+def _lateral_color(k: int, colors: Any, slot_colors: bool) -> Any:
+    if colors is None:
+        return slot_color(k) if slot_colors else LATERAL_COLOR
+    if _is_single_color(colors):
+        return colors
+    if k >= len(colors):
+        raise ValueError(
+            f"colors has {len(colors)} entries but the root uses lateral slot {k}; give one "
+            "colour per slot (the capacity K), or None for the default slot colours."
+        )
+    return colors[k]
+
+
+def draw(
+    ax,
+    drawing: Drawing,
+    *,
+    projection: str,
+    colors: Any = None,
+    slot_colors: bool = True,
+    linewidth: float = 1.5,
+    show_nulls: bool = False,
+    alpha: float = 1.0,
+    zorder: float = 2.0,
+) -> None:
+    """Draw one root on ``ax``: laterals first, main root on top, nulls as hollow circles."""
+    cols = list(_COLUMNS[projection])
+    main_color = colors if _is_single_color(colors) else MAIN_COLOR
+    segs = [lat[:, cols] for _, lat in drawing.laterals]
+    lat_colors = [_lateral_color(k, colors, slot_colors) for k, _ in drawing.laterals]
+    if projection == "3d":
+        from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
+        def add(lines, cs, lw, z):
+            lc = Line3DCollection(lines, colors=cs, linewidths=lw, alpha=alpha, zorder=z)
+            ax.add_collection3d(lc)
+
+    else:
+
+        def add(lines, cs, lw, z):
+            lc = LineCollection(
+                lines, colors=cs, linewidths=lw, alpha=alpha, zorder=z, capstyle="round",
+                joinstyle="round",
+            )
+            ax.add_collection(lc, autolim=True)
+
+    if segs:
+        add(segs, lat_colors, linewidth, zorder)
+    # The main root is drawn thicker, as it is in the plant.
+    add([drawing.main[:, cols]], [main_color], 1.6 * linewidth, zorder + 0.1)
+    if show_nulls and drawing.nulls:
+        pts = np.stack([p[cols] for _, p in drawing.nulls])
+        ncol = [_lateral_color(k, colors, slot_colors) for k, _ in drawing.nulls]
+        ax.scatter(
+            *pts.T, s=(3.5 * linewidth) ** 2, facecolors="none", edgecolors=ncol,
+            linewidths=0.8 * linewidth, alpha=alpha, zorder=zorder + 0.2,
+        )
+
+
+def points_of(drawing: Drawing, projection: str, show_nulls: bool) -> np.ndarray:
+    cols = list(_COLUMNS[projection])
+    parts = [drawing.main[:, cols]] + [lat[:, cols] for _, lat in drawing.laterals]
+    if show_nulls and drawing.nulls:
+        parts.append(np.stack([p[cols] for _, p in drawing.nulls]))
+    return np.concatenate(parts, axis=0)
+
+
+# --------------------------------------------------------------------------------------------
+# Limits, figures, panels
+
+
+@dataclasses.dataclass(frozen=True)
+class Frame:
+    """Axis limits: ``lo``/``hi`` per projected axis (plus an offset per panel, see below)."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+
+    @property
+    def span(self) -> np.ndarray:
+        return self.hi - self.lo
+
+    @property
+    def aspect(self) -> float:
+        """Width / height of the 2D picture."""
+        return float(self.span[0] / self.span[-1])
+
+
+def _pad(lo: np.ndarray, hi: np.ndarray, frac: float = 0.06) -> Frame:
+    span = hi - lo
+    size = float(span.max()) if np.all(np.isfinite(span)) and span.max() > 0 else 1.0
+    # Keep a thin root from becoming a sliver: every axis spans at least 15 % of the largest.
+    grow = np.maximum(span, 0.15 * size) - span
+    lo, hi = lo - grow / 2, hi + grow / 2
+    return Frame(lo - frac * size, hi + frac * size)
+
+
+def absolute_frame(drawings: Sequence[Drawing], projection: str, show_nulls: bool) -> Frame:
+    """One set of limits holding every drawing where it is (geodesics: nothing moves)."""
+    pts = np.concatenate([points_of(d, projection, show_nulls) for d in drawings])
+    return _pad(pts.min(axis=0), pts.max(axis=0))
+
+
+def base_frame(drawings: Sequence[Drawing], projection: str, show_nulls: bool) -> Frame:
+    """Limits relative to each root's base: panels share one scale with the bases aligned."""
+    cols = list(_COLUMNS[projection])
+    rel = [points_of(d, projection, show_nulls) - d.main[0, cols] for d in drawings]
+    pts = np.concatenate(rel)
+    return _pad(pts.min(axis=0), pts.max(axis=0))
+
+
+def apply_frame(ax, frame: Frame, *, projection: str, invert_y: bool, offset=None) -> None:
+    """Set limits (shifted by ``offset``), equal aspect, and the depth axis pointing down."""
+    off = np.zeros_like(frame.lo) if offset is None else np.asarray(offset, dtype=float)
+    lo, hi = frame.lo + off, frame.hi + off
+    ax.set_xlim(lo[0], hi[0])
+    if projection == "3d":
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_zlim(*((hi[2], lo[2]) if invert_y else (lo[2], hi[2])))
+        ax.set_box_aspect(tuple(frame.span))
+    else:
+        ax.set_ylim(*((hi[1], lo[1]) if invert_y else (lo[1], hi[1])))
+        ax.set_aspect("equal", adjustable="box")
+
+
+def panel_offset(drawing: Drawing, projection: str):
+    return drawing.main[0, list(_COLUMNS[projection])]
+
+
+def new_figure(figsize: tuple[float, float], *, layout: str | None = "constrained"):
+    """A figure without GUI: pyplot's when the user imported pyplot (so notebooks show it),
+    otherwise a bare `matplotlib.figure.Figure`, which never needs a backend or display."""
+    if "matplotlib.pyplot" in sys.modules:
+        plt = sys.modules["matplotlib.pyplot"]
+        return plt.figure(figsize=figsize, layout=layout)
+    return Figure(figsize=figsize, layout=layout)
+
+
+def subplot_kw(projection: str) -> dict:
+    return {"projection": "3d"} if projection == "3d" else {}
+
+
+def clean_panel(ax, projection: str) -> None:
+    """No ticks or frame: root drawings are read by shape; a scale bar gives the size."""
+    if projection == "3d":
+        ax.set_xticklabels([])
+        ax.set_yticklabels([])
+        ax.set_zticklabels([])
+        return
+    ax.set_xticks([])
+    ax.set_yticks([])
+    for spine in ax.spines.values():
+        spine.set_visible(False)
+
+
+def nice_length(span: float) -> float:
+    """A 1-2-5 round number close to a fifth of ``span``."""
+    if not np.isfinite(span) or span <= 0:
+        return 1.0
+    target = span / 5
+    base = 10 ** math.floor(math.log10(target))
+    for m in (5, 2, 1):
+        if m * base <= target * 1.0001:
+            return m * base
+    return base
+
+
+def add_scale_bar(ax, frame: Frame, unit: str | None, *, projection: str) -> None:
+    if projection == "3d":
+        return
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    length = nice_length(float(frame.span[0]))
+    label = f"{length:g} {unit}" if unit else f"{length:g}"
+    bar = AnchoredSizeBar(
+        ax.transData, length, label, loc="lower right", frameon=False, pad=0.1, sep=2,
+        size_vertical=0, color="#333333", fontproperties={"size": 7},
+    )
+    ax.add_artist(bar)
+
+
+def panel_size(frame: Frame, height: float) -> tuple[float, float]:
+    """Inches (width, height) of one panel holding ``frame`` at equal aspect."""
+    width = float(np.clip(height * frame.aspect, 0.35 * height, 2.5 * height))
+    return width, height
+
+
+def grid_shape(n: int, ncols: int | None, *, max_cols: int = 8) -> tuple[int, int]:
+    if ncols is None:
+        ncols = min(n, max_cols)
+    if not isinstance(ncols, int) or ncols < 1:
+        raise ValueError(f"ncols must be a positive integer, got {ncols!r}.")
+    return math.ceil(n / ncols), ncols
+
+
+def check_positive(name: str, value: Any) -> None:
+    if not isinstance(value, (int, float)) or not value > 0:
+        raise ValueError(f"{name} must be a positive number, got {value!r}.")

@@ -1,0 +1,572 @@
+"""Root drawings: one root, geodesic strips, mean, modes, samples, regression sweeps.
+
+Conventions shared by every function here:
+
+- **Depth points down** (`invert_y=True`, the image convention): 2D roots are ``(x, y)`` with
+  y the depth, 3D roots ``(x, y, z)`` with z the depth; the base of the main root is at the top.
+- **Colours**: the main root is near-black and drawn thicker; lateral slot ``k`` always has
+  `slot_color(k)`, so after registration (or along a geodesic) one colour is one lateral in
+  every panel. `colors` overrides this: one colour for the whole root, or one per slot.
+- **3D roots** are drawn as the side view ``projection="xz"`` (x against depth) unless you ask
+  for ``"yz"``, ``"xy"`` (top view) or ``"3d"`` (a 3D axis).
+- Panels of a multi-root figure share one scale (equal aspect); a scale bar gives the length.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from ._draw import (
+    Drawing,
+    absolute_frame,
+    add_scale_bar,
+    apply_frame,
+    as_drawing,
+    as_drawing_grid,
+    as_drawing_list,
+    axis_labels,
+    base_frame,
+    check_colors,
+    check_positive,
+    clean_panel,
+    common_unit,
+    draw,
+    grid_shape,
+    new_figure,
+    panel_offset,
+    panel_size,
+    resolve_projection,
+    subplot_kw,
+)
+
+_MINUS = "\u2212"
+
+
+def _fmt(x: float, digits: int = 3) -> str:
+    return f"{x:.{digits}g}".replace("-", _MINUS)
+
+
+def plot_root(
+    root: Any,
+    *,
+    ax=None,
+    colors: Any = None,
+    slot_colors: bool = True,
+    linewidth: float = 1.5,
+    show_nulls: bool = False,
+    invert_y: bool = True,
+    projection: str | None = None,
+    title: str | None = None,
+):
+    """Draw one root.
+
+    **Arguments**
+
+    - `root`: a `Root`, or an unbatched `RootTree` (null slots, ``mask = False``, are skipped).
+    - `ax`: the matplotlib Axes to draw into (a 3D Axes for ``projection="3d"``); a new figure
+      when None. Several roots can be drawn into one Axes by passing the same `ax`.
+    - `colors`: None for the default colours (main root near-black, laterals by slot), one
+      matplotlib colour for the whole root, or a sequence of colours indexed by lateral slot.
+    - `slot_colors`: colour laterals by slot (True) or all in one brown (False).
+    - `linewidth`: lateral line width in points; the main root is 1.6 times thicker.
+    - `show_nulls`: mark the padding (null) slots of a `RootTree` as hollow circles.
+    - `invert_y`: depth axis pointing down, base of the root at the top (image convention).
+    - `projection`: for 3D roots, ``"xz"`` (default: x against depth), ``"yz"``, ``"xy"`` or
+      ``"3d"``; 2D roots only take ``"xy"``.
+    - `title`: Axes title; default the root's name (if any).
+
+    **Returns** ``(fig, ax)``.
+    """
+    drawing = as_drawing(root, what="plot_root: root")
+    check_colors(colors)
+    check_positive("linewidth", linewidth)
+    if ax is not None and getattr(ax, "name", "") == "3d" and projection is None:
+        projection = "3d"
+    projection = resolve_projection(drawing.dim, projection)
+    frame = absolute_frame([drawing], projection, show_nulls)
+    if ax is None:
+        fig = new_figure(_single_size(frame, projection))
+        ax = fig.add_subplot(**subplot_kw(projection))
+        own_axes = True
+    else:
+        fig = ax.figure
+        own_axes = False
+        if (projection == "3d") != (getattr(ax, "name", "") == "3d"):
+            raise ValueError(
+                f"projection={projection!r} needs {'a 3D' if projection == '3d' else 'a 2D'} Axes; "
+                "pass ax=None or an Axes made with the matching projection."
+            )
+    draw(
+        ax, drawing, projection=projection, colors=colors, slot_colors=slot_colors,
+        linewidth=linewidth, show_nulls=show_nulls,
+    )
+    if own_axes:
+        apply_frame(ax, frame, projection=projection, invert_y=invert_y)
+        labels = axis_labels(drawing.dim, projection, drawing.unit)
+        ax.set_xlabel(labels[0])
+        ax.set_ylabel(labels[1])
+        if projection == "3d":
+            ax.set_zlabel(labels[2])
+        else:
+            ax.spines[["top", "right"]].set_visible(False)
+    else:
+        _extend_limits(ax, drawing, projection, invert_y, show_nulls)
+    name = drawing.name if title is None else title
+    if name:
+        ax.set_title(name)
+    return fig, ax
+
+
+def _single_size(frame, projection) -> tuple[float, float]:
+    if projection == "3d":
+        return (6.0, 6.0)
+    w, h = panel_size(frame, 5.0)
+    return (max(w + 1.2, 3.5), h + 0.8)
+
+
+def _extend_limits(ax, drawing: Drawing, projection: str, invert_y: bool, show_nulls: bool):
+    """Drawing into a user's Axes: grow its limits to hold the root, keep depth pointing down."""
+    if projection == "3d":
+        from ._draw import points_of
+
+        pts = points_of(drawing, projection, show_nulls)
+        ax.auto_scale_xyz(pts[:, 0], pts[:, 1], pts[:, 2], had_data=True)
+        if invert_y and not ax.zaxis_inverted():
+            ax.invert_zaxis()
+        return
+    ax.autoscale_view()
+    ax.set_aspect("equal", adjustable="datalim")
+    if invert_y and not ax.yaxis_inverted():
+        ax.invert_yaxis()
+
+
+# --------------------------------------------------------------------------------------------
+# Grids of roots
+
+
+def _panel_grid(fig, nrows: int, ncols: int, n_used: int, projection: str, gridspec=None):
+    """``n_used`` panels filled row by row; the unused cells of the last row are not created."""
+    gs = gridspec if gridspec is not None else fig.add_gridspec(nrows, ncols)
+    axes = []
+    for i in range(n_used):
+        r, c = divmod(i, ncols)
+        axes.append(fig.add_subplot(gs[r, c], **subplot_kw(projection)))
+    return axes
+
+
+def _draw_panels(
+    axes, drawings, frame, *, projection, invert_y, align_bases, style, unit, scale_bar=True
+):
+    for ax, d in zip(axes, drawings):
+        draw(ax, d, projection=projection, **style)
+        offset = panel_offset(d, projection) if align_bases else None
+        apply_frame(ax, frame, projection=projection, invert_y=invert_y, offset=offset)
+        clean_panel(ax, projection)
+    if scale_bar and axes:
+        add_scale_bar(axes[-1], frame, unit, projection=projection)
+
+
+def _style(colors, slot_colors, linewidth, show_nulls) -> dict:
+    check_colors(colors)
+    check_positive("linewidth", linewidth)
+    return dict(colors=colors, slot_colors=slot_colors, linewidth=linewidth, show_nulls=show_nulls)
+
+
+def _suptitle(fig, title):
+    if title:
+        fig.suptitle(title, fontsize=12)
+
+
+def plot_geodesic(
+    path: Any,
+    *,
+    axes=None,
+    taus: Sequence[float] | None = None,
+    ncols: int | None = None,
+    colors: Any = None,
+    linewidth: float = 1.3,
+    show_nulls: bool = False,
+    invert_y: bool = True,
+    projection: str | None = None,
+    panel_height: float = 2.6,
+    title: str | None = "Geodesic (optimal deformation); colour = corresponding lateral",
+):
+    """A strip of the steps of a geodesic, e.g. the output of `rootshape_jax.geodesic`.
+
+    **Arguments**
+
+    - `path`: a batched `RootTree` whose leading axis is the step (or a list of roots). Slot
+      ``k`` has the same colour in every step, so you can follow each lateral along the path.
+    - `axes`: one Axes per step to draw into; a new figure when None.
+    - `taus`: the path parameter of each step, for the panel titles (default evenly spaced
+      from 0 to 1).
+    - `ncols`: wrap the strip after this many panels (default: one row).
+    - `colors`, `linewidth`, `show_nulls`, `invert_y`, `projection`: as in `plot_root`.
+    - `panel_height`: inches per panel. `title`: figure title (None for none).
+
+    Every panel shows the same region at the same scale, so only the deformation moves.
+
+    **Returns** ``(fig, axes)`` with `axes` a list, one per step.
+    """
+    drawings = as_drawing_list(path, what="plot_geodesic: path")
+    n = len(drawings)
+    style = _style(colors, True, linewidth, show_nulls)
+    projection = resolve_projection(drawings[0].dim, projection)
+    if taus is None:
+        taus = np.linspace(0.0, 1.0, n) if n > 1 else np.zeros(1)
+    taus = np.asarray(taus, dtype=float).reshape(-1)
+    if taus.shape[0] != n:
+        raise ValueError(f"plot_geodesic: {taus.shape[0]} taus for {n} steps; give one per step.")
+    frame = absolute_frame(drawings, projection, show_nulls)
+    nrows, ncols = grid_shape(n, ncols if ncols is not None else n, max_cols=n)
+    if axes is None:
+        w, h = panel_size(frame, panel_height)
+        fig = new_figure((ncols * w + 0.3, nrows * (h + 0.35) + (0.45 if title else 0.1)))
+        axes = _panel_grid(fig, nrows, ncols, n, projection)
+    else:
+        axes = list(np.ravel(axes))
+        if len(axes) != n:
+            raise ValueError(f"plot_geodesic: {len(axes)} axes for {n} steps; give one per step.")
+        fig = axes[0].figure
+    _draw_panels(
+        axes, drawings, frame, projection=projection, invert_y=invert_y, align_bases=False,
+        style=style, unit=common_unit(drawings),
+    )
+    for i, (ax, tau) in enumerate(zip(axes, taus)):
+        label = f"\u03c4 = {_fmt(tau, 2)}"
+        if n > 1 and i == 0:
+            label = "start, " + label
+        elif n > 1 and i == n - 1:
+            label = "end, " + label
+        ax.set_title(label, fontsize=9)
+    _suptitle(fig, title)
+    return fig, axes
+
+
+def plot_mean(
+    samples: Any,
+    mean: Any,
+    *,
+    layout: str = "grid",
+    max_samples: int = 48,
+    ncols: int | None = None,
+    colors: Any = None,
+    slot_colors: bool = True,
+    linewidth: float = 1.0,
+    invert_y: bool = True,
+    projection: str | None = None,
+    title: str | None = "Mean root",
+):
+    """Input roots beside their (Karcher) mean, as in the paper's "mean root" figure.
+
+    **Arguments**
+
+    - `samples`: the input roots (a batched `RootTree` or a list of `Root` / `RootTree`).
+      Registered samples (in the mean's slot order) share the mean's lateral colours.
+    - `mean`: the mean root (`Root` or unbatched `RootTree`).
+    - `layout`: ``"grid"`` (small panels of the first `max_samples` inputs, mean in a large
+      panel on the right) or ``"overlay"`` (one panel: inputs in light grey, translated so
+      their bases meet the mean's, with the mean drawn on top in colour).
+    - `ncols`: columns of the sample grid (default about square).
+    - `colors`, `slot_colors`, `linewidth`, `invert_y`, `projection`: as in `plot_root`.
+
+    **Returns** ``(fig, axes)`` with ``axes = {"samples": [...], "mean": ax}`` (for the
+    overlay layout ``"samples"`` is the same single Axes as ``"mean"``).
+    """
+    drawings = as_drawing_list(samples, what="plot_mean: samples")
+    mean_d = as_drawing(mean, what="plot_mean: mean")
+    if mean_d.dim != drawings[0].dim:
+        raise ValueError(
+            f"plot_mean: the mean is {mean_d.dim}D but the samples are {drawings[0].dim}D."
+        )
+    style = _style(colors, slot_colors, linewidth, False)
+    projection = resolve_projection(mean_d.dim, projection)
+    if not isinstance(max_samples, int) or max_samples < 1:
+        raise ValueError(f"max_samples must be a positive integer, got {max_samples!r}.")
+    unit = common_unit(drawings + [mean_d])
+    if layout == "overlay":
+        return _mean_overlay(drawings, mean_d, projection, invert_y, style, unit, title)
+    if layout != "grid":
+        raise ValueError(f"layout must be 'grid' or 'overlay', got {layout!r}.")
+
+    shown = drawings[:max_samples]
+    n = len(shown)
+    if ncols is None:
+        ncols = max(1, int(np.ceil(np.sqrt(n * 1.5))))
+    nrows, ncols = grid_shape(n, ncols, max_cols=ncols)
+    frame = base_frame(shown + [mean_d], projection, False)
+    w, h = panel_size(frame, 1.35)
+    mean_h = max(nrows * h, 3.2)
+    mean_w = mean_h * w / h
+    fig = new_figure((ncols * w + mean_w + 0.6, mean_h + 0.9))
+    outer = fig.add_gridspec(1, 2, width_ratios=[ncols * w, mean_w])
+    inner = outer[0, 0].subgridspec(nrows, ncols)
+    sample_axes = _panel_grid(fig, nrows, ncols, n, projection, gridspec=inner)
+    _draw_panels(
+        sample_axes, shown, frame, projection=projection, invert_y=invert_y, align_bases=True,
+        style=style, unit=unit, scale_bar=False,
+    )
+    mean_ax = fig.add_subplot(outer[0, 1], **subplot_kw(projection))
+    mean_style = dict(style, linewidth=1.6 * linewidth)
+    _draw_panels(
+        [mean_ax], [mean_d], frame, projection=projection, invert_y=invert_y, align_bases=True,
+        style=mean_style, unit=unit,
+    )
+    more = f" (first {n} of {len(drawings)})" if n < len(drawings) else ""
+    sample_axes[0].annotate(
+        f"Input roots, n = {len(drawings)}{more}", xy=(0, 1), xycoords="axes fraction",
+        xytext=(0, 6), textcoords="offset points", fontsize=10, ha="left", va="bottom",
+    )
+    mean_ax.set_title("Mean", fontsize=11)
+    _suptitle(fig, title)
+    return fig, {"samples": sample_axes, "mean": mean_ax}
+
+
+def _mean_overlay(drawings, mean_d, projection, invert_y, style, unit, title):
+    frame = base_frame(drawings + [mean_d], projection, False)
+    w, h = panel_size(frame, 5.0)
+    fig = new_figure((w + 0.6, h + 0.9))
+    ax = fig.add_subplot(**subplot_kw(projection))
+    base = panel_offset(mean_d, projection)
+    cols = [0, 1] if projection == "xy" else {"xz": [0, 2], "yz": [1, 2], "3d": [0, 1, 2]}[projection]
+    faint = dict(style, colors="#9a9a9a", linewidth=0.7 * style["linewidth"])
+    alpha = float(np.clip(6.0 / len(drawings), 0.15, 0.6))
+    for d in drawings:
+        shift = np.zeros(d.dim)
+        shift[cols] = base - panel_offset(d, projection)
+        moved = Drawing(
+            main=d.main + shift, laterals=tuple((k, lat + shift) for k, lat in d.laterals),
+            nulls=(), unit=d.unit,
+        )
+        draw(ax, moved, projection=projection, alpha=alpha, zorder=1.0, **faint)
+    draw(ax, mean_d, projection=projection, zorder=3.0, **dict(style, linewidth=2 * style["linewidth"]))
+    apply_frame(ax, frame, projection=projection, invert_y=invert_y, offset=base)
+    clean_panel(ax, projection)
+    add_scale_bar(ax, frame, unit, projection=projection)
+    ax.set_title(f"{len(drawings)} input roots (grey, bases aligned) and their mean", fontsize=10)
+    _suptitle(fig, title)
+    return fig, {"samples": ax, "mean": ax}
+
+
+def plot_modes(
+    mode_trees: Any,
+    alphas: Sequence[float],
+    *,
+    explained: Sequence[float] | None = None,
+    colors: Any = None,
+    linewidth: float = 1.2,
+    invert_y: bool = True,
+    projection: str | None = None,
+    panel_height: float = 2.2,
+    title: str | None = "Principal modes of variation",
+):
+    """Grid of the roots along principal modes: rows = components, columns = α.
+
+    **Arguments**
+
+    - `mode_trees`: a `RootTree` with batch shape ``(n_components, n_alphas)`` or a list of
+      rows (each a batched `RootTree` or a list of roots); entry ``[i][j]`` is
+      ``mean + alphas[j] √σ_i Λ_i``.
+    - `alphas`: the multiples of the standard deviation, e.g. ``[-2, -1, 0, 1, 2]``; the
+      ``α = 0`` column (the mean) is shaded.
+    - `explained`: optional fraction of variance explained by each component (row labels).
+    - `colors`, `linewidth`, `invert_y`, `projection`: as in `plot_root`.
+
+    **Returns** ``(fig, axes)`` with `axes` a list of rows of Axes.
+    """
+    rows = as_drawing_grid(mode_trees, what="plot_modes: mode_trees")
+    alphas = np.asarray(alphas, dtype=float).reshape(-1)
+    for i, row in enumerate(rows):
+        if len(row) != alphas.shape[0]:
+            raise ValueError(
+                f"plot_modes: row {i} has {len(row)} roots but {alphas.shape[0]} alphas were "
+                "given; every component needs one root per alpha."
+            )
+    if explained is not None:
+        explained = np.asarray(explained, dtype=float).reshape(-1)
+        if explained.shape[0] < len(rows):
+            raise ValueError(
+                f"plot_modes: explained has {explained.shape[0]} values for {len(rows)} components."
+            )
+    flat = [d for row in rows for d in row]
+    style = _style(colors, True, linewidth, False)
+    projection = resolve_projection(flat[0].dim, projection)
+    frame = base_frame(flat, projection, False)
+    nrows, ncols = len(rows), alphas.shape[0]
+    w, h = panel_size(frame, panel_height)
+    fig = new_figure((ncols * w + 0.7, nrows * (h + 0.1) + 0.4 + (0.45 if title else 0)))
+    gs = fig.add_gridspec(nrows, ncols)
+    grid = []
+    for i, row in enumerate(rows):
+        axes = [fig.add_subplot(gs[i, j], **subplot_kw(projection)) for j in range(ncols)]
+        _draw_panels(
+            axes, row, frame, projection=projection, invert_y=invert_y, align_bases=True,
+            style=style, unit=common_unit(flat), scale_bar=(i == nrows - 1),
+        )
+        label = f"PC {i + 1}"
+        if explained is not None:
+            label += f"\n{100 * explained[i]:.1f} % var."
+        if projection != "3d":
+            axes[0].set_ylabel(label, fontsize=10, rotation=0, ha="right", va="center")
+        for j, ax in enumerate(axes):
+            if np.isclose(alphas[j], 0.0) and projection != "3d":
+                ax.set_facecolor("#f2f2f2")
+        grid.append(axes)
+    for j, a in enumerate(alphas):
+        head = "mean" if np.isclose(a, 0.0) else f"{'+' if a > 0 else ''}{_fmt(a)}\u03c3"
+        grid[0][j].set_title(head.replace("-", _MINUS), fontsize=10)
+    _suptitle(fig, title)
+    return fig, grid
+
+
+def plot_samples_by_distance(
+    samples: Any,
+    distances_to_mean: Any,
+    *,
+    n_groups: int = 3,
+    max_per_group: int = 8,
+    colors: Any = None,
+    linewidth: float = 1.1,
+    invert_y: bool = True,
+    projection: str | None = None,
+    panel_height: float = 1.9,
+    title: str | None = "Random roots from the fitted model, grouped by distance to the mean",
+):
+    """Sampled roots in rows of increasing distance to the mean (the paper's random-synthesis
+    figure): samples are sorted by distance and cut into `n_groups` groups of equal size.
+
+    **Arguments**
+
+    - `samples`: the roots (batched `RootTree` or list); `distances_to_mean`: one distance each.
+    - `n_groups`: number of rows, closest group first.
+    - `max_per_group`: panels per row; larger groups show evenly spaced members (by distance).
+    - `colors`, `linewidth`, `invert_y`, `projection`: as in `plot_root`.
+
+    **Returns** ``(fig, axes)`` with `axes` a list of rows of Axes.
+    """
+    drawings = as_drawing_list(samples, what="plot_samples_by_distance: samples")
+    dist = np.asarray(distances_to_mean, dtype=float).reshape(-1)
+    if dist.shape[0] != len(drawings):
+        raise ValueError(
+            f"plot_samples_by_distance: {dist.shape[0]} distances for {len(drawings)} samples."
+        )
+    if not np.all(np.isfinite(dist)):
+        raise ValueError("plot_samples_by_distance: distances must be finite.")
+    if not isinstance(n_groups, int) or not 1 <= n_groups <= len(drawings):
+        raise ValueError(
+            f"n_groups must be an integer between 1 and the number of samples ({len(drawings)}), "
+            f"got {n_groups!r}."
+        )
+    if not isinstance(max_per_group, int) or max_per_group < 1:
+        raise ValueError(f"max_per_group must be a positive integer, got {max_per_group!r}.")
+    style = _style(colors, True, linewidth, False)
+    projection = resolve_projection(drawings[0].dim, projection)
+    order = np.argsort(dist, kind="stable")
+    groups = []
+    for members in np.array_split(order, n_groups):
+        if len(members) > max_per_group:
+            members = members[np.round(np.linspace(0, len(members) - 1, max_per_group)).astype(int)]
+        groups.append(members)
+    frame = base_frame(drawings, projection, False)
+    ncols = max(len(g) for g in groups)
+    w, h = panel_size(frame, panel_height)
+    fig = new_figure((ncols * w + 1.2, n_groups * (h + 0.3) + (0.45 if title else 0.1)))
+    gs = fig.add_gridspec(n_groups, ncols)
+    grid = []
+    names = _group_names(n_groups)
+    for g, members in enumerate(groups):
+        axes = [fig.add_subplot(gs[g, j], **subplot_kw(projection)) for j in range(len(members))]
+        _draw_panels(
+            axes, [drawings[i] for i in members], frame, projection=projection,
+            invert_y=invert_y, align_bases=True, style=style, unit=common_unit(drawings),
+            scale_bar=(g == n_groups - 1),
+        )
+        for ax, i in zip(axes, members):
+            ax.set_title(f"d = {_fmt(dist[i])}", fontsize=8)
+        lo, hi = dist[members].min(), dist[members].max()
+        if projection != "3d":
+            axes[0].set_ylabel(
+                f"{names[g]}\nd {_fmt(lo)}\u2013{_fmt(hi)}", fontsize=9, rotation=0, ha="right",
+                va="center",
+            )
+        grid.append(axes)
+    _suptitle(fig, title)
+    return fig, grid
+
+
+def _group_names(n: int) -> list[str]:
+    if n == 1:
+        return ["all"]
+    names = [f"group {g + 1}" for g in range(n)]
+    names[0] += "\n(closest)"
+    names[-1] += "\n(farthest)"
+    return names
+
+
+def plot_regression_sweep(
+    trees: Any,
+    values: Sequence[float],
+    *,
+    trait_name: str,
+    unit: str | None = None,
+    measured: Sequence[float] | None = None,
+    colors: Any = None,
+    linewidth: float = 1.3,
+    invert_y: bool = True,
+    projection: str | None = None,
+    panel_height: float = 2.6,
+    title: str | None = None,
+):
+    """Roots predicted by a trait regression while one trait varies and the others stay fixed.
+
+    **Arguments**
+
+    - `trees`: the predicted roots (batched `RootTree` or list), one per value.
+    - `values`: the requested values of the varied trait.
+    - `trait_name`: e.g. ``"main root length"``; `unit`: its unit for the panel titles.
+    - `measured`: optional trait values measured on the predicted roots, shown under the
+      requested ones so you can judge how well the model honours the request.
+    - `colors`, `linewidth`, `invert_y`, `projection`: as in `plot_root`.
+    - `title`: figure title; default names the trait.
+
+    **Returns** ``(fig, axes)`` with `axes` a list.
+    """
+    if not isinstance(trait_name, str) or not trait_name:
+        raise ValueError("plot_regression_sweep: trait_name must be a non-empty string.")
+    drawings = as_drawing_list(trees, what="plot_regression_sweep: trees")
+    values = np.asarray(values, dtype=float).reshape(-1)
+    if values.shape[0] != len(drawings):
+        raise ValueError(
+            f"plot_regression_sweep: {values.shape[0]} values for {len(drawings)} roots."
+        )
+    if measured is not None:
+        measured = np.asarray(measured, dtype=float).reshape(-1)
+        if measured.shape[0] != len(drawings):
+            raise ValueError(
+                f"plot_regression_sweep: {measured.shape[0]} measured values for "
+                f"{len(drawings)} roots."
+            )
+    style = _style(colors, True, linewidth, False)
+    projection = resolve_projection(drawings[0].dim, projection)
+    frame = base_frame(drawings, projection, False)
+    n = len(drawings)
+    w, h = panel_size(frame, panel_height)
+    fig = new_figure((n * w + 0.3, h + 0.6 + (0.45 if title is not False else 0)))
+    axes = _panel_grid(fig, 1, n, n, projection)
+    _draw_panels(
+        axes, drawings, frame, projection=projection, invert_y=invert_y, align_bases=True,
+        style=style, unit=common_unit(drawings),
+    )
+    u = f" {unit}" if unit else ""
+    for i, ax in enumerate(axes):
+        text = f"{_fmt(values[i])}{u}"
+        if measured is not None:
+            text += f"\n(measured {_fmt(measured[i])})"
+        ax.set_title(text, fontsize=9)
+    if title is None:
+        title = f"Roots predicted from traits: {trait_name} varied, other traits fixed"
+    _suptitle(fig, title)
+    return fig, axes

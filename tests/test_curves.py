@@ -1,0 +1,168 @@
+"""Curves: resampling, SRVF, inverse SRVF, rotation — against plain numpy references."""
+
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from rootshape_jax._curves import (
+    curve_length,
+    interpolate_at_fraction,
+    l2_norm_squared,
+    resample_curve,
+    srvf,
+    srvf_to_curve,
+)
+from rootshape_jax._rotation import optimal_rotation, rotate
+from rootshape_jax._tree import resample_polyline
+
+from helpers import rotation_matrix, smooth_curve
+
+
+def _analytic(T, d, dtype=np.float64):
+    t = np.linspace(0, 1, 4000)
+    pts = np.stack([np.cos(2.5 * t), np.sin(2.5 * t) + 0.3 * t**2] + ([0.4 * t**3] if d == 3 else []), 1)
+    return resample_polyline(pts, T).astype(dtype)
+
+
+def _numpy_srvf(beta):
+    """Reference: the documented discretisation, written with plain loops."""
+    T, d = beta.shape
+    h = 1.0 / (T - 1)
+    u = [(beta[i + 1] - beta[i]) / h for i in range(T - 1)]
+    q = np.zeros_like(beta)
+    for i in range(T):
+        segs = [k for k in (i - 1, i) if 0 <= k < T - 1]
+        speed = np.mean([np.linalg.norm(u[k]) for k in segs])
+        tang = sum(u[k] / np.linalg.norm(u[k]) for k in segs if np.linalg.norm(u[k]) > 0)
+        if speed == 0 or np.linalg.norm(tang) == 0:
+            continue
+        q[i] = np.sqrt(speed) * tang / np.linalg.norm(tang)
+    return q
+
+
+@pytest.mark.parametrize("d,T", list(itertools.product([2, 3], [20, 100])))
+def test_srvf_matches_numpy_reference(d, T):
+    beta = _analytic(T, d)
+    np.testing.assert_allclose(np.asarray(srvf(beta)), _numpy_srvf(beta), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("d,T", list(itertools.product([2, 3], [30, 100, 400])))
+def test_norm_squared_is_length(d, T):
+    rng = np.random.default_rng(T + d)
+    beta = smooth_curve(rng, d=d, length=3.7, n=T)
+    # Also a non-uniform parameterisation: the identity must hold for any sampling.
+    beta_nonuniform = beta[np.unique(np.round(np.linspace(0, 1, T) ** 1.7 * (T - 1)).astype(int))]
+    for b in (beta, beta_nonuniform):
+        length = np.sum(np.linalg.norm(np.diff(b, axis=0), axis=1))
+        assert abs(float(l2_norm_squared(srvf(b))) - length) <= 1e-6 * length
+        assert abs(float(curve_length(b)) - length) <= 1e-12 * length
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_round_trip_converges_second_order(d):
+    errors = []
+    for T in (50, 100, 200, 400):
+        beta = _analytic(T, d)
+        back = np.asarray(srvf_to_curve(srvf(beta), beta[0]))
+        errors.append(np.abs(back - beta).max())
+    errors = np.array(errors)
+    assert errors[-1] < 5e-5
+    # Halving h divides the error by about 4 (second-order discretisation).
+    assert np.all(errors[:-1] / errors[1:] > 3.0)
+
+
+def test_round_trip_exact_on_straight_and_polygonal_uniform_lines():
+    beta = np.stack([np.linspace(0, 2, 11), np.linspace(1, -3, 11)], 1)
+    np.testing.assert_allclose(np.asarray(srvf_to_curve(srvf(beta), beta[0])), beta, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_dtype_respected(dtype):
+    beta = _analytic(30, 2, dtype)
+    assert srvf(beta).dtype == dtype
+    assert srvf_to_curve(srvf(beta)).dtype == dtype
+    assert resample_curve(beta, 17).dtype == dtype
+
+
+def test_zero_speed_segments_give_zero_srvf_and_finite_gradients():
+    beta = np.array([[0.0, 0.0], [0.0, 0.0], [1.0, 0.0], [1.0, 0.0], [1.0, 0.0], [2.0, 1.0]])
+    q = np.asarray(srvf(beta))
+    assert np.all(np.isfinite(q))
+    assert np.all(q[3] == 0)  # both adjacent segments have zero length
+    zero = jnp.zeros((7, 3))
+    for f in (
+        lambda b: l2_norm_squared(srvf(b)),
+        lambda b: jnp.sum(srvf_to_curve(srvf(b)) ** 2),
+        lambda b: curve_length(b),
+    ):
+        for x in (zero, jnp.asarray(np.c_[beta, np.zeros(6)])):
+            g = jax.grad(f)(x)
+            assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_srvf_gradient_matches_finite_differences():
+    rng = np.random.default_rng(0)
+    beta = smooth_curve(rng, n=12, d=2, length=2.0)
+    w = rng.normal(size=beta.shape)
+    f = lambda b: jnp.sum(srvf(b) * w)  # noqa: E731
+    g = np.asarray(jax.grad(f)(jnp.asarray(beta)))
+    eps = 1e-6
+    fd = np.zeros_like(beta)
+    for i, j in itertools.product(range(beta.shape[0]), range(2)):
+        e = np.zeros_like(beta)
+        e[i, j] = eps
+        fd[i, j] = (f(beta + e) - f(beta - e)) / (2 * eps)
+    np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_resample_matches_numpy_and_is_uniform(d):
+    rng = np.random.default_rng(d)
+    pts = smooth_curve(rng, n=37, d=d, length=5.0)
+    pts = np.concatenate([pts[:5], pts[4:5], pts[5:]])  # a repeated point
+    ours = np.asarray(resample_curve(pts, 50))
+    np.testing.assert_allclose(ours, resample_polyline(pts, 50), atol=1e-12)
+    # On a straight line sampled irregularly, arc-length resampling gives equal spacing.
+    line = np.outer(np.sort(np.r_[0, rng.uniform(0, 1, 20), 1]), np.arange(1, d + 1))
+    seg = np.linalg.norm(np.diff(np.asarray(resample_curve(line, 31)), axis=0), axis=1)
+    np.testing.assert_allclose(seg, seg.mean(), rtol=1e-10)
+
+
+def test_interpolate_at_fraction_endpoints_and_midpoint():
+    beta = jnp.asarray(np.stack([np.linspace(0, 4, 9), np.zeros(9)], 1))
+    np.testing.assert_allclose(interpolate_at_fraction(beta, jnp.array([0.0, 0.5, 1.0])), [[0, 0], [2, 0], [4, 0]])
+
+
+@pytest.mark.parametrize("d,weighted", list(itertools.product([2, 3], [False, True])))
+def test_optimal_rotation_recovers_known_rotation(d, weighted):
+    rng = np.random.default_rng(10 + d)
+    A = np.stack([np.asarray(srvf(smooth_curve(rng, d=d, n=40))) for _ in range(4)])
+    R = rotation_matrix(rng, d)
+    B = np.asarray(rotate(A, R.T))  # B = Rᵀ A, so the optimal O is R
+    w = rng.uniform(0.1, 2.0, size=4) if weighted else None
+    O = np.asarray(optimal_rotation(A, B, w))
+    np.testing.assert_allclose(O, R, atol=1e-10)
+    assert abs(np.linalg.det(O) - 1) < 1e-12
+
+
+def test_optimal_rotation_never_reflects_and_is_optimal():
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(3, 20, 3))
+    B = A.copy()
+    B[..., 0] *= -1  # a mirror image: the best proper rotation is not the reflection
+    O = np.asarray(optimal_rotation(A, B))
+    assert abs(np.linalg.det(O) - 1) < 1e-12
+    best = np.sum(A * (B @ O.T))
+    for _ in range(200):  # brute force over random rotations never beats it
+        R = rotation_matrix(rng, 3)
+        assert np.sum(A * (B @ R.T)) <= best + 1e-9
+
+
+def test_bad_shapes_raise_clear_errors():
+    with pytest.raises(ValueError, match="T >= 2"):
+        srvf(np.zeros((1, 2)))
+    with pytest.raises(ValueError, match="same shape"):
+        optimal_rotation(np.zeros((5, 2)), np.zeros((5, 3)))
