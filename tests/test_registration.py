@@ -1,0 +1,282 @@
+"""Root registration and distances: a slow reference, exactness and invariance properties."""
+
+import dataclasses
+import itertools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.optimize
+
+import rootshape_jax as rs
+from rootshape_jax._registration import _warp_preserving_norm
+from rootshape_jax._rotation import optimal_rotation
+from rootshape_jax._warp import dp_warp
+
+from helpers import random_root, reparameterise, rotation_matrix
+
+T = 30  # small grids keep the suite fast; the maths does not depend on T
+W = rs.Weights(main=0.5, lateral=1.0, position=1.0)
+
+
+def _pair(seed, d=2, na=3, nb=4, K=None, scale=True):
+    rng = np.random.default_rng(seed)
+    ra = random_root(rng, n_laterals=na, d=d)
+    rb = random_root(rng, n_laterals=nb, d=d)
+    t = rs.batch([ra, rb], n_points=T, max_laterals=K or 2 * max(na, nb, 1), normalise_scale=scale)
+    a, b = rs.unstack(t)
+    return ra, rb, a, b
+
+
+def _transform(root, R=None, shift=None, order=None):
+    d = root.dim
+    R = np.eye(d) if R is None else R
+    shift = np.zeros(d) if shift is None else shift
+    lats = [lat @ R.T + shift for lat in root.laterals]
+    attach = root.attach
+    if order is not None:
+        lats = [lats[k] for k in order]
+        attach = attach[list(order)]
+    return dataclasses.replace(root, main=root.main @ R.T + shift, laterals=lats, attach=attach)
+
+
+def reference_energy(a, b, weights, *, neighbourhood=7, iterations=5):
+    """Slow, obvious registration: Python loops, scipy assignment, the same alternation."""
+    a, b = rs.to_srvf(a), rs.to_srvf(b)
+    qa0, qa, sa, ma = (np.asarray(x) for x in (a.q0, a.q, a.s, a.mask))
+    qb0, qb, sb, mb = (np.asarray(x) for x in (b.q0, b.q, b.s, b.mask))
+    K = qa.shape[0]
+    lm, ls, lp = float(weights.main), float(weights.lateral), float(weights.position)
+    l2 = lambda x: float(rs.l2_norm_squared(jnp.asarray(x)))  # noqa: E731
+    warp = lambda q1, q2: np.asarray(  # noqa: E731
+        _warp_preserving_norm(jnp.asarray(q2), dp_warp(jnp.asarray(q1), jnp.asarray(q2), neighbourhood=neighbourhood))
+    )
+    O = np.asarray(optimal_rotation(qa0, qb0))
+    best = np.inf
+    for _ in range(iterations):
+        rb0 = qb0 @ O.T
+        w0 = warp(qa0, rb0)
+        C = np.zeros((K, K))
+        warped = {}
+        for i, j in itertools.product(range(K), range(K)):
+            if ma[i] and mb[j]:
+                wij = warp(qa[i], qb[j] @ O.T)
+                warped[i, j] = wij
+                C[i, j] = ls * l2(qa[i] - wij) + lp * (sa[i] - sb[j]) ** 2
+            elif ma[i]:
+                C[i, j] = ls * l2(qa[i])
+            elif mb[j]:
+                C[i, j] = ls * l2(qb[j])
+        rows, cols = scipy.optimize.linear_sum_assignment(C)
+        E = lm * l2(qa0 - w0) + C[rows, cols].sum()
+        if E >= best * (1 - 1e-6):
+            break
+        best = E
+        # Refit the rotation on the matching (in b's own frame: undo O).
+        A = [qa0] + [qa[i] for i, j in zip(rows, cols) if ma[i] and mb[j]]
+        Bm = [w0 @ O] + [warped[i, j] @ O for i, j in zip(rows, cols) if ma[i] and mb[j]]
+        wts = [lm] + [ls] * (len(A) - 1)
+        O = np.asarray(optimal_rotation(np.stack(A), np.stack(Bm), np.array(wts)))
+    return best
+
+
+@pytest.mark.parametrize("seed,d", [(0, 2), (1, 3)])
+def test_matches_slow_reference(seed, d):
+    _, _, a, b = _pair(seed, d=d)
+    reg = rs.register(a, b, weights=W, prune=False)
+    ref = reference_energy(a, b, W)
+    assert abs(float(reg.energy) - ref) <= 1e-9 * max(1.0, ref)
+
+
+@pytest.mark.parametrize("seed,d", [(2, 2), (3, 3)])
+def test_energy_terms_consistent_with_preshape_metric(seed, d):
+    _, _, a, b = _pair(seed, d=d)
+    reg = rs.register(a, b, weights=W)
+    direct = rs.preshape_distance_squared(rs.to_srvf(a), reg.registered, W)
+    np.testing.assert_allclose(float(direct), float(reg.energy), rtol=1e-12)
+    assert float(reg.distance) == pytest.approx(float(np.sqrt(reg.energy)))
+    perm = np.asarray(reg.permutation)
+    assert sorted(perm.tolist()) == list(range(a.capacity))
+    O = np.asarray(reg.rotation)
+    np.testing.assert_allclose(O @ O.T, np.eye(d), atol=1e-12)
+    assert np.linalg.det(O) == pytest.approx(1.0)
+    # Registered laterals keep their lengths (warps preserve the norm) and b's lateral count.
+    La = np.asarray(rs.l2_norm_squared(rs.to_srvf(b).q))[perm]
+    np.testing.assert_allclose(np.asarray(rs.l2_norm_squared(reg.registered.q)), La, rtol=1e-10, atol=1e-14)
+    assert int(np.sum(reg.registered.mask)) == int(np.sum(b.mask))
+
+
+def test_assignment_is_exact_by_brute_force():
+    # Small K: enumerate every permutation of the registration's own cost matrix.
+    _, _, a, b = _pair(4, na=2, nb=2, K=4)
+    reg = rs.register(a, b, weights=W, prune=False, rotation=False)
+    sa, rb = rs.to_srvf(a), reg.registered
+    best = np.inf
+    sb = rs.to_srvf(b)
+    K = a.capacity
+    for perm in itertools.permutations(range(K)):
+        # Energy of this permutation with each real-real pair warped by its own DP.
+        total = float(W.main * rs.l2_norm_squared(sa.q0 - rb.q0))
+        for i, j in enumerate(perm):
+            ma, mb = bool(sa.mask[i]), bool(sb.mask[j])
+            if ma and mb:
+                w = _warp_preserving_norm(sb.q[j], dp_warp(sa.q[i], sb.q[j]))
+                total += float(W.lateral * rs.l2_norm_squared(sa.q[i] - w)) + float(W.position * (sa.s[i] - sb.s[j]) ** 2)
+            elif ma:
+                total += float(W.lateral * rs.l2_norm_squared(sa.q[i]))
+            elif mb:
+                total += float(W.lateral * rs.l2_norm_squared(sb.q[j]))
+        best = min(best, total)
+    assert float(reg.energy) == pytest.approx(best, rel=1e-10)
+
+
+@pytest.mark.parametrize("seed", [5, 6, 7])
+def test_pruning_is_exact(seed):
+    # Short laterals far apart along the main root: the lower bound prunes many pairs.
+    _, _, a, b = _pair(seed, na=5, nb=5)
+    w = rs.Weights(main=0.5, lateral=1.0, position=4.0)
+    full = rs.register(a, b, weights=w, prune=False)
+    pruned = rs.register(a, b, weights=w, prune=True)
+    assert int(pruned.n_lateral_pruned) > 0
+    assert int(pruned.n_lateral_dp) < int(full.n_lateral_dp)
+    assert float(pruned.energy) == pytest.approx(float(full.energy), rel=1e-12)
+    np.testing.assert_array_equal(np.asarray(pruned.permutation), np.asarray(full.permutation))
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_self_distance_is_zero(d):
+    _, _, a, b = _pair(8, d=d)
+    assert float(rs.distance(a, a, weights=W)) < 1e-7
+    assert float(rs.distance(b, b, weights=W)) < 1e-7
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_invariance_to_rotation_translation_and_lateral_order(d):
+    rng = np.random.default_rng(20 + d)
+    ra, rb, a, b = _pair(9, d=d)
+    base = float(rs.distance(a, b, weights=W))
+    R = rotation_matrix(rng, d)
+    moved = _transform(rb, R=R, shift=rng.normal(size=d) * 3, order=rng.permutation(rb.n_laterals))
+    t = rs.batch([ra, moved], n_points=T, max_laterals=a.capacity, normalise_scale=True)
+    a2, b2 = rs.unstack(t)
+    assert float(rs.distance(a2, b2, weights=W)) == pytest.approx(base, rel=1e-6)
+    # Moving a (the fixed root) as well.
+    moved_a = _transform(ra, R=rotation_matrix(rng, d), shift=rng.normal(size=d))
+    t = rs.batch([moved_a, rb], n_points=T, max_laterals=a.capacity, normalise_scale=True)
+    assert float(rs.distance(*rs.unstack(t), weights=W)) == pytest.approx(base, rel=1e-6)
+
+
+def test_invariance_to_extra_null_slots():
+    ra, rb, a, b = _pair(10)
+    base = float(rs.distance(a, b, weights=W))
+    t = rs.batch([ra, rb], n_points=T, max_laterals=a.capacity + 5, normalise_scale=True)
+    assert float(rs.distance(*rs.unstack(t), weights=W)) == pytest.approx(base, rel=1e-9)
+
+
+def test_invariance_to_reparameterisation_up_to_grid_resolution():
+    _, _, a, b = _pair(11)
+    sb = rs.to_srvf(b)
+    t = jnp.linspace(0, 1, T)
+    gamma = t + 0.15 * jnp.sin(jnp.pi * t) * (1 - t)  # a diffeomorphism of [0, 1]
+    from rootshape_jax._warp import apply_warp_srvf
+
+    warped = dataclasses.replace(
+        sb,
+        q0=apply_warp_srvf(sb.q0, gamma),
+        q=jax.vmap(apply_warp_srvf, in_axes=(0, None))(sb.q, gamma) * sb.mask[:, None, None],
+    )
+    d0 = float(rs.distance(a, sb, weights=W))
+    d1 = float(rs.distance(a, warped, weights=W))
+    # The DP optimum on a T-point grid cannot undo every warp exactly: allow a few percent.
+    assert abs(d1 - d0) <= 0.05 * d0
+
+
+def test_near_symmetry():
+    _, _, a, b = _pair(12)
+    dab = float(rs.distance(a, b, weights=W))
+    dba = float(rs.distance(b, a, weights=W))
+    assert abs(dab - dba) <= 0.05 * max(dab, dba)
+
+
+def test_moving_a_lateral_along_the_main_root_changes_only_the_position_term():
+    main = np.stack([np.zeros(40), np.linspace(0, 1, 40)], 1)
+    lat = np.stack([np.linspace(0, 0.3, 20), np.zeros(20)], 1)
+    r1 = rs.Root(main=main, laterals=[lat + [0, 0.3]], attach=[0.3])
+    r2 = rs.Root(main=main, laterals=[lat + [0, 0.5]], attach=[0.5])
+    a, b = rs.unstack(rs.batch([r1, r2], n_points=T))
+    reg = rs.register(a, b, weights=W)
+    assert float(reg.terms.main) < 1e-12
+    assert float(reg.terms.lateral) < 1e-12
+    assert float(reg.terms.position) == pytest.approx(float(W.position) * 0.2**2, rel=1e-9)
+
+
+def test_batched_register_equals_loop_and_does_not_retrace():
+    rng = np.random.default_rng(13)
+    roots = [random_root(rng, n_laterals=n) for n in (2, 3, 4, 3)]
+    t = rs.batch(roots, n_points=T, max_laterals=8, normalise_scale=True)
+    a = jax.tree.map(lambda x: x[:2], t)
+    b = jax.tree.map(lambda x: x[2:], t)
+    batched = rs.register(a, b, weights=W)
+    for k in range(2):
+        single = rs.register(rs.unstack(a)[k], rs.unstack(b)[k], weights=W)
+        assert float(single.energy) == pytest.approx(float(batched.energy[k]), rel=1e-12)
+    from rootshape_jax._registration import _register_batch
+
+    # Same shapes, different values: the compiled program is reused.
+    counted = eqx.debug.assert_max_traces(_register_batch.__wrapped__, max_traces=1)
+    f = eqx.filter_jit(counted)
+    opts = dict(rotation=True, max_iterations=3, rtol=1e-6, neighbourhood=7, prune=True, dp_batch_size=64, assignment="callback")
+    active = jnp.ones((2,), bool)
+    for x, y in ((a, b), (b, a), (a, a)):
+        f(rs.to_srvf(x), rs.to_srvf(y), W, active, **opts)
+
+
+def test_distance_gradient_matches_finite_differences():
+    _, _, a, b = _pair(14, na=2, nb=2)
+    reg = rs.register(a, b, weights=W)
+
+    # Envelope theorem: hold the registration fixed, differentiate the energy.
+    from rootshape_jax._registration import _apply
+    from rootshape_jax._metric import preshape_terms
+
+    def energy(main_a):
+        ta = dataclasses.replace(a, main=main_a)
+        sa, sb = rs.to_srvf(ta), rs.to_srvf(b)
+        rb = _apply(sa, sb, reg.rotation, reg.permutation, reg.main_warp, reg.lateral_warps)
+        return preshape_terms(sa, rb, W).total
+
+    def dist(main_a):
+        return rs.distance(dataclasses.replace(a, main=main_a), b, weights=W)
+
+    g = np.asarray(jax.grad(dist)(a.main))
+    assert np.all(np.isfinite(g))
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        v = rng.normal(size=a.main.shape)
+        eps = 1e-6
+        fd = (energy(a.main + eps * v) - energy(a.main - eps * v)) / (2 * eps)
+        d = float(reg.distance)
+        assert float(np.sum(g * v)) == pytest.approx(float(fd) / (2 * d), rel=1e-5, abs=1e-8)
+
+
+def test_gradient_wrt_weights_is_the_unweighted_terms():
+    _, _, a, b = _pair(15)
+    reg = rs.register(a, b, weights=W)
+    g = jax.grad(lambda w: rs.register(a, b, weights=w).energy)(W)
+    assert float(g.main) == pytest.approx(float(reg.terms.main / W.main), rel=1e-9)
+    assert float(g.lateral) == pytest.approx(float(reg.terms.lateral / W.lateral), rel=1e-9)
+
+
+def test_clear_errors():
+    _, _, a, b = _pair(16)
+    ra, rb, a3, b3 = _pair(16, d=3)
+    with pytest.raises(ValueError, match="capacities"):
+        rs.register(a, b3)
+    with pytest.raises(TypeError, match="RootTree or SRVFTree"):
+        rs.register(a, np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="batch shape"):
+        rs.register(rs.stack([a, a]), b)
+    with pytest.raises(ValueError, match="max_iterations"):
+        rs.register(a, b, max_iterations=0)
