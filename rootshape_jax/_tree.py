@@ -170,13 +170,15 @@ def root_to_arrays(
     main = root.main.astype(np.float64)
     scale = 1.0
     if normalise_scale:
-        length = polyline_length(main)
+        # The length of the resampled main root, so that the padded tree's main root has length 1.
+        length = polyline_length(resample_polyline(main, n_points))
         if length <= 0:
             raise InvalidRootError(f"root {root.name!r}: main root has zero length; cannot normalise scale.")
         scale = 1.0 / length
     o = main[0]
     main = o + (main - o) * scale
     d = main.shape[1]
+    main_resampled = resample_polyline(main, n_points)
     lats = np.zeros((capacity, n_points, d))
     attach = np.zeros((capacity,))
     mask = np.zeros((capacity,), dtype=bool)
@@ -186,13 +188,16 @@ def root_to_arrays(
         # A lateral emerges from the main root: join its first point to the attachment point.
         if np.linalg.norm(lat[0] - base) > 1e-9 * max(1.0, np.abs(main).max()):
             lat = np.concatenate([base[None], lat], axis=0)
+        # Resampling the main root moves its points slightly (chords); move the lateral with it
+        # so that it starts exactly at the resampled main root's point at `attach`.
+        lat = lat + (_point_at_fraction(main_resampled, float(s)) - base)
         lats[k] = resample_polyline(lat, n_points)
         attach[k] = s
         mask[k] = True
     for k in range(root.n_laterals, capacity):
-        lats[k] = np.repeat(main[:1], n_points, axis=0)
+        lats[k] = np.repeat(main_resampled[:1], n_points, axis=0)
     return (
-        resample_polyline(main, n_points).astype(dtype),
+        main_resampled.astype(dtype),
         lats.astype(dtype),
         attach.astype(dtype),
         mask,

@@ -73,3 +73,63 @@ def reparameterise(points: np.ndarray, gamma) -> np.ndarray:
 
 def as_jnp(x):
     return jnp.asarray(x)
+
+
+def transformed_copies(root: Root, rng: np.random.Generator, n: int, *, reparam=True) -> list[Root]:
+    """Copies of `root`, each rotated (about the main root's base), with its lateral order
+    permuted and (optionally) every branch reparameterised — all the same shape."""
+    d = root.dim
+    out = []
+    for i in range(n):
+        O = rotation_matrix(rng, d) if i else np.eye(d)
+        o = root.main[0]
+        rot = lambda p: (p - o) @ O.T + o  # noqa: E731
+        a = rng.uniform(0.6, 1.6) if (reparam and i) else 1.0
+        warp = (lambda t, a=a: t**a)
+        main = reparameterise(rot(root.main), warp) if reparam else rot(root.main)
+        order = rng.permutation(root.n_laterals)
+        lats = [reparameterise(rot(root.laterals[k]), warp) if reparam else rot(root.laterals[k]) for k in order]
+        out.append(Root(main=main, laterals=lats, attach=np.asarray(root.attach)[order]))
+    return out
+
+
+def linear_srvf_population(base, coefficients, *, lateral_scale=0.5, shift=0.2):
+    """SRVF trees ``x_i = base + a_i Δ1 + b_i Δ2``, exactly linear in the coefficients (a_i, b_i):
+    Δ1 scales every real lateral's SRVF (``q_k → (1 + lateral_scale·a) q_k``: longer or shorter
+    laterals, which no rotation or reparameterisation can undo), Δ2 moves every attachment
+    fraction by ``shift·b``. `base` is a single SRVFTree; returns a batched SRVFTree."""
+    from rootshape_jax._tree import SRVFTree
+
+    c = jnp.asarray(coefficients, base.q0.dtype)
+    a, b = c[:, 0], c[:, 1]
+    n = c.shape[0]
+    q = base.q[None] * (1 + lateral_scale * a)[:, None, None, None]
+    s = jnp.where(base.mask[None], base.s[None] + shift * b[:, None], base.s[None])
+    rep = lambda x: jnp.broadcast_to(x, (n,) + x.shape)  # noqa: E731
+    return SRVFTree(q0=rep(base.q0), q=q, s=s, mask=rep(base.mask), origin=rep(base.origin))
+
+
+def render_root_image(polylines, *, shape, width=5.0, noise=0.05, dark=True, seed=0, gaps=()):
+    """Draw (x = col, y = row) polylines as thick lines of `width` px on a noisy background.
+
+    Returns (float image in [0, 1], boolean root mask). Dark roots (0.25) on light (0.85) by
+    default. `gaps`: (row0, row1) bands erased from the mask to cut the roots there.
+    """
+    import scipy.ndimage as ndi
+
+    centre = np.zeros(shape, bool)
+    for poly in polylines:
+        poly = np.asarray(poly, float)
+        for p, q in zip(poly[:-1], poly[1:]):
+            n = max(2, int(np.ceil(4 * np.linalg.norm(q - p))) + 1)
+            pts = p + np.linspace(0, 1, n)[:, None] * (q - p)
+            r = np.round(pts[:, 1]).astype(int)
+            c = np.round(pts[:, 0]).astype(int)
+            ok = (r >= 0) & (r < shape[0]) & (c >= 0) & (c < shape[1])
+            centre[r[ok], c[ok]] = True
+    mask = ndi.distance_transform_edt(~centre) <= width / 2
+    for r0, r1 in gaps:
+        mask[r0:r1] = False
+    fg, bg = (0.25, 0.85) if dark else (0.85, 0.25)
+    img = np.where(mask, fg, bg) + noise * np.random.default_rng(seed).standard_normal(shape)
+    return np.clip(img, 0.0, 1.0), mask

@@ -221,6 +221,8 @@ def _parse_root(el: ET.Element, where_prefix: str, position: str) -> _Node:
     where = f"{where_prefix}, {name_bit} (root #{position})"
     props = _parse_properties(el)
     pn = props.get("parent-node")
+    if isinstance(pn, float) and pn.is_integer():  # "4.0" from some writers
+        pn = int(pn)
     node = _Node(
         where=where,
         rid=rid,
@@ -495,6 +497,13 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
             children=tuple(kids),
         )
 
+    top_nodes = [n for _, nodes in plants for n in nodes]
+    if strict and all(n.problem is not None for n in top_nodes):
+        what = "no root" if not top_nodes else (
+            f"none of its {len(top_nodes)} top-level root(s) has usable geometry "
+            f"(first: {top_nodes[0].where}: {top_nodes[0].problem})"
+        )
+        raise RSMLError(f"{source}: nothing readable: {what}.")
     roots = []
     n_top = 0
     for plant_info, nodes in plants:

@@ -179,7 +179,7 @@ def common_unit(drawings: Sequence[Drawing]) -> str | None:
 # --------------------------------------------------------------------------------------------
 # Projections and colours
 
-_COLUMNS = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2), "3d": (0, 1, 2)}
+COLUMNS = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2), "3d": (0, 1, 2)}
 _LABELS = {
     (2, "xy"): ("x", "y (depth)"),
     (3, "xz"): ("x", "z (depth)"),
@@ -257,7 +257,7 @@ def draw(
     zorder: float = 2.0,
 ) -> None:
     """Draw one root on ``ax``: laterals first, main root on top, nulls as hollow circles."""
-    cols = list(_COLUMNS[projection])
+    cols = list(COLUMNS[projection])
     main_color = colors if _is_single_color(colors) else MAIN_COLOR
     segs = [lat[:, cols] for _, lat in drawing.laterals]
     lat_colors = [_lateral_color(k, colors, slot_colors) for k, _ in drawing.laterals]
@@ -291,7 +291,7 @@ def draw(
 
 
 def points_of(drawing: Drawing, projection: str, show_nulls: bool) -> np.ndarray:
-    cols = list(_COLUMNS[projection])
+    cols = list(COLUMNS[projection])
     parts = [drawing.main[:, cols]] + [lat[:, cols] for _, lat in drawing.laterals]
     if show_nulls and drawing.nulls:
         parts.append(np.stack([p[cols] for _, p in drawing.nulls]))
@@ -336,7 +336,7 @@ def absolute_frame(drawings: Sequence[Drawing], projection: str, show_nulls: boo
 
 def base_frame(drawings: Sequence[Drawing], projection: str, show_nulls: bool) -> Frame:
     """Limits relative to each root's base: panels share one scale with the bases aligned."""
-    cols = list(_COLUMNS[projection])
+    cols = list(COLUMNS[projection])
     rel = [points_of(d, projection, show_nulls) - d.main[0, cols] for d in drawings]
     pts = np.concatenate(rel)
     return _pad(pts.min(axis=0), pts.max(axis=0))
@@ -357,7 +357,7 @@ def apply_frame(ax, frame: Frame, *, projection: str, invert_y: bool, offset=Non
 
 
 def panel_offset(drawing: Drawing, projection: str):
-    return drawing.main[0, list(_COLUMNS[projection])]
+    return drawing.main[0, list(COLUMNS[projection])]
 
 
 def new_figure(figsize: tuple[float, float], *, layout: str | None = "constrained"):

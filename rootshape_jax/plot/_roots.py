@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from ._draw import (
+    COLUMNS,
     Drawing,
     absolute_frame,
     add_scale_bar,
@@ -331,7 +332,7 @@ def _mean_overlay(drawings, mean_d, projection, invert_y, style, unit, title):
     fig = new_figure((w + 0.6, h + 0.9))
     ax = fig.add_subplot(**subplot_kw(projection))
     base = panel_offset(mean_d, projection)
-    cols = [0, 1] if projection == "xy" else {"xz": [0, 2], "yz": [1, 2], "3d": [0, 1, 2]}[projection]
+    cols = list(COLUMNS[projection])
     faint = dict(style, colors="#9a9a9a", linewidth=0.7 * style["linewidth"])
     alpha = float(np.clip(6.0 / len(drawings), 0.15, 0.6))
     for d in drawings:
@@ -530,7 +531,7 @@ def plot_regression_sweep(
     - `measured`: optional trait values measured on the predicted roots, shown under the
       requested ones so you can judge how well the model honours the request.
     - `colors`, `linewidth`, `invert_y`, `projection`: as in `plot_root`.
-    - `title`: figure title; default names the trait.
+    - `title`: figure title; None names the trait, ``""`` gives none.
 
     **Returns** ``(fig, axes)`` with `axes` a list.
     """
@@ -554,7 +555,7 @@ def plot_regression_sweep(
     frame = base_frame(drawings, projection, False)
     n = len(drawings)
     w, h = panel_size(frame, panel_height)
-    fig = new_figure((n * w + 0.3, h + 0.6 + (0.45 if title is not False else 0)))
+    fig = new_figure((n * w + 0.3, h + 0.6 + (0.45 if title != "" else 0)))
     axes = _panel_grid(fig, 1, n, n, projection)
     _draw_panels(
         axes, drawings, frame, projection=projection, invert_y=invert_y, align_bases=True,

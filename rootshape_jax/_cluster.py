@@ -1,0 +1,168 @@
+"""Clustering and classification from a distance matrix (DESIGN.md §6, paper §6.6).
+
+Everything here works on an ``(n, n)`` matrix of elastic distances (`pairwise_distances`), on
+the host with numpy / scipy: the expensive part, the registrations, is done already.
+
+- `cluster`: agglomerative clustering (`scipy.cluster.hierarchy.linkage`, method selectable)
+  and flat clusters cut at a number of clusters or a height.
+- `loo_accuracy`: leave-one-out classification with labels by the nearest neighbour or by
+  the nearest class mean. The distance to a class mean is computed from distances alone:
+  for points of a Euclidean space ``|x − m_C|² = mean_j d²(x, x_j) − mean_{j,k} d²(x_j, x_k)/2``
+  over the class members j, k (exact there). In the shape space it approximates the distance
+  to the class's Karcher mean without registering anything again.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import numpy as np
+import scipy.cluster.hierarchy as sch
+import scipy.spatial.distance as ssd
+
+LINKAGE_METHODS = ("single", "complete", "average", "weighted", "ward", "centroid", "median")
+
+
+def _check_distances(distances) -> np.ndarray:
+    D = np.asarray(distances, dtype=np.float64)
+    if D.ndim != 2 or D.shape[0] != D.shape[1]:
+        raise ValueError(f"distances must be a square (n, n) matrix, got shape {D.shape}.")
+    if not np.all(np.isfinite(D)):
+        raise ValueError("distances contains NaN or inf.")
+    if np.any(D < 0):
+        raise ValueError("distances must be non-negative.")
+    scale = max(float(np.abs(D).max()), 1e-300)
+    if not np.allclose(D, D.T, rtol=1e-6, atol=1e-9 * scale):
+        raise ValueError("distances must be symmetric (use pairwise_distances, or (D + D.T) / 2).")
+    D = 0.5 * (D + D.T)
+    np.fill_diagonal(D, 0.0)
+    return D
+
+
+@dataclasses.dataclass(frozen=True)
+class Clustering:
+    """Result of `cluster`.
+
+    - `linkage`: scipy linkage matrix ``(n − 1, 4)`` (for `scipy.cluster.hierarchy.dendrogram`).
+    - `labels`: ``(n,)`` flat cluster of each root, 0-based, numbered in order of first
+      appearance along the dendrogram's leaf order.
+    - `order`: dendrogram leaf order (indices of the roots).
+    - `method`: the linkage method used.
+    """
+
+    linkage: np.ndarray
+    labels: np.ndarray
+    order: np.ndarray
+    method: str
+
+    @property
+    def n_clusters(self) -> int:
+        return int(self.labels.max()) + 1 if self.labels.size else 0
+
+
+def cluster(
+    distances,
+    *,
+    n_clusters: int | None = 2,
+    height: float | None = None,
+    method: str = "average",
+) -> Clustering:
+    """Hierarchical clustering of roots from their distance matrix.
+
+    - `method`: a `scipy.cluster.hierarchy.linkage` method: "single", "complete", "average"
+      (default), "weighted", or — for distances that behave like Euclidean ones — "ward",
+      "centroid", "median".
+    - Flat clusters: cut the tree into `n_clusters` (default 2), or at `height` (pass
+      ``n_clusters=None``).
+    """
+    if method not in LINKAGE_METHODS:
+        raise ValueError(f"method must be one of {LINKAGE_METHODS}, got {method!r}.")
+    D = _check_distances(distances)
+    n = D.shape[0]
+    if n < 2:
+        raise ValueError("cluster needs at least two roots.")
+    if (n_clusters is None) == (height is None):
+        raise ValueError("give exactly one of n_clusters or height.")
+    Z = sch.linkage(ssd.squareform(D, checks=False), method=method)
+    if n_clusters is not None:
+        if not isinstance(n_clusters, (int, np.integer)) or not 1 <= n_clusters <= n:
+            raise ValueError(f"n_clusters must be an integer in [1, {n}], got {n_clusters!r}.")
+        raw = sch.fcluster(Z, t=int(n_clusters), criterion="maxclust")
+    else:
+        raw = sch.fcluster(Z, t=float(height), criterion="distance")
+    order = sch.leaves_list(Z)
+    # Renumber 0, 1, ... in dendrogram order, so labels do not depend on scipy's numbering.
+    mapping: dict[int, int] = {}
+    for i in order:
+        mapping.setdefault(int(raw[i]), len(mapping))
+    labels = np.array([mapping[int(c)] for c in raw], dtype=np.int64)
+    return Clustering(linkage=Z, labels=labels, order=np.asarray(order), method=method)
+
+
+def _check_labels(labels, n: int) -> np.ndarray:
+    y = np.asarray(labels)
+    if y.shape != (n,):
+        raise ValueError(f"labels must have shape ({n},), got {y.shape}.")
+    return y
+
+
+def class_mean_distances(distances, labels, *, leave_out: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Squared distance of every root to every class mean, from distances alone (module
+    docstring). With `leave_out`, root i is removed from its own class first (NaN if that
+    empties the class). Returns ``(d2 of shape (n, n_classes), classes)``."""
+    D = _check_distances(distances)
+    n = D.shape[0]
+    y = _check_labels(labels, n)
+    classes = np.unique(y)
+    D2 = D**2
+    out = np.full((n, len(classes)), np.nan)
+    for c, cls in enumerate(classes):
+        members = np.flatnonzero(y == cls)
+        for i in range(n):
+            idx = members[members != i] if leave_out else members
+            if idx.size == 0:
+                continue
+            spread = D2[np.ix_(idx, idx)].sum() / (2 * idx.size**2)
+            out[i, c] = max(D2[i, idx].mean() - spread, 0.0)
+    return out, classes
+
+
+def loo_accuracy(distances, labels, *, rule: str = "nearest_neighbour") -> dict:
+    """Leave-one-out classification accuracy.
+
+    - ``rule="nearest_neighbour"``: each root takes the label of its nearest other root.
+    - ``rule="nearest_mean"``: each root takes the label of the nearest class mean, the
+      means computed without the root (see `class_mean_distances`).
+
+    Ties go to the first candidate (smallest index / first class in sorted order). Returns
+    ``{"accuracy", "predicted", "correct"}``.
+    """
+    D = _check_distances(distances)
+    n = D.shape[0]
+    y = _check_labels(labels, n)
+    if n < 2:
+        raise ValueError("leave-one-out needs at least two roots.")
+    if rule == "nearest_neighbour":
+        masked = D + np.diag(np.full(n, np.inf))
+        predicted = y[np.argmin(masked, axis=1)]
+    elif rule == "nearest_mean":
+        d2, classes = class_mean_distances(D, y, leave_out=True)
+        d2 = np.where(np.isnan(d2), np.inf, d2)
+        predicted = classes[np.argmin(d2, axis=1)]
+    else:
+        raise ValueError(f"rule must be 'nearest_neighbour' or 'nearest_mean', got {rule!r}.")
+    correct = predicted == y
+    return {"accuracy": float(correct.mean()), "predicted": predicted, "correct": correct}
+
+
+def confusion_matrix(labels, predicted, classes: Sequence | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Counts ``C[i, j]`` of roots of class i predicted as class j, with the class order."""
+    y = np.asarray(labels)
+    p = np.asarray(predicted)
+    classes = np.unique(np.concatenate([y, p])) if classes is None else np.asarray(classes)
+    index = {c: k for k, c in enumerate(classes.tolist())}
+    C = np.zeros((len(classes), len(classes)), dtype=np.int64)
+    for a, b in zip(y.tolist(), p.tolist()):
+        C[index[a], index[b]] += 1
+    return C, classes

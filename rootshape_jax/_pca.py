@@ -1,0 +1,281 @@
+"""Tangent PCA at the Karcher mean, modes of variation and random synthesis (DESIGN.md §6,
+paper §4–5.1).
+
+The shape space is flat in SRVF-tree coordinates (the pre-shape metric is a weighted L2
+norm), so the tangent vector of sample i at the mean μ is ``registered_i − μ`` and the
+exponential map is addition. Vectors are whitened by the metric, ``v = W^{1/2}(x − μ)``: √λm
+and the trapezoid weights on the main root, √λs and the trapezoid weights on the laterals,
+√λp on the attachment fractions. Euclidean geometry of the flattened ``v`` is then the
+metric's own, ``|v_i|² = d²(μ, x_i)``. A null lateral of a sample sits at the mean's position,
+so it adds no position difference, exactly as in the metric.
+
+Following the paper, the covariance is ``(1/(n−1)) Σ v_i v_iᵀ`` (tangent vectors at the
+Karcher mean average to zero, so no further centring), computed by an SVD of the ``n × p``
+data matrix. A root is synthesised as ``μ + Σ_i b_i √σ_i Λ_i`` and mapped back to curves;
+its laterals shorter than a threshold are nulls, attachment fractions are clipped to [0, 1].
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, PRNGKeyArray
+
+from ._curves import l2_norm_squared
+from ._mean import KarcherMean, _broadcast, _Params, _registration_options, _register_onto, _whitening
+from ._metric import Weights
+from ._tree import RootTree, SRVFTree, check_compatible, to_curves, to_srvf
+
+
+class TangentPCA(eqx.Module):
+    """Principal modes of variation in the tangent space at the Karcher mean.
+
+    **Fields**
+
+    - `mean`: the point of tangency, an `SRVFTree` with every slot real (as fitted).
+    - `components`: ``[m, p]`` orthonormal principal directions ``Λ_i`` in whitened,
+      flattened coordinates (``m = min(n, p)``), by decreasing eigenvalue.
+    - `eigenvalues`: ``[m]`` variances ``σ_i`` (covariance ``VᵀV / (n − 1)``).
+    - `explained_variance_ratio`: ``[m]`` ``σ_i / Σσ``.
+    - `scores`: ``[n, m]`` standardised coefficients ``b_i = <v, Λ_i> / √σ_i`` of the samples
+      (0 where ``σ_i = 0``).
+    - `n_components`: leading components explaining at least `variance` of the total
+      (static; 0 when the samples do not vary).
+    - `scales`: whitening factors per block (main, laterals, positions).
+    - `weights`: the metric weights. `min_lateral_length`: synthesised laterals shorter than
+      this are nulls.
+    """
+
+    mean: SRVFTree
+    components: Float[Array, "m p"]
+    eigenvalues: Float[Array, " m"]
+    explained_variance_ratio: Float[Array, " m"]
+    scores: Float[Array, "n m"]
+    scales: _Params
+    weights: Weights
+    min_lateral_length: Float[Array, ""]
+    n_components: int = eqx.field(static=True)
+    variance: float = eqx.field(static=True)
+
+
+def _flatten(v: _Params) -> Array:
+    lead = v.q0.shape[:-2]
+    return jnp.concatenate(
+        [v.q0.reshape(lead + (-1,)), v.q.reshape(lead + (-1,)), v.s.reshape(lead + (-1,))], axis=-1
+    )
+
+
+def _unflatten(x: Array, T: int, K: int, d: int) -> _Params:
+    lead = x.shape[:-1]
+    n0 = T * d
+    n1 = K * T * d
+    return _Params(
+        x[..., :n0].reshape(lead + (T, d)),
+        x[..., n0 : n0 + n1].reshape(lead + (K, T, d)),
+        x[..., n0 + n1 :].reshape(lead + (K,)),
+    )
+
+
+def _tangent(registered: SRVFTree, mean: SRVFTree, c: _Params) -> Array:
+    """Flattened whitened tangent vectors ``W^{1/2}(registered − mean)`` (batched)."""
+    v = _Params(
+        c.q0 * (registered.q0 - mean.q0),
+        c.q * (registered.q - mean.q),
+        c.s * (registered.s - mean.s),
+    )
+    return _flatten(v)
+
+
+@eqx.filter_jit
+def _fit(registered: SRVFTree, mean: SRVFTree, c: _Params):
+    V = _tangent(registered, mean, c)
+    n = V.shape[0]
+    _, S, Vt = jnp.linalg.svd(V, full_matrices=False)
+    eig = S**2 / max(n - 1, 1)
+    total = jnp.sum(eig)
+    ratio = jnp.where(total > 0, eig / jnp.where(total > 0, total, 1.0), 0.0)
+    scores = _scores(V, Vt, eig)
+    return Vt, eig, ratio, scores
+
+
+def _scores(V, Vt, eig):
+    proj = V @ Vt.T
+    ok = eig > 0
+    return jnp.where(ok, proj / jnp.sqrt(jnp.where(ok, eig, 1.0)), 0.0)
+
+
+def _count(ratio: np.ndarray, variance: float) -> int:
+    ratio = np.asarray(ratio, dtype=np.float64)
+    if ratio.sum() <= 0:
+        return 0
+    cum = np.cumsum(ratio)
+    # Smallest m with cumulative ratio >= variance (tolerant of rounding at 100 %).
+    return int(min(np.searchsorted(cum, variance - 1e-12) + 1, len(ratio)))
+
+
+def tangent_pca(
+    mean: KarcherMean,
+    *,
+    variance: float = 0.99,
+    min_lateral_length: float | None = None,
+) -> TangentPCA:
+    """Tangent PCA of the samples of a `karcher_mean` result.
+
+    - `variance`: keep the leading components whose cumulative explained variance reaches
+      this fraction (the paper's 99 %); `n_components` reports how many.
+    - `min_lateral_length`: laterals of synthesised roots shorter than this are nulls;
+      default 2 % of the mean's main-root length (as `karcher_mean` drops mean laterals).
+    """
+    if not isinstance(mean, KarcherMean):
+        raise TypeError(f"tangent_pca expects the result of karcher_mean, got {type(mean).__name__}.")
+    if not 0 < variance <= 1:
+        raise ValueError(f"variance must be in (0, 1], got {variance!r}.")
+    # The tangent point is the fitted mean (every slot real), where the samples were registered.
+    mu = mean.fitted
+    T, d = mu.q0.shape
+    dtype = mu.q0.dtype
+    c = _whitening(mean.weights, T, dtype)
+    Vt, eig, ratio, scores = _fit(mean.registered, mu, c)
+    if min_lateral_length is None:
+        threshold = 0.02 * l2_norm_squared(mu.q0)
+    else:
+        threshold = jnp.asarray(min_lateral_length, dtype)
+    return TangentPCA(
+        mean=mu,
+        components=Vt,
+        eigenvalues=eig,
+        explained_variance_ratio=ratio,
+        scores=scores,
+        scales=c,
+        weights=mean.weights,
+        min_lateral_length=threshold,
+        n_components=_count(np.asarray(ratio), variance),
+        variance=float(variance),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Back to roots
+
+
+def _to_tree(pc: TangentPCA, v: Array) -> SRVFTree:
+    """SRVF trees ``μ + W^{-1/2} v`` for flattened whitened tangent vectors v (batched)."""
+    T, d = pc.mean.q0.shape
+    K = pc.mean.q.shape[0]
+    u = _unflatten(v, T, K, d)
+    c = pc.scales
+    q0 = pc.mean.q0 + u.q0 / c.q0
+    q = pc.mean.q + u.q / c.q
+    s = jnp.clip(pc.mean.s + u.s / c.s, 0.0, 1.0)
+    real = l2_norm_squared(q) >= pc.min_lateral_length
+    q = q * real[..., None, None]
+    origin = jnp.broadcast_to(pc.mean.origin, q0.shape[:-2] + pc.mean.origin.shape)
+    return SRVFTree(q0=q0, q=q, s=s, mask=real, origin=origin)
+
+
+@eqx.filter_jit
+def _reconstruct(pc: TangentPCA, coefficients: Array) -> tuple[SRVFTree, RootTree]:
+    m = coefficients.shape[-1]
+    basis = pc.components[:m] * jnp.sqrt(pc.eigenvalues[:m])[:, None]
+    t = _to_tree(pc, coefficients @ basis)
+    return t, to_curves(t)
+
+
+def reconstruct(pc: TangentPCA, coefficients, *, srvf: bool = False) -> RootTree | SRVFTree:
+    """Roots ``μ + Σ_i b_i √σ_i Λ_i`` from standardised coefficients ``b`` (``[..., m]``, the
+    first m components; m <= number of components). Returns a (batched) `RootTree`, or the
+    `SRVFTree` with ``srvf=True``."""
+    b = jnp.asarray(coefficients, pc.mean.q0.dtype)
+    if b.ndim == 0 or b.shape[-1] > pc.components.shape[0]:
+        raise ValueError(
+            f"coefficients must have shape (..., m) with m <= {pc.components.shape[0]}, got {b.shape}."
+        )
+    t, curves = _reconstruct(pc, b)
+    return t if srvf else curves
+
+
+def modes(
+    pc: TangentPCA, alphas: Sequence[float] | Array, *, component: int | Sequence[int] = 0
+) -> RootTree:
+    """Roots along principal mode(s): ``μ + α √σ_i Λ_i`` for each α in `alphas`.
+
+    One `component` gives a batched `RootTree` of shape ``(len(alphas),)``; a sequence of
+    components gives shape ``(len(components), len(alphas))``.
+    """
+    alphas = jnp.asarray(alphas, pc.mean.q0.dtype).reshape(-1)
+    single = isinstance(component, (int, np.integer))
+    comps = [int(component)] if single else [int(c) for c in component]
+    m = pc.components.shape[0]
+    for c in comps:
+        if not 0 <= c < m:
+            raise ValueError(f"component {c} is out of range: the PCA has {m} components.")
+    top = max(comps) + 1
+    b = jnp.zeros((len(comps), alphas.shape[0], top), alphas.dtype)
+    for i, c in enumerate(comps):
+        b = b.at[i, :, c].set(alphas)
+    out = reconstruct(pc, b)
+    return jax.tree.map(lambda x: x[0], out) if single else out
+
+
+def sample(
+    pc: TangentPCA,
+    key: PRNGKeyArray,
+    n: int,
+    *,
+    truncate: float | None = None,
+    n_components: int | None = None,
+    srvf: bool = False,
+) -> RootTree | SRVFTree:
+    """`n` random roots: ``b ~ N(0, I)`` on the kept components (`pc.n_components`, or
+    `n_components`), optionally truncated to ``[−truncate, truncate]`` (a truncated normal),
+    mapped through `reconstruct`. Laterals shorter than `pc.min_lateral_length` are nulls."""
+    if not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"n must be a positive integer, got {n!r}.")
+    m = pc.n_components if n_components is None else int(n_components)
+    if not 0 <= m <= pc.components.shape[0]:
+        raise ValueError(f"n_components must be in [0, {pc.components.shape[0]}], got {m}.")
+    dtype = pc.mean.q0.dtype
+    if truncate is None:
+        b = jax.random.normal(key, (int(n), m), dtype)
+    else:
+        if not truncate > 0:
+            raise ValueError(f"truncate must be positive, got {truncate!r}.")
+        b = jax.random.truncated_normal(key, -truncate, truncate, (int(n), m), dtype)
+    return reconstruct(pc, b, srvf=srvf)
+
+
+@eqx.filter_jit
+def _project(pc: TangentPCA, x: SRVFTree, opts: dict):
+    a = _broadcast(pc.mean, x.q0.shape[0])
+    registered, energies, _ = _register_onto(a, x, pc.weights, opts)
+    V = _tangent(registered, pc.mean, pc.scales)
+    return _scores(V, pc.components, pc.eigenvalues), energies
+
+
+def project(
+    pc: TangentPCA,
+    trees: RootTree | SRVFTree,
+    *,
+    n_components: int | None = None,
+    registration: dict | None = None,
+) -> Float[Array, "n m"]:
+    """Standardised coefficients ``b`` of roots: each is registered onto the mean (options of
+    `register` in `registration`) and its tangent vector projected on the first
+    `n_components` (default `pc.n_components`) directions, divided by ``√σ_i``. A single tree
+    gives shape ``(m,)``."""
+    x = to_srvf(trees)
+    single = x.batch_shape == ()
+    if single:
+        x = jax.tree.map(lambda a: a[None], x)
+    if len(x.batch_shape) != 1:
+        raise ValueError(f"project: expected one tree or a batch, got batch shape {x.batch_shape}.")
+    check_compatible(pc.mean, x, "project: the PCA's mean and trees")
+    opts = _registration_options(registration)
+    b, _ = _project(pc, x, opts)
+    m = pc.n_components if n_components is None else int(n_components)
+    b = b[:, :m]
+    return b[0] if single else b

@@ -1,0 +1,275 @@
+"""Karcher mean: invariances, both solvers, the objective and its pieces against references."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+import scipy.optimize
+
+import rootshape_jax as rs
+from rootshape_jax._mean import (
+    KarcherMean,
+    _exact_update,
+    _lower_bound_distances,
+    karcher_mean,
+    karcher_objective,
+)
+from rootshape_jax._metric import preshape_distance_squared
+
+from helpers import random_root, transformed_copies
+
+T = 30
+W = rs.Weights()
+
+
+@pytest.fixture(scope="module")
+def base_root():
+    return random_root(np.random.default_rng(3), n_laterals=3)
+
+
+@pytest.fixture(scope="module")
+def copies(base_root):
+    roots = transformed_copies(base_root, np.random.default_rng(4), 4)
+    return rs.batch([base_root] + roots, n_points=T)
+
+
+@pytest.fixture(scope="module")
+def population():
+    """Five different small roots (2–3 laterals), K = 6."""
+    rng = np.random.default_rng(11)
+    roots = [random_root(rng, n_laterals=int(k)) for k in (3, 2, 3, 2, 3)]
+    return rs.batch(roots, n_points=T, max_laterals=6)
+
+
+@pytest.fixture(scope="module")
+def noisy():
+    """A tight population: one root with small perturbations of its laterals and positions."""
+    rng = np.random.default_rng(5)
+    base = random_root(rng, n_laterals=3)
+    roots = []
+    for _ in range(5):
+        lats = [lat[0] + (lat - lat[0]) * rng.uniform(0.85, 1.15) for lat in base.laterals]
+        attach = np.clip(base.attach + rng.normal(0, 0.03, 3), 0.05, 0.95)
+        main = base.main + rng.normal(0, 0.004, base.main.shape).cumsum(axis=0) * 0.2
+        roots.append(rs.Root(main=main, laterals=lats, attach=attach))
+    return rs.batch(roots, n_points=T, max_laterals=6)
+
+
+@pytest.fixture(scope="module")
+def fp_population(population):
+    return karcher_mean(population, max_steps=30)
+
+
+def test_result_fields(population, fp_population):
+    res = fp_population
+    n, K = 5, 6
+    assert isinstance(res, KarcherMean)
+    assert res.mean.main.shape == (T, 2) and res.mean.laterals.shape == (K, T, 2)
+    assert res.registered.q.shape == (n, K, T, 2)
+    assert res.energies.shape == (n,)
+    assert res.result == optx.RESULTS.successful
+    assert int(res.steps) >= 1
+    assert res.energy_trace.shape[0] == int(res.steps) + 1
+    np.testing.assert_allclose(res.energy, np.mean(res.energies), rtol=1e-12)
+    np.testing.assert_allclose(res.energy_trace[-1], res.energy, rtol=1e-12)
+    assert np.all(np.isfinite(np.asarray(res.mean.laterals)))
+    # Dropped slots are nulls with q = 0; kept ones are at least the threshold long.
+    lengths = np.asarray(res.lateral_lengths)
+    thr = 0.02 * float(rs.l2_norm_squared(res.mean_srvf.q0))
+    np.testing.assert_array_equal(np.asarray(res.dropped), lengths < thr)
+    assert np.all(np.asarray(res.mean_srvf.q)[np.asarray(res.dropped)] == 0)
+    # The mean has about as many laterals as the samples (2–3), not all K slots.
+    assert 2 <= int(res.mean_srvf.mask.sum()) <= 4
+
+
+def test_energy_is_the_objective_at_the_mean(population, fp_population):
+    # energies are registrations of every sample onto the fitted mean: the public objective
+    # (a fresh registration) can only be as good or worse than the kept best registration.
+    F = karcher_objective(fp_population.fitted, population)
+    assert float(F) >= float(fp_population.energy) - 1e-10
+    assert float(F) <= float(fp_population.energy) * 1.05
+    # Every registered sample is at the reported energy from the mean (pre-shape distance).
+    mu = jax.tree.map(lambda x: jnp.broadcast_to(x, (5,) + x.shape), fp_population.fitted)
+    d2 = preshape_distance_squared(mu, fp_population.registered, W)
+    np.testing.assert_allclose(d2, fp_population.energies, rtol=1e-10, atol=1e-12)
+
+
+def test_fixed_point_energy_never_increases(fp_population):
+    trace = np.asarray(fp_population.energy_trace)
+    assert np.all(np.isfinite(trace))
+    assert np.all(np.diff(trace) <= 1e-12 * trace[0]), trace
+    assert trace[-1] < trace[0]  # the medoid is not already the mean
+
+
+def test_mean_beats_every_sample(population, fp_population):
+    # Any sample is a candidate mean: the Karcher mean's energy is no larger than theirs.
+    for i in range(5):
+        xi = jax.tree.map(lambda x: x[i], rs.to_srvf(population))
+        xi = eqx_all_real(xi)
+        assert float(fp_population.energy) <= float(karcher_objective(xi, population)) + 1e-12
+
+
+def eqx_all_real(t):
+    import equinox as eqx
+
+    return eqx.tree_at(lambda x: x.mask, t, jnp.ones_like(t.mask))
+
+
+def test_mean_of_copies_is_the_root(base_root, copies):
+    res = karcher_mean(copies, max_steps=20)
+    base = rs.batch(base_root, n_points=T, max_laterals=6)
+    # Root-to-copy distances are not 0: arc-length resampling of reparameterised polylines.
+    d_copies = np.array(
+        [float(rs.distance(base, jax.tree.map(lambda x: x[i], copies))) for i in range(1, 5)]
+    )
+    assert d_copies.max() > 0
+    d_mean = float(rs.distance(base, res.mean_srvf))
+    assert d_mean <= d_copies.max(), (d_mean, d_copies)
+    assert int(res.mean_srvf.mask.sum()) == 3
+    # The curves too: main root and lateral lengths match the root's.
+    np.testing.assert_allclose(
+        float(rs.curve_length(res.mean.main)), base_root.main_length, rtol=0.02
+    )
+    got = np.sort(np.asarray(res.lateral_lengths)[~np.asarray(res.dropped)])
+    np.testing.assert_allclose(got, np.sort(base_root.lateral_lengths), rtol=0.03)
+
+
+def test_mean_does_not_depend_on_input_order(population, fp_population):
+    perm = np.array([3, 0, 4, 2, 1])
+    shuffled = jax.tree.map(lambda x: x[perm], population)
+    res = karcher_mean(shuffled, max_steps=30)
+    assert perm[res.init_index] == fp_population.init_index
+    a, b = fp_population.mean_srvf, res.mean_srvf
+    np.testing.assert_allclose(a.q0, b.q0, atol=1e-8)
+    np.testing.assert_allclose(a.q, b.q, atol=1e-8)
+    np.testing.assert_allclose(a.s, b.s, atol=1e-8)
+    np.testing.assert_allclose(res.energies, np.asarray(fp_population.energies)[perm], atol=1e-10)
+
+
+@pytest.mark.slow
+def test_both_methods_reach_the_same_energy(noisy):
+    fp = karcher_mean(noisy, method="fixed_point", max_steps=40, rtol=1e-6)
+    gd = karcher_mean(noisy, method="gradient", max_steps=80, rtol=1e-6)
+    assert fp.result == optx.RESULTS.successful and gd.result == optx.RESULTS.successful
+    e1, e2 = float(fp.energy), float(gd.energy)
+    assert abs(e1 - e2) <= 0.01 * max(e1, e2), (e1, e2)
+    assert int(fp.mean_srvf.mask.sum()) == int(gd.mean_srvf.mask.sum()) == 3
+    # Any optimistix minimiser is accepted.
+    bfgs = karcher_mean(noisy, method="gradient", solver=optx.BFGS(rtol=1e-6, atol=1e-9), max_steps=80)
+    e3 = float(bfgs.energy)
+    assert abs(e3 - e1) <= 0.01 * max(e1, e3), (e1, e3)
+
+
+def test_objective_gradient_matches_finite_differences(population, fp_population):
+    mu = fp_population.fitted
+    # Move away from the optimum so the gradient is not zero.
+    key = jax.random.PRNGKey(0)
+    mu = eqx_replace_q(mu, mu.q + 0.05 * jax.random.normal(key, mu.q.shape) * mu.mask[:, None, None])
+    g = jax.grad(lambda m: karcher_objective(m, population))(mu)
+    h_q = jax.random.normal(jax.random.PRNGKey(1), mu.q.shape)
+    h_s = jax.random.normal(jax.random.PRNGKey(2), mu.s.shape)
+    eps = 1e-6
+
+    def F(t):
+        import equinox as eqx
+
+        m = eqx.tree_at(lambda x: (x.q, x.s), mu, (mu.q + t * h_q, mu.s + t * h_s))
+        return float(karcher_objective(m, population))
+
+    fd = (F(eps) - F(-eps)) / (2 * eps)
+    an = float(jnp.sum(g.q * h_q) + jnp.sum(g.s * h_s))
+    np.testing.assert_allclose(an, fd, rtol=1e-5)
+
+
+def eqx_replace_q(t, q):
+    import equinox as eqx
+
+    return eqx.tree_at(lambda x: x.q, t, q)
+
+
+def test_exact_update_minimises_with_registrations_fixed(fp_population):
+    reg = fp_population.registered
+    mu = fp_population.fitted
+    new = _exact_update(reg, mu.s)
+    # numpy reference: plain means of the SRVFs; positions averaged over real laterals only.
+    q = np.asarray(reg.q)
+    m = np.asarray(reg.mask)
+    s = np.asarray(reg.s)
+    np.testing.assert_allclose(new.q0, np.asarray(reg.q0).mean(0), rtol=1e-12)
+    np.testing.assert_allclose(new.q, q.mean(0), rtol=1e-12, atol=1e-15)
+    for k in range(m.shape[1]):
+        want = s[m[:, k], k].mean() if m[:, k].any() else float(mu.s[k])
+        np.testing.assert_allclose(float(new.s[k]), want, rtol=1e-12)
+
+    # And it is a stationary point of the energy with these registrations held fixed.
+    def energy(q0, qq, ss):
+        t = rs.SRVFTree(q0=q0, q=qq, s=ss, mask=jnp.ones_like(mu.mask), origin=mu.origin)
+        tb = jax.tree.map(lambda x: jnp.broadcast_to(x, (5,) + x.shape), t)
+        return jnp.mean(preshape_distance_squared(tb, reg, W))
+
+    grads = jax.grad(energy, argnums=(0, 1, 2))(new.q0, new.q, new.s)
+    for g in grads:
+        assert float(jnp.max(jnp.abs(g))) < 1e-12
+
+
+def test_lower_bound_distance_is_a_lower_bound(population):
+    s = rs.to_srvf(population)
+    D_lb = np.asarray(_lower_bound_distances(s, W, "callback"))
+    D = np.asarray(rs.pairwise_distances(population, progress=False))
+    assert np.all(D_lb <= D + 1e-9)
+    np.testing.assert_allclose(D_lb, D_lb.T)
+    # Brute reference for one pair: scipy assignment of the lateral bounds, by hand.
+    a = jax.tree.map(lambda x: np.asarray(x[0]), s)
+    b = jax.tree.map(lambda x: np.asarray(x[1]), s)
+    tw = np.full(T, 1 / (T - 1))
+    tw[[0, -1]] /= 2
+    L = lambda q: float(np.sum(np.sum(q * q, -1) * tw))  # noqa: E731
+    K = a.q.shape[0]
+    C = np.zeros((K, K))
+    for i in range(K):
+        for j in range(K):
+            La = L(a.q[i]) if a.mask[i] else 0.0
+            Lb = L(b.q[j]) if b.mask[j] else 0.0
+            if a.mask[i] and b.mask[j]:
+                C[i, j] = (np.sqrt(La) - np.sqrt(Lb)) ** 2 + (a.s[i] - b.s[j]) ** 2
+            else:
+                C[i, j] = La + Lb
+    r, c = scipy.optimize.linear_sum_assignment(C)
+    e = 0.02 * (np.sqrt(L(a.q0)) - np.sqrt(L(b.q0))) ** 2 + C[r, c].sum()
+    np.testing.assert_allclose(D_lb[0, 1], np.sqrt(e), rtol=1e-10)
+
+
+def test_medoid_from_given_distances(population):
+    D = np.ones((5, 5)) - np.eye(5)
+    D[2] *= 0.5
+    D[:, 2] *= 0.5
+    res = karcher_mean(population, distances=D, max_steps=3, throw=False)
+    assert res.init_index == 2
+    res = karcher_mean(population, init=4, max_steps=2, throw=False)
+    assert res.init_index == 4
+
+
+def test_max_steps_is_reported(population):
+    res = karcher_mean(population, max_steps=1, rtol=0.0, throw=False)
+    assert res.result == optx.RESULTS.nonlinear_max_steps_reached
+    with pytest.raises(Exception):
+        karcher_mean(population, max_steps=1, rtol=0.0, throw=True)
+
+
+def test_bad_input_is_rejected(population):
+    with pytest.raises(ValueError, match="method"):
+        karcher_mean(population, method="newton")
+    with pytest.raises(ValueError, match="out of range"):
+        karcher_mean(population, init=9)
+    with pytest.raises(ValueError, match="shape"):
+        karcher_mean(population, distances=np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="unknown"):
+        karcher_mean(population, registration={"neighborhood": 5})
+    with pytest.raises(TypeError, match="fixed-point solver"):
+        karcher_mean(population, solver=optx.BFGS(rtol=1e-3, atol=1e-3))
+    with pytest.raises(TypeError, match="batched RootTree"):
+        karcher_mean([1, 2, 3])
+    single = jax.tree.map(lambda x: x[0], population)
+    with pytest.raises(ValueError, match="batch"):
+        karcher_mean(single)

@@ -1,0 +1,116 @@
+"""Distance matrices and geodesics."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import rootshape_jax as rs
+from rootshape_jax import _pairwise
+
+from helpers import random_root
+
+T = 30
+W = rs.Weights(main=0.5, lateral=1.0, position=1.0)
+
+
+@pytest.fixture(scope="module")
+def trees():
+    rng = np.random.default_rng(0)
+    roots = [random_root(rng, n_laterals=n) for n in (0, 2, 3, 4, 2)]
+    return rs.batch(roots, n_points=T, normalise_scale=True)
+
+
+def test_matrix_equals_pair_by_pair_calls(trees):
+    D = np.asarray(rs.pairwise_distances(trees, weights=W, chunk_size=3, progress=False))
+    n = D.shape[0]
+    assert np.all(np.diag(D) == 0)
+    np.testing.assert_array_equal(D, D.T)
+    parts = rs.unstack(trees)
+    for i in range(n):
+        for j in range(i + 1, n):
+            d = float(rs.distance(parts[i], parts[j], weights=W))
+            assert D[i, j] == pytest.approx(d, rel=1e-10)
+
+
+def test_cross_distances_and_stats(trees):
+    A = jax.tree.map(lambda x: x[:2], trees)
+    C = np.asarray(rs.cross_distances(A, trees, weights=W, chunk_size=4, progress=False))
+    D, stats = rs.pairwise_distances(trees, weights=W, chunk_size=4, progress=False, return_stats=True)
+    np.testing.assert_allclose(C[:, 2:], np.asarray(D)[:2, 2:], rtol=1e-10)
+    assert C[0, 0] < 1e-7 and C[1, 1] < 1e-7
+    assert stats["pairs"] == 10 and stats["lateral_dp"] > 0
+
+
+def test_no_retrace_across_chunks(trees, monkeypatch):
+    counted = eqx.filter_jit(eqx.debug.assert_max_traces(_pairwise._chunk_energies.__wrapped__, max_traces=1))
+    monkeypatch.setattr(_pairwise, "_chunk_energies", counted)
+    # 10 pairs in chunks of 3: four chunks, one compiled program (the last chunk is padded).
+    rs.pairwise_distances(trees, weights=W, chunk_size=3, progress=False)
+
+
+def test_bad_inputs(trees):
+    with pytest.raises(TypeError, match="batched RootTree"):
+        rs.pairwise_distances([1, 2])
+    with pytest.raises(ValueError, match="one leading axis"):
+        rs.pairwise_distances(rs.unstack(trees)[0])
+    other = rs.batch([random_root(np.random.default_rng(1), n_laterals=9)], n_points=T)
+    with pytest.raises(ValueError, match="different capacities"):
+        rs.cross_distances(trees, other)
+    with pytest.raises(ValueError, match="chunk_size"):
+        rs.pairwise_distances(trees, chunk_size=0)
+
+
+# ---------------------------------------------------------------------------------- geodesics
+
+
+def test_geodesic_endpoints_midpoint_and_colours(trees):
+    a, b = rs.unstack(trees)[2], rs.unstack(trees)[3]
+    reg = rs.register(a, b, weights=W)
+    path = rs.geodesic(a, b, n_steps=5, weights=W, registration=reg)
+    assert path.main.shape == (5, T, 2) and path.laterals.shape[:2] == (5, a.capacity)
+    # Endpoints: a itself (its curves rebuilt from its SRVFs) and registered b.
+    start = rs.to_curves(rs.to_srvf(a))
+    np.testing.assert_allclose(np.asarray(path.main[0]), np.asarray(start.main), atol=1e-12)
+    end = rs.to_curves(reg.registered)
+    np.testing.assert_allclose(np.asarray(path.main[-1]), np.asarray(end.main), atol=1e-12)
+    m = np.asarray(end.mask)
+    np.testing.assert_allclose(np.asarray(path.laterals[-1])[m], np.asarray(end.laterals)[m], atol=1e-12)
+    # The midpoint of the straight line is equidistant from both ends (pre-shape metric).
+    from rootshape_jax._geodesic import geodesic_srvf
+
+    line = geodesic_srvf(rs.to_srvf(a), reg.registered, jnp.array([0.0, 0.5, 1.0]))
+    ends = rs.unstack(line)
+    d0 = rs.preshape_distance_squared(ends[0], ends[1], W)
+    d1 = rs.preshape_distance_squared(ends[1], ends[2], W)
+    assert float(d0) == pytest.approx(float(d1), rel=1e-12)
+    assert float(d0) == pytest.approx(float(reg.energy) / 4, rel=1e-9)
+
+
+def test_lateral_added_grows_from_zero():
+    main = np.stack([np.zeros(30), np.linspace(0, 1, 30)], 1)
+    lat = np.stack([np.linspace(0, 0.3, 20), np.zeros(20)], 1)
+    r1 = rs.Root(main=main, laterals=[lat + [0, 0.3]], attach=[0.3])
+    r2 = rs.Root(main=main, laterals=[lat + [0, 0.3], -lat + [0, 0.7]], attach=[0.3, 0.7])
+    a, b = rs.unstack(rs.batch([r1, r2], n_points=T))
+    path = rs.geodesic(a, b, n_steps=5, weights=W)
+    lengths = np.asarray(rs.curve_length(path.laterals))  # (steps, K)
+    grown = int(np.argmax(lengths[-1] * (lengths[0] < 1e-12)))
+    assert lengths[0, grown] < 1e-12
+    assert np.all(np.diff(lengths[:, grown]) > 0)
+    assert lengths[-1, grown] == pytest.approx(0.3, rel=1e-6)
+    # It grows at a fixed position: its base stays at the attachment fraction 0.7.
+    np.testing.assert_allclose(np.asarray(path.attach[:, grown]), 0.7, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(path.laterals[1:, grown, 0, 1]), 0.7, atol=1e-6)
+
+
+def test_geodesic_in_3d_and_errors():
+    rng = np.random.default_rng(3)
+    t = rs.batch([random_root(rng, n_laterals=2, d=3) for _ in range(2)], n_points=T)
+    a, b = rs.unstack(t)
+    path = rs.geodesic(a, b, n_steps=3, weights=W)
+    assert path.main.shape == (3, T, 3)
+    assert np.all(np.isfinite(np.asarray(path.laterals)))
+    with pytest.raises(ValueError, match="n_steps"):
+        rs.geodesic(a, b, n_steps=1)
