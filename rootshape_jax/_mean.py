@@ -15,11 +15,12 @@ fixed, ``F`` is a weighted sum of squares in μ, minimised exactly by
 Two solvers, both optimistix:
 
 - ``method="fixed_point"`` (`optx.fixed_point`): block-coordinate descent on the joint energy
-  ``J(μ, g_1..g_n)``. The iterate is ``(μ, O_1..O_n)``; a step solves every sample's warps and
-  lateral correspondence exactly for its current rotation (one batched DP pass, the core of
-  `register`), moves μ to the exact minimiser above, and refits each rotation by weighted
-  Kabsch. Every sub-step minimises J over its block, so the recorded energy never increases.
-  The first rotations come from a full `register` of every sample onto the start.
+  ``J(μ, g_1..g_n)``. The iterate is μ with every sample's rotation and current registration.
+  A step solves every sample's warps and lateral correspondence afresh for its rotation (one
+  batched DP pass, the core of `register`) and keeps them where they beat the carried ones,
+  moves μ to the exact minimiser above, and refits each rotation by weighted Kabsch. No
+  sub-step can raise J, so the recorded energy never increases. The first registrations
+  come from a full `register` (rotation search included) of every sample onto the start.
 - ``method="gradient"`` (`optx.minimise`, gradient descent by default, any optimistix
   minimiser accepted): minimises ``F`` itself, every evaluation registering all samples
   afresh under `stop_gradient` (envelope theorem), in whitened coordinates
@@ -29,7 +30,7 @@ Two solvers, both optimistix:
 
 Both stop when ``F`` changes by less than ``rtol`` (relative) between two steps, or when the
 given optimistix solver's own criterion fires. Finally every sample is registered onto the
-mean with a full `register` (for the fixed point also with its carried rotation; the better
+mean with a full `register` (for the fixed point also its carried registration; the better
 of the two is kept), mean laterals shorter than a threshold are dropped and reported.
 
 The start is the medoid — under `distances` when given (e.g. from `pairwise_distances`),
@@ -53,7 +54,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ._assignment import linear_assignment
 from ._curves import l2_norm_squared, trapezoid_weights
 from ._metric import Weights, preshape_terms
-from ._registration import Registration, _apply, _options, _register_batch, _search
+from ._registration import _apply, _options, _search
 from ._rotation import optimal_rotation
 from ._tree import RootTree, SRVFTree, batch_size, check_compatible, to_curves, to_srvf
 
@@ -106,10 +107,6 @@ class KarcherMean(eqx.Module):
 
 def _broadcast(tree, n: int):
     return jax.tree.map(lambda x: jnp.broadcast_to(x, (n,) + x.shape), tree)
-
-
-def _all_real(mu: SRVFTree) -> SRVFTree:
-    return eqx.tree_at(lambda t: t.mask, mu, jnp.ones_like(mu.mask))
 
 
 def _registered_energies(mu: SRVFTree, samples: SRVFTree, weights: Weights, opts: dict):
@@ -387,6 +384,16 @@ def _lower_bound_distances(samples: SRVFTree, weights: Weights, assignment: str)
     return jnp.sqrt(jnp.maximum(e, 0.0))
 
 
+@eqx.filter_jit
+def _zero_tree_energy(samples: SRVFTree, weights: Weights):
+    """Mean squared distance of the samples from the zero tree (no registration): F's scale."""
+    dtype = samples.q0.dtype
+    lam_m = jnp.asarray(weights.main, dtype)
+    lam_s = jnp.asarray(weights.lateral, dtype)
+    e = lam_m * l2_norm_squared(samples.q0) + lam_s * jnp.sum(l2_norm_squared(samples.q), axis=-1)
+    return jnp.mean(e)
+
+
 def _medoid(distances, n: int) -> int:
     D = np.asarray(distances, dtype=np.float64)
     if D.shape != (n, n):
@@ -401,8 +408,37 @@ def _medoid(distances, n: int) -> int:
 
 
 class _FPIterate(eqx.Module):
+    """The fixed point's iterate: the mean, each sample's rotation, and each sample's current
+    registration without its rotation (warped main root, warped laterals permuted into the
+    mean's slots, their attachments, and 1.0 where the slot holds a real lateral)."""
+
     mu: _Params
     rotations: Float[Array, "n d d"]
+    warped_q0: Float[Array, "n T d"]
+    warped_q: Float[Array, "n K T d"]
+    reg_s: Float[Array, "n K"]
+    reg_real: Float[Array, "n K"]
+
+
+def _carried(y: _FPIterate, mu: SRVFTree, O, origin) -> SRVFTree:
+    """The carried registrations, rotated, as registered trees in mu's slot order."""
+    real = y.reg_real > 0.5
+    q0 = jnp.einsum("ntd,ned->nte", y.warped_q0, O)
+    q = jnp.einsum("nktd,ned->nkte", y.warped_q, O) * real[..., None, None]
+    s = jnp.where(real, y.reg_s, mu.s[None])
+    return SRVFTree(q0=q0, q=q, s=s, mask=real, origin=origin)
+
+
+def _unrotated(registered: SRVFTree, O):
+    # registered = O·warped(x), so the unrotated warped branches are registered·O.
+    q0 = jnp.einsum("nte,ned->ntd", registered.q0, O)
+    q = jnp.einsum("nkte,ned->nktd", registered.q, O)
+    return q0, q
+
+
+def _pick(better, new, old):
+    n = better.shape[0]
+    return jax.tree.map(lambda u, v: jnp.where(better.reshape((n,) + (1,) * (u.ndim - 1)), u, v), new, old)
 
 
 def _fixed_point_fn(y: _FPIterate, args):
@@ -411,16 +447,22 @@ def _fixed_point_fn(y: _FPIterate, args):
     mu = _to_tree(y.mu, origin)
     a = _broadcast(mu, n)
     O = _project_rotation(y.rotations)
+    # The carried registration at the current mean and rotation ...
+    old = _carried(y, mu, O, samples.origin)
+    e_old = preshape_terms(a, old, weights).total
+    # ... against warps and correspondence solved afresh for the current rotation. The DP is
+    # exact for its own discretisation of the warp energy, not for the grid energy used here,
+    # so the fresh solution is kept only where it is better: the energy never increases.
     xb = _rotate_tree(samples, O)
-    registered, energies, _ = _register_onto(a, xb, weights, dict(opts, rotation=False))
-    energy = jnp.mean(energies)
-    new = _exact_update(registered, mu.s)
-    # Refit each rotation (weighted Kabsch) against the new mean with the new correspondences.
-    # registered = O·warped(x), so the unrotated warped branches are registered·O.
-    unrot_q0 = jnp.einsum("nte,ned->ntd", registered.q0, O)
-    unrot_q = jnp.einsum("nkte,ned->nktd", registered.q, O)
-    A = jnp.concatenate([new.q0[None], new.q], axis=0)
-    dtype = new.q0.dtype
+    new, e_new, _ = _register_onto(a, xb, weights, dict(opts, rotation=False))
+    better = e_new < e_old
+    registered = _pick(better, new, old)
+    energy = jnp.mean(jnp.where(better, e_new, e_old))
+    mu_new = _exact_update(registered, mu.s)
+    # Refit each rotation (weighted Kabsch) against the new mean with these correspondences.
+    w0, wq = _unrotated(registered, O)
+    A = jnp.concatenate([mu_new.q0[None], mu_new.q], axis=0)
+    dtype = mu_new.q0.dtype
     lam_m = jnp.asarray(weights.main, dtype)
     lam_s = jnp.asarray(weights.lateral, dtype)
 
@@ -431,8 +473,9 @@ def _fixed_point_fn(y: _FPIterate, args):
         # Degenerate data (all weights zero) gives no information: keep the old rotation.
         return jnp.where(jnp.sum(w) > 0, O_new, O_old)
 
-    O_new = jax.vmap(refit)(unrot_q0, unrot_q, registered.mask, O)
-    return _FPIterate(new, O_new), energy
+    O_new = jax.vmap(refit)(w0, wq, registered.mask, O)
+    y_new = _FPIterate(mu_new, O_new, w0, wq, registered.s, registered.mask.astype(dtype))
+    return y_new, energy
 
 
 # --------------------------------------------------------------------------------------------
@@ -464,17 +507,53 @@ def _gradient_fn(z: _Params, args):
 # Driver
 
 
+# Rounds of the fixed point: after a solve, a full registration (rotation search included) at
+# its result may find better registrations; the solve then restarts from them.
+_MAX_ROUNDS = 4
+
+
+def _start(mu: _Params, registered: SRVFTree, O) -> _FPIterate:
+    w0, wq = _unrotated(registered, O)
+    dtype = mu.q0.dtype
+    return _FPIterate(mu, O, w0, wq, registered.s, registered.mask.astype(dtype))
+
+
 @eqx.filter_jit
-def _solve_fixed_point(mu0: _Params, samples, weights, origin, opts, solver, max_steps, throw):
-    n = samples.q0.shape[0]
-    a = _broadcast(_to_tree(mu0, origin), n)
-    O0, *_ = _search(a, samples, weights, jnp.ones((n,), bool), **opts)
-    y0 = _FPIterate(mu0, O0)
+def _full_registration(mu: _Params, samples, weights, origin, opts):
+    return _registered_energies(_to_tree(mu, origin), samples, weights, opts)
+
+
+@eqx.filter_jit
+def _solve_fixed_point(y0: _FPIterate, samples, weights, origin, opts, solver, max_steps, throw):
     sol = optx.fixed_point(
         _fixed_point_fn, solver, y0, (samples, weights, origin, opts),
         has_aux=True, max_steps=max_steps, throw=throw,
     )
-    return sol.value.mu, sol.value.rotations, sol.state.trace, sol.state.count, sol.stats["num_steps"], sol.result
+    return sol.value, sol.state.trace, sol.state.count, sol.stats["num_steps"], sol.result
+
+
+def _best_registration(y: _FPIterate, samples, weights, origin, opts):
+    """The carried registrations at the solve's result against a full `register` of every
+    sample: the better of the two for each sample, with its rotation."""
+    full = _full_registration(y.mu, samples, weights, origin, opts)
+    return _combine(y, full, samples, weights, origin)
+
+
+@eqx.filter_jit
+def _combine(y: _FPIterate, full, samples, weights, origin):
+    registered, energies, O = full
+    n = samples.q0.shape[0]
+    mu = _to_tree(y.mu, origin)
+    O_c = _project_rotation(y.rotations)
+    carried = _carried(y, mu, O_c, samples.origin)
+    e_c = preshape_terms(_broadcast(mu, n), carried, weights).total
+    better = energies < e_c
+    return (
+        _pick(better, registered, carried),
+        jnp.where(better, energies, e_c),
+        _pick(better, O, O_c),
+        jnp.mean(e_c),
+    )
 
 
 @eqx.filter_jit
@@ -487,27 +566,7 @@ def _solve_gradient(mu0: _Params, samples, weights, origin, opts, solver, max_st
     )
     z = sol.value
     mu = _Params(z.q0 / c.q0, z.q / c.q, z.s / c.s)
-    return mu, None, sol.state.trace, sol.state.count, sol.stats["num_steps"], sol.result
-
-
-@eqx.filter_jit
-def _finish(mu: _Params, rotations, samples, weights, origin, opts):
-    """Full registration onto the mean (and, with carried rotations, the warm one): keep the
-    better registration of each sample."""
-    n = samples.q0.shape[0]
-    mu_t = _to_tree(mu, origin)
-    registered, energies, _ = _registered_energies(mu_t, samples, weights, opts)
-    if rotations is not None:
-        a = _broadcast(mu_t, n)
-        O = _project_rotation(rotations)
-        xb = _rotate_tree(samples, O)
-        warm, e_warm, _ = _register_onto(a, xb, weights, dict(opts, rotation=False))
-        better = e_warm < energies
-        registered = jax.tree.map(
-            lambda w, f: jnp.where(better.reshape((n,) + (1,) * (w.ndim - 1)), w, f), warm, registered
-        )
-        energies = jnp.minimum(e_warm, energies)
-    return registered, energies
+    return mu, sol.state.trace, sol.state.count, sol.stats["num_steps"], sol.result
 
 
 def karcher_mean(
@@ -532,16 +591,20 @@ def karcher_mean(
     - `trees`: a batched `RootTree` or `SRVFTree` (`rootshape_jax.batch(roots)`); the mean
       has the same capacities (T, K, d) and dtype.
     - `weights`: metric weights λ = (main, lateral, position).
-    - `method`: ``"fixed_point"`` (default; `optx.fixed_point`, carried rotations, one DP pass
-      per step, energy never increases) or ``"gradient"`` (`optx.minimise` on F, a full
+    - `method`: ``"fixed_point"`` (default; `optx.fixed_point`, carried registrations, one DP
+      pass per step, energy never increases) or ``"gradient"`` (`optx.minimise` on F, a full
       registration per evaluation).
     - `solver`: an optimistix fixed-point solver (fixed point; default
       ``optx.FixedPointIteration`` with tolerances 0, so F's relative change decides) or
       minimiser (gradient; default ``optx.GradientDescent(learning_rate=0.5)`` in whitened
       coordinates, where 0.5 is the exact Karcher step). Either stops when the solver's own
       criterion or the relative change of F fires.
-    - `rtol`, `atol`: stop when ``|ΔF| <= atol + rtol·|F|`` between two steps.
-    - `max_steps`, `throw`: as in optimistix; with ``throw=False`` check `result`.
+    - `rtol`, `atol`: stop when ``|ΔF| <= atol + rtol·|F|`` between two steps (plus 10 ε times
+      the samples' mean squared norm, below which a change is rounding).
+    - `max_steps`, `throw`: as in optimistix, per solve; with ``throw=False`` check `result`.
+      The fixed point ends each solve with a full `register` of every sample onto its
+      result; where that finds better registrations the solve restarts from them (at most
+      4 solves). `steps` counts them all.
     - `init`: ``"medoid"`` or the index of the sample to start from.
     - `distances`: an ``(n, n)`` distance matrix (e.g. `pairwise_distances(trees)`) for the
       medoid; without it the medoid of the DP-free lower bound of the elastic distance is used.
@@ -580,6 +643,12 @@ def karcher_mean(
     mu0 = _Params(first.q0, first.q, first.s)
     origin = jnp.mean(samples.origin, axis=0)
     size = max_steps + 1
+    # Tolerances are arrays (traced, so new values do not recompile). Below ~10 ε times the
+    # problem's scale (the energy of the zero tree) a change of F is rounding.
+    dtype = samples.q0.dtype
+    scale = _zero_tree_energy(samples, weights)
+    tol_r = jnp.asarray(rtol, dtype)
+    tol_a = jnp.asarray(atol, dtype) + 10 * jnp.finfo(dtype).eps * scale
     if method == "fixed_point":
         inner = solver if solver is not None else optx.FixedPointIteration(rtol=0.0, atol=0.0)
         if not isinstance(inner, optx.AbstractFixedPointSolver):
@@ -587,10 +656,23 @@ def karcher_mean(
                 "method='fixed_point' needs an optimistix fixed-point solver (e.g. "
                 f"optx.FixedPointIteration), got {type(inner).__name__}."
             )
-        wrapped = _MonitoredFixedPoint(inner, float(rtol), float(atol), size)
-        mu, rotations, trace, count, steps, result = _solve_fixed_point(
-            mu0, samples, weights, origin, opts, wrapped, max_steps, throw
-        )
+        wrapped = _MonitoredFixedPoint(inner, tol_r, tol_a, size)
+        registered, _, O = _full_registration(mu0, samples, weights, origin, opts)
+        y = _start(mu0, registered, O)
+        traces, steps = [], 0
+        for _ in range(_MAX_ROUNDS):
+            y, trace, count, n_steps, result = _solve_fixed_point(
+                y, samples, weights, origin, opts, wrapped, max_steps, throw
+            )
+            traces.append(np.asarray(trace)[: int(count)])
+            steps += int(n_steps)
+            registered, energies, O, e_carried = _best_registration(y, samples, weights, origin, opts)
+            F, F_carried = float(jnp.mean(energies)), float(e_carried)
+            if result != optx.RESULTS.successful or F >= F_carried - float(tol_a + tol_r * abs(F_carried)):
+                break
+            y = _start(y.mu, registered, O)
+        mu = y.mu
+        trace = np.concatenate(traces)
     else:
         inner = solver if solver is not None else optx.GradientDescent(learning_rate=0.5, rtol=0.0, atol=0.0)
         if not isinstance(inner, optx.AbstractMinimiser):
@@ -598,14 +680,15 @@ def karcher_mean(
                 "method='gradient' needs an optimistix minimiser (e.g. optx.GradientDescent, "
                 f"optx.BFGS), got {type(inner).__name__}."
             )
-        wrapped = _MonitoredMinimiser(inner, float(rtol), float(atol), size)
-        mu, rotations, trace, count, steps, result = _solve_gradient(
+        wrapped = _MonitoredMinimiser(inner, tol_r, tol_a, size)
+        mu, trace, count, steps, result = _solve_gradient(
             mu0, samples, weights, origin, opts, wrapped, max_steps, throw
         )
+        trace = np.asarray(trace)[: int(count)]
+        registered, energies, _ = _full_registration(mu, samples, weights, origin, opts)
 
-    registered, energies = _finish(mu, rotations, samples, weights, origin, opts)
     energy = jnp.mean(energies)
-    trace = jnp.concatenate([trace[: int(count)], energy[None]])
+    trace = jnp.concatenate([jnp.asarray(trace, energy.dtype), energy[None]])
 
     fitted = _to_tree(mu, origin)
     lengths = l2_norm_squared(fitted.q)

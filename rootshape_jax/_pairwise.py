@@ -10,20 +10,22 @@ from jaxtyping import Array, Float
 from tqdm.auto import tqdm
 
 from ._metric import Weights
-from ._registration import _options, _search, _apply
+import functools
+
+from ._registration import _apply, _device_safe, _options, _search_split_args, split_over_devices
 from ._metric import preshape_terms
 from ._tree import RootTree, SRVFTree, batch_size, check_compatible, to_srvf
 
 
 @eqx.filter_jit
-def _chunk_energies(s: SRVFTree, t: SRVFTree, ii, jj, active, weights: Weights, **options):
-    """Squared distances of the pairs (s[ii[k]], t[jj[k]]); inactive pairs do no DP work."""
-    a = jax.tree.map(lambda x: x[ii], s)
-    b = jax.tree.map(lambda x: x[jj], t)
-    O, perm, g0, gam, _, n_dp, n_pruned = _search(a, b, weights, active, **options)
+def _chunk_energies(a: SRVFTree, b: SRVFTree, active, weights: Weights, **options):
+    """Squared distances of the pairs (a[k], b[k]); inactive pairs do no DP work. The shapes
+    depend on the chunk size only, so one compiled program serves every chunk and every N."""
+    search = functools.partial(_search_split_args, **_device_safe(options))
+    O, perm, g0, gam, _, n_dp, n_skipped = split_over_devices(search, (a, b, active), (weights,))
     registered = jax.vmap(_apply)(a, b, O, perm, g0, gam)
     energy = preshape_terms(a, registered, weights).total
-    return energy, n_dp, n_pruned
+    return energy, n_dp, n_skipped
 
 
 def _as_batch(trees, name) -> SRVFTree:
@@ -44,7 +46,7 @@ def _run_pairs(s, t, I, J, *, weights, chunk_size, progress, desc, opts):
         raise ValueError(f"chunk_size must be an integer >= 1, got {chunk_size!r}.")
     n = len(I)
     energies = np.zeros(n, dtype=np.asarray(s.q0).dtype)
-    stats = {"pairs": n, "lateral_dp": 0, "lateral_pruned": 0}
+    stats = {"pairs": n, "lateral_dp": 0, "lateral_skipped": 0}
     with tqdm(total=n, desc=desc, unit="pair", disable=not progress) as bar:
         for start in range(0, n, chunk_size):
             stop = min(start + chunk_size, n)
@@ -54,12 +56,12 @@ def _run_pairs(s, t, I, J, *, weights, chunk_size, progress, desc, opts):
             ii[:m] = I[start:stop]
             jj[:m] = J[start:stop]
             active = np.arange(chunk_size) < m
-            e, n_dp, n_pruned = _chunk_energies(
-                s, t, jnp.asarray(ii), jnp.asarray(jj), jnp.asarray(active), weights, **opts
-            )
+            a = jax.tree.map(lambda x: x[ii], s)
+            b = jax.tree.map(lambda x: x[jj], t)
+            e, n_dp, n_skipped = _chunk_energies(a, b, jnp.asarray(active), weights, **opts)
             energies[start:stop] = np.asarray(e)[:m]
             stats["lateral_dp"] += int(np.sum(np.asarray(n_dp)[:m]))
-            stats["lateral_pruned"] += int(np.sum(np.asarray(n_pruned)[:m]))
+            stats["lateral_skipped"] += int(np.sum(np.asarray(n_skipped)[:m]))
             bar.update(m)
     return energies, stats
 
@@ -72,11 +74,11 @@ def pairwise_distances(
     progress: bool = True,
     return_stats: bool = False,
     rotation: bool = True,
-    max_iterations: int = 5,
-    rtol: float = 1e-6,
+    max_iterations: int = 4,
+    rtol: float = 1e-4,
     neighbourhood: int = 7,
     prune: bool = True,
-    dp_batch_size: int = 256,
+    dp_batch_size: int = 32,
     assignment: str = "callback",
 ) -> Float[Array, "N N"]:
     """Symmetric (N, N) matrix of elastic distances between the roots of a batch.
@@ -110,11 +112,11 @@ def cross_distances(
     chunk_size: int = 32,
     progress: bool = True,
     rotation: bool = True,
-    max_iterations: int = 5,
-    rtol: float = 1e-6,
+    max_iterations: int = 4,
+    rtol: float = 1e-4,
     neighbourhood: int = 7,
     prune: bool = True,
-    dp_batch_size: int = 256,
+    dp_batch_size: int = 32,
     assignment: str = "callback",
 ) -> Float[Array, "N M"]:
     """(N, M) matrix of distances between every root of batch `A` and every root of batch `B`

@@ -44,7 +44,8 @@ class TangentPCA(eqx.Module):
     - `scores`: ``[n, m]`` standardised coefficients ``b_i = <v, Λ_i> / √σ_i`` of the samples
       (0 where ``σ_i = 0``).
     - `n_components`: leading components explaining at least `variance` of the total
-      (static; 0 when the samples do not vary).
+      (static; 0 when the samples do not vary beyond rounding: total variance below
+      ``(10⁴ ε)² |W^{1/2} μ|²``).
     - `scales`: whitening factors per block (main, laterals, positions).
     - `weights`: the metric weights. `min_lateral_length`: synthesised laterals shorter than
       this are nulls.
@@ -91,7 +92,9 @@ def _tangent(registered: SRVFTree, mean: SRVFTree, c: _Params) -> Array:
 
 
 @eqx.filter_jit
-def _fit(registered: SRVFTree, mean: SRVFTree, c: _Params):
+def _fit(registered: SRVFTree, mean: SRVFTree, weights: Weights):
+    T = mean.q0.shape[0]
+    c = _whitening(weights, T, mean.q0.dtype)
     V = _tangent(registered, mean, c)
     n = V.shape[0]
     _, S, Vt = jnp.linalg.svd(V, full_matrices=False)
@@ -99,7 +102,9 @@ def _fit(registered: SRVFTree, mean: SRVFTree, c: _Params):
     total = jnp.sum(eig)
     ratio = jnp.where(total > 0, eig / jnp.where(total > 0, total, 1.0), 0.0)
     scores = _scores(V, Vt, eig)
-    return Vt, eig, ratio, scores
+    mean_norm2 = jnp.sum(_flatten(_Params(c.q0 * mean.q0, c.q * mean.q, c.s * mean.s)) ** 2)
+    threshold = 0.02 * l2_norm_squared(mean.q0)
+    return c, Vt, eig, ratio, scores, mean_norm2, threshold
 
 
 def _scores(V, Vt, eig):
@@ -108,9 +113,10 @@ def _scores(V, Vt, eig):
     return jnp.where(ok, proj / jnp.sqrt(jnp.where(ok, eig, 1.0)), 0.0)
 
 
-def _count(ratio: np.ndarray, variance: float) -> int:
+def _count(ratio, eigenvalues, scale: float, eps: float, variance: float) -> int:
     ratio = np.asarray(ratio, dtype=np.float64)
-    if ratio.sum() <= 0:
+    # Variance at rounding level (identical roots) is no variation at all.
+    if float(np.sum(eigenvalues)) <= (1e4 * eps) ** 2 * scale or ratio.sum() <= 0:
         return 0
     cum = np.cumsum(ratio)
     # Smallest m with cumulative ratio >= variance (tolerant of rounding at 100 %).
@@ -136,14 +142,13 @@ def tangent_pca(
         raise ValueError(f"variance must be in (0, 1], got {variance!r}.")
     # The tangent point is the fitted mean (every slot real), where the samples were registered.
     mu = mean.fitted
-    T, d = mu.q0.shape
     dtype = mu.q0.dtype
-    c = _whitening(mean.weights, T, dtype)
-    Vt, eig, ratio, scores = _fit(mean.registered, mu, c)
+    c, Vt, eig, ratio, scores, mean_norm2, default_threshold = _fit(mean.registered, mu, mean.weights)
     if min_lateral_length is None:
-        threshold = 0.02 * l2_norm_squared(mu.q0)
+        threshold = default_threshold
     else:
         threshold = jnp.asarray(min_lateral_length, dtype)
+    ratio_np, eig_np = jax.device_get((ratio, eig))
     return TangentPCA(
         mean=mu,
         components=Vt,
@@ -153,7 +158,7 @@ def tangent_pca(
         scales=c,
         weights=mean.weights,
         min_lateral_length=threshold,
-        n_components=_count(np.asarray(ratio), variance),
+        n_components=_count(ratio_np, eig_np, float(mean_norm2), float(jnp.finfo(dtype).eps), variance),
         variance=float(variance),
     )
 
@@ -180,8 +185,8 @@ def _to_tree(pc: TangentPCA, v: Array) -> SRVFTree:
 @eqx.filter_jit
 def _reconstruct(pc: TangentPCA, coefficients: Array) -> tuple[SRVFTree, RootTree]:
     m = coefficients.shape[-1]
-    basis = pc.components[:m] * jnp.sqrt(pc.eigenvalues[:m])[:, None]
-    t = _to_tree(pc, coefficients @ basis)
+    # Scale the coefficients, not the (m, p) basis: one small product per root.
+    t = _to_tree(pc, (coefficients * jnp.sqrt(pc.eigenvalues[:m])) @ pc.components[:m])
     return t, to_curves(t)
 
 
@@ -238,14 +243,20 @@ def sample(
     m = pc.n_components if n_components is None else int(n_components)
     if not 0 <= m <= pc.components.shape[0]:
         raise ValueError(f"n_components must be in [0, {pc.components.shape[0]}], got {m}.")
+    if truncate is not None and not truncate > 0:
+        raise ValueError(f"truncate must be positive, got {truncate!r}.")
+    t, curves = _sample(pc, key, int(n), m, None if truncate is None else float(truncate))
+    return t if srvf else curves
+
+
+@eqx.filter_jit
+def _sample(pc: TangentPCA, key, n: int, m: int, truncate: float | None):
     dtype = pc.mean.q0.dtype
     if truncate is None:
-        b = jax.random.normal(key, (int(n), m), dtype)
+        b = jax.random.normal(key, (n, m), dtype)
     else:
-        if not truncate > 0:
-            raise ValueError(f"truncate must be positive, got {truncate!r}.")
-        b = jax.random.truncated_normal(key, -truncate, truncate, (int(n), m), dtype)
-    return reconstruct(pc, b, srvf=srvf)
+        b = jax.random.truncated_normal(key, -truncate, truncate, (n, m), dtype)
+    return _reconstruct(pc, b)
 
 
 @eqx.filter_jit

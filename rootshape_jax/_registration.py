@@ -9,22 +9,29 @@ stops falling.
 
 Work that cannot change the answer is skipped. By Cauchy–Schwarz
 ``||qa − qbw||² ≥ (||qa|| − ||qbw||)²`` and warps here preserve the norm (``||qbw|| = ||qb||``,
-see `_warp_preserving_norm`), so ``λs(√La − √Lb)² + λp Δs²`` bounds ``C[i, j]`` from below. A pair
-whose bound exceeds ``λs(La + Lb)`` (both to nulls) is never in an optimal assignment when
-``K ≥ n_a + n_b``: swapping it with a null–null pair is strictly cheaper. Its DP is skipped and
-the bound is put in the matrix instead — the assignment and the energy are unchanged.
+see `_warp_preserving_norm`), so ``λs(√La − √Lb)² + λp Δs²`` bounds ``C[i, j]`` from below
+without any DP. The assignment is first solved with these bounds in place of the lateral costs;
+the DPs of the real–real pairs it picks are run, and it is solved again, until it picks only
+pairs whose true cost is known. That assignment is optimal for the true matrix as well (every
+unknown entry is at least its bound), so the result is exactly that of running every DP — a
+test checks it — while most DPs are never run. (DESIGN.md §8's static rule, "skip a pair whose
+bound exceeds both-to-nulls", is a special case: such a pair is never picked.)
 
-Lateral DPs are not vmapped over all K² slots: the real, unpruned pairs of a whole batch of root
-pairs are compacted into one list and solved in fixed-size slabs (a loop with a data-dependent
-trip count), so padding and pruned pairs cost nothing and one compiled program serves all.
+Lateral DPs are not vmapped over all K² slots: the pairs to solve, across a whole batch of root
+pairs, are compacted into one list and solved in fixed-size slabs (a loop with a data-dependent
+trip count), so padding and skipped pairs cost nothing and one compiled program serves all.
 """
 
 from __future__ import annotations
+
+import functools
 
 import equinox as eqx
 import jax
 import jax.lax as lax
 import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import Array, Bool, Float, Int
 
 from ._assignment import linear_assignment
@@ -32,7 +39,7 @@ from ._curves import _safe_sqrt, _tiny, l2_norm_squared
 from ._metric import MetricTerms, Weights, preshape_terms
 from ._rotation import optimal_rotation
 from ._tree import RootTree, SRVFTree, check_compatible, to_srvf
-from ._warp import apply_warp_srvf, dp_warp_batch
+from ._warp import apply_warp_srvf, dp_warp
 
 
 class Registration(eqx.Module):
@@ -50,8 +57,8 @@ class Registration(eqx.Module):
       both slots are real).
     - `terms`: the three weighted terms of the minimised squared distance.
     - `n_iterations`: rotation ↔ correspondence alternations performed.
-    - `n_lateral_dp`: lateral DP warps actually run; `n_lateral_pruned`: real–real lateral pairs
-      per iteration whose DP was skipped by the exact lower bound.
+    - `n_lateral_dp`: lateral DP warps actually run; `n_lateral_skipped`: real–real lateral
+      pairs, summed over rounds, whose DP the exact lower bound made unnecessary.
     """
 
     registered: SRVFTree
@@ -62,7 +69,7 @@ class Registration(eqx.Module):
     terms: MetricTerms
     n_iterations: Int[Array, "*B"]
     n_lateral_dp: Int[Array, "*B"]
-    n_lateral_pruned: Int[Array, "*B"]
+    n_lateral_skipped: Int[Array, "*B"]
 
     @property
     def energy(self) -> Float[Array, "*B"]:
@@ -123,11 +130,8 @@ def _search(
     null_a = lam_s * La
     null_b = lam_s * Lb
     both = a.mask[:, :, None] & b.mask[:, None, :]
+    # Exact lower bound of every real-real cost (Cauchy-Schwarz; warps preserve the norm).
     lower = lam_s * (jnp.sqrt(La)[:, :, None] - jnp.sqrt(Lb)[:, None, :]) ** 2 + pos
-    if prune:
-        prunable = both & (lower > null_a[:, :, None] + null_b[:, None, :])
-    else:
-        prunable = jnp.zeros_like(both)
     base_cost = jnp.where(
         both,
         lower,
@@ -138,49 +142,100 @@ def _search(
         ),
     )
     n_pairs = B * K * K
-    n_items = B + n_pairs  # B main-root DPs, then the K×K lateral slots of every pair
-    # Slab size: large slabs amortise the loop, but a slab is padded when few DPs are needed;
-    # a sixteenth of all slots keeps a single small registration from solving padding.
-    S = min(dp_batch_size, max(8, -(-n_items // 16)))
-    n_pad = -(-n_items // S) * S
     identity = _identity_grid(T, dtype)
+    dp = jax.vmap(functools.partial(dp_warp, neighbourhood=neighbourhood))
+    solve = jax.vmap(lambda c: linear_assignment(c, method=assignment))
 
-    def evaluate(O, rows):
-        """Energy, permutation and warps of every pair at rotations O (rows: pairs to do)."""
-        qb0 = jnp.einsum("btd,bed->bte", b.q0, O)
-        qb = jnp.einsum("bktd,bed->bkte", b.q, O)
-        need_lat = both & ~prunable & rows[:, None, None]
-        need = jnp.concatenate([rows, need_lat.reshape(-1)])
-        n_need = jnp.sum(need)
+    def run_dps(need, pair_of, E, G=None):
+        """Solve the DPs of the items flagged in `need` in slabs of a fixed size.
+
+        `pair_of(lanes)` gives the (q1, q2) of each item. One DP call site, compiled once,
+        whatever the number of DPs needed; returns the energies (and warps, when G is given)
+        scattered into E (and G).
+        """
+        n_items = need.shape[0]
+        # Small slabs: the DP is as efficient at 32 lanes as at 256, and less padding is solved.
+        S = min(dp_batch_size, max(8, -(-n_items // 16)))
+        n_pad = -(-n_items // S) * S
         (lanes_all,) = jnp.nonzero(need, size=n_pad, fill_value=n_items)
 
-        # One DP call site for main and lateral pairs: compiled once, solved in slabs.
         def slab(k, carry):
             E, G = carry
             lanes = lax.dynamic_slice(lanes_all, (k * S,), (S,))
+            q1, q2 = pair_of(jnp.clip(lanes, 0, n_items - 1))
+            g = dp(q1, q2)
+            w = jax.vmap(_warp_preserving_norm)(q2, g)
+            E = E.at[lanes].set(l2_norm_squared(q1 - w), mode="drop")
+            if G is not None:
+                G = G.at[lanes].set(g, mode="drop")
+            return E, G
+
+        return lax.fori_loop(0, (jnp.sum(need) + S - 1) // S, slab, (E, G))
+
+    def evaluate(O, rows):
+        """Energy, permutation and warps of every pair at rotations O (rows: pairs to do).
+
+        Lazy and exact: the assignment is solved with lower bounds in place of the lateral
+        costs not computed yet; the DPs of the real-real pairs it picks are run and the
+        assignment solved again, until it picks only computed pairs. Then it is optimal for the
+        true costs too, since every uncomputed cost is at least its bound. With prune=False every
+        real-real DP is run up front (the reference behaviour). Only costs are kept while
+        searching; the few warps of the final matching are solved again at the end, which is
+        far cheaper than storing a warp for every candidate pair.
+        """
+        qb0 = jnp.einsum("btd,bed->bte", b.q0, O)
+        qb = jnp.einsum("bktd,bed->bkte", b.q, O)
+
+        def lateral_pair(lanes):
+            bi, rem = jnp.divmod(lanes, K * K)
+            i, j = jnp.divmod(rem, K)
+            return a.q[bi, i], qb[bi, j]
+
+        def costs(E, computed):
+            return jnp.where(computed, lam_s * E.reshape(B, K, K) + pos, base_cost)
+
+        def picks(perm, computed):
+            chosen = jax.nn.one_hot(perm, K, dtype=bool)
+            return chosen & both & ~computed & rows[:, None, None]
+
+        computed = both & rows[:, None, None] if not prune else jnp.zeros_like(both)
+        E, _ = run_dps(computed.reshape(-1), lateral_pair, jnp.zeros((n_pairs,), dtype))
+
+        def cond(state):
+            return jnp.any(state[-1])
+
+        def body(state):
+            E, computed, perm, chosen = state
+            E, _ = run_dps(chosen.reshape(-1), lateral_pair, E)
+            computed = computed | chosen
+            perm = solve(costs(E, computed))
+            return E, computed, perm, picks(perm, computed)
+
+        perm = solve(costs(E, computed))
+        E, computed, perm, _ = lax.while_loop(cond, body, (E, computed, perm, picks(perm, computed)))
+        C = costs(E, computed)
+        lap = jnp.sum(jnp.take_along_axis(C, perm[:, :, None], axis=2)[:, :, 0], axis=1)
+
+        # Warps of the final matching: the B main roots, then the matched real-real slots.
+        matched = jax.nn.one_hot(perm, K, dtype=bool) & both
+        matched_slots = jnp.any(matched, axis=2)  # (B, K): slot k of a has a real partner
+
+        def final_pair(lanes):
             is_main = lanes < B
             bm = jnp.clip(lanes, 0, B - 1)
-            bi, rem = jnp.divmod(jnp.clip(lanes - B, 0, n_pairs - 1), K * K)
-            i, j = jnp.divmod(rem, K)
-            q1 = jnp.where(is_main[:, None, None], a.q0[bm], a.q[bi, i])
+            bi, k = jnp.divmod(jnp.clip(lanes - B, 0, B * K - 1), K)
+            j = perm[bi, k]
+            q1 = jnp.where(is_main[:, None, None], a.q0[bm], a.q[bi, k])
             q2 = jnp.where(is_main[:, None, None], qb0[bm], qb[bi, j])
-            g = dp_warp_batch(q1, q2, neighbourhood=neighbourhood)
-            w = jax.vmap(_warp_preserving_norm)(q2, g)
-            e = l2_norm_squared(q1 - w)
-            return E.at[lanes].set(e, mode="drop"), G.at[lanes].set(g, mode="drop")
+            return q1, q2
 
-        E0 = jnp.zeros((n_items,), dtype)
-        G0 = jnp.broadcast_to(identity, (n_items, T))
-        E, G = lax.fori_loop(0, (n_need + S - 1) // S, slab, (E0, G0))
-        main_cost = lam_m * E[:B]
-        g0 = G[:B]
-        C = jnp.where(need_lat, lam_s * E[B:].reshape(B, K, K) + pos, base_cost)
-        perm = jax.vmap(lambda c: linear_assignment(c, method=assignment))(C)
-        lap = jnp.sum(jnp.take_along_axis(C, perm[:, :, None], axis=2)[:, :, 0], axis=1)
-        G_lat = G[B:].reshape(B, K, K, T)
-        gam = jnp.take_along_axis(G_lat, perm[:, :, None, None], axis=2)[:, :, 0]
-        n_dp = jnp.sum(need_lat.reshape(B, K * K), axis=1, dtype=jnp.int32)
-        return main_cost + lap, perm, g0, gam, n_dp
+        need = jnp.concatenate([rows, (matched_slots & rows[:, None]).reshape(-1)])
+        n_final = B + B * K
+        Ef, Gf = run_dps(
+            need, final_pair, jnp.zeros((n_final,), dtype), jnp.broadcast_to(identity, (n_final, T))
+        )
+        n_dp = jnp.sum(computed.reshape(B, K * K), axis=1, dtype=jnp.int32)
+        return lam_m * Ef[:B] + lap, perm, Gf[:B], Gf[B:].reshape(B, K, T), n_dp
 
     def refit_rotation(perm, g0, gam):
         q0w = jax.vmap(_warp_preserving_norm)(b.q0, g0)
@@ -240,8 +295,22 @@ def _search(
         jnp.zeros((B,), jnp.int32),
     )
     _, O, E, perm, g0, gam, _, iters, n_dp = lax.while_loop(cond, body, state)
-    n_pruned = jnp.sum((prunable & both).reshape(B, -1), axis=1)
-    return O, perm, g0, gam, iters, n_dp, n_pruned
+    n_real = jnp.sum(both.reshape(B, -1), axis=1, dtype=jnp.int32)
+    # Lateral DPs skipped: real-real pairs of every round that were never solved.
+    n_skipped = jnp.maximum(n_real * iters - n_dp, 0)
+    return O, perm, g0, gam, iters, n_dp, n_skipped
+
+
+def _device_safe(options: dict) -> dict:
+    """With several devices the assignment must run in JAX: a host callback inside a multi-device
+    program whose loops run different trip counts per device deadlocks XLA:CPU's collectives."""
+    if len(jax.devices()) > 1 and options.get("assignment") == "callback":
+        return {**options, "assignment": "jax"}
+    return options
+
+
+def _search_split_args(a, b, active, weights, **options):
+    return _search(a, b, weights, active, **options)
 
 
 def _apply(a: SRVFTree, b: SRVFTree, O, perm, g0, gam) -> SRVFTree:
@@ -254,9 +323,36 @@ def _apply(a: SRVFTree, b: SRVFTree, O, perm, g0, gam) -> SRVFTree:
     return SRVFTree(q0=q0, q=qw, s=s, mask=mb, origin=b.origin)
 
 
+def split_over_devices(fn, batched: tuple, shared: tuple = ()):
+    """Run ``fn(*batched, *shared)`` with the pairs of `batched` (leading axis) split evenly
+    across all devices (`shard_map`); `shared` arguments are replicated.
+
+    Pairs are independent, so no collective runs inside: each device registers its own share
+    (host callbacks included). The batch is padded with inactive copies of its first pair; the
+    last of `batched` must be the boolean `active` vector. With one device, ``fn`` is called as is.
+    """
+    devices = jax.devices()
+    n_dev = len(devices)
+    size = batched[-1].shape[0]
+    if n_dev <= 1 or size < n_dev:
+        return fn(*batched, *shared)
+    pad = (-size) % n_dev
+    if pad:
+        *data, active = batched
+        data = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)]), data)
+        batched = (*data, jnp.concatenate([active, jnp.zeros((pad,), bool)]))
+    mesh = Mesh(np.asarray(devices), ("pairs",))
+    specs = (PartitionSpec("pairs"),) * len(batched) + (PartitionSpec(),) * len(shared)
+    out = jax.shard_map(fn, mesh=mesh, in_specs=specs, out_specs=PartitionSpec("pairs"), check_vma=False)(
+        *batched, *shared
+    )
+    return jax.tree.map(lambda x: x[:size], out) if pad else out
+
+
 @eqx.filter_jit
 def _register_batch(a: SRVFTree, b: SRVFTree, weights: Weights, active, **options) -> Registration:
-    O, perm, g0, gam, iters, n_dp, n_pruned = _search(a, b, weights, active, **options)
+    search = functools.partial(_search_split_args, **_device_safe(options))
+    O, perm, g0, gam, iters, n_dp, n_skipped = split_over_devices(search, (a, b, active), (weights,))
     registered = jax.vmap(_apply)(a, b, O, perm, g0, gam)
     terms = preshape_terms(a, registered, weights)
     return Registration(
@@ -268,7 +364,7 @@ def _register_batch(a: SRVFTree, b: SRVFTree, weights: Weights, active, **option
         terms=terms,
         n_iterations=iters,
         n_lateral_dp=n_dp,
-        n_lateral_pruned=n_pruned,
+        n_lateral_skipped=n_skipped,
     )
 
 
@@ -325,11 +421,11 @@ def register(
     *,
     weights: Weights = Weights(),
     rotation: bool = True,
-    max_iterations: int = 5,
-    rtol: float = 1e-6,
+    max_iterations: int = 4,
+    rtol: float = 1e-4,
     neighbourhood: int = 7,
     prune: bool = True,
-    dp_batch_size: int = 256,
+    dp_batch_size: int = 32,
     assignment: str = "callback",
 ) -> Registration:
     """Register root `b` onto root `a` (DESIGN.md §4).
@@ -345,7 +441,8 @@ def register(
     - `max_iterations`, `rtol`: alternation stops after this many rounds or when the energy
       falls by less than `rtol` (relative).
     - `neighbourhood`: DP move set (coprime steps up to this size; fdasrsf uses 10).
-    - `prune`: skip lateral DPs that provably cannot change the result (exact).
+    - `prune`: skip lateral DPs that provably cannot change the result (exact; False runs the
+      DP of every real–real pair, for reference).
     - `dp_batch_size`: lateral DPs solved per slab (memory vs. padding trade-off).
     - `assignment`: "callback" (scipy through a host callback) or "jax" (pure-JAX, exact).
     """

@@ -19,9 +19,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._pca import TangentPCA, reconstruct
+from ._pca import TangentPCA, _to_tree
 from ._traits import traits as measure_traits
-from ._tree import RootTree, SRVFTree, to_roots
+from ._tree import RootTree, SRVFTree, to_curves, to_roots
 
 PAPER_TRAITS: tuple[str, ...] = ("main_length", "mean_lateral_length", "std_lateral_length")
 
@@ -48,16 +48,26 @@ def _as_matrix(x, n: int | None, what: str) -> np.ndarray:
     return x
 
 
+@eqx.filter_jit
+def _synthesize(pca: TangentPCA, G, v):
+    ones = jnp.ones(v.shape[:-1] + (1,), v.dtype)
+    t = _to_tree(pca, jnp.concatenate([v, ones], axis=-1) @ G)
+    return t, to_curves(t)
+
+
 class TraitRegression(eqx.Module):
     """Linear map from traits (and covariates) to PCA coefficients, ``b = M [p; 1]``.
 
     Build with `TraitRegression.fit`. **Fields**: `pca`; `matrix` ``M`` (``m × (l+1)``, the
-    last column the intercept); `names` — the traits then the covariates, the order of the
+    last column the intercept); `linear` — ``Mᵀ`` composed with the PCA basis
+    (``(l+1) × p``), the whole map from ``[p, 1]`` to the whitened tangent vector, so that one
+    root costs one small product; `names` — the traits then the covariates, the order of the
     values `synthesize` expects; `trait_names` — the measured ones; `n_components` ``m``.
     """
 
     pca: TangentPCA
     matrix: Float[Array, "m l1"]
+    linear: Float[Array, "l1 p"]
     names: tuple[str, ...] = eqx.field(static=True)
     trait_names: tuple[str, ...] = eqx.field(static=True)
     n_components: int = eqx.field(static=True)
@@ -114,9 +124,14 @@ class TraitRegression(eqx.Module):
         P = np.concatenate([p, np.ones((n, 1))], axis=1).T  # (l+1, n)
         B = np.asarray(pca.scores[:, :m], dtype=np.float64).T  # (m, n)
         M = B @ np.linalg.pinv(P)
+        basis = np.asarray(pca.components[:m], np.float64) * np.sqrt(
+            np.asarray(pca.eigenvalues[:m], np.float64)
+        )[:, None]
+        dtype = pca.mean.q0.dtype
         return cls(
             pca=pca,
-            matrix=jnp.asarray(M, pca.mean.q0.dtype),
+            matrix=jnp.asarray(M, dtype),
+            linear=jnp.asarray(M.T @ basis, dtype),
             names=tuple(names),
             trait_names=traits,
             n_components=m,
@@ -136,7 +151,14 @@ class TraitRegression(eqx.Module):
     def synthesize(self, values, *, srvf: bool = False) -> RootTree | SRVFTree:
         """Roots with the requested trait values (``(l,)`` for one root, ``(N, l)`` for a
         batch), in the order of `names`."""
-        return reconstruct(self.pca, self.coefficients(values), srvf=srvf)
+        v = jnp.asarray(values, self.matrix.dtype)
+        if v.ndim == 0 or v.shape[-1] != len(self.names):
+            raise ValueError(
+                f"values must have shape (..., {len(self.names)}) in the order {self.names}, "
+                f"got {v.shape}."
+            )
+        t, curves = _synthesize(self.pca, self.linear, v)
+        return t if srvf else curves
 
     def report(self, trees: RootTree, *, covariates=None) -> dict:
         """How well synthesised roots reproduce requested traits, on (held-out) roots.

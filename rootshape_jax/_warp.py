@@ -203,8 +203,22 @@ def _edge_terms(q: Array, n_coef: np.ndarray, p_coef: np.ndarray) -> Array:
     )
 
 
-import os
-_GROUP = int(os.environ.get('DPG', '0'))
+# Cross terms per fused loop. LLVM stopped vectorising the loop beyond ~600 terms (55 moves);
+# groups of this size vectorise (checked in the dumped IR) and cost one switch branch each.
+_TERMS_PER_LOOP = 400
+
+
+def _move_groups(terms) -> list[list[int]]:
+    """Consecutive moves, split so that each group has at most ~_TERMS_PER_LOOP cross terms."""
+    groups, current, count = [], [], 0
+    for m, t in enumerate(terms):
+        if current and count + len(t) > _TERMS_PER_LOOP:
+            groups.append(current)
+            current, count = [], 0
+        current.append(m)
+        count += len(t)
+    groups.append(current)
+    return groups
 
 
 def _forward(q1: Array, q2: Array, n: int):
@@ -229,20 +243,33 @@ def _forward(q1: Array, q2: Array, n: int):
     kern = st.kern.astype(np.dtype(dtype))
     terms = [[(u, kern[m, u]) for u in np.flatnonzero(kern[m])] for m in range(len(a))]
 
+    def group_min(best, win, hist, r1_k, members):
+        # One chain of elementwise ops over (T, B): XLA fuses it into a single vectorised loop.
+        # (A stacked (M, T, B) array reduced by min *and* argmin is computed twice by XLA.)
+        for m in members:
+            cross = sum(
+                c * win[n - st.pairs[u, 0], n - st.pairs[u, 1] : n - st.pairs[u, 1] + size]
+                for u, c in terms[m]
+            )
+            prev = hist[n - a[m], n - b[m] : n - b[m] + size]
+            best = jnp.minimum(best, prev + (r1_k[m] + r2[m] - 2 * cross))
+        return best
+
+    groups = _move_groups(terms)
+
     def row(table, xs):
         k, r1_k = xs
         win = jax.lax.dynamic_slice_in_dim(gpad, k, n + 1, axis=0)  # Gram rows k−n .. k
         hist = jax.lax.dynamic_slice_in_dim(table, k, n, axis=0)  # cost rows k−n .. k−1
-        # One chain of elementwise ops over (T, B): XLA fuses it into a single loop. (A
-        # stacked (M, T, B) array reduced by min *and* argmin is computed twice by XLA.)
-        best = None
-        for m, mterms in enumerate(terms):
-            cross = sum(c * win[n - st.pairs[u, 0], n - st.pairs[u, 1] : n - st.pairs[u, 1] + size] for u, c in mterms)
-            prev = hist[n - a[m], n - b[m] : n - b[m] + size]
-            cand = prev + (r1_k[m] + r2[m] - 2 * cross)
-            best = cand if best is None else jnp.minimum(best, cand)
-            if _GROUP and (m + 1) % _GROUP == 0:
-                best = jax.lax.optimization_barrier(best)
+        best = jnp.full((size, batch), inf)
+        if len(groups) == 1:
+            best = group_min(best, win, hist, r1_k, groups[0])
+        else:
+            # Several loops, each a branch of a switch so that XLA cannot fuse them back.
+            branches = [functools.partial(group_min, members=g) for g in groups]
+            best = jax.lax.fori_loop(
+                0, len(groups), lambda j, bst: jax.lax.switch(j, branches, bst, win, hist, r1_k), best
+            )
         new = jnp.concatenate([jnp.full((n, batch), inf), best])
         return jax.lax.dynamic_update_slice_in_dim(table, new[None], k + n, axis=0), None
 
@@ -295,13 +322,11 @@ def _backtrack(table: Array, gram: Array, r1: Array, r2: Array, n: int) -> Array
 
 def _dp_block(q1: Array, q2: Array, n: int):
     """Warps (B, T) and DP minima (B,) for a batch of pairs, in one forward scan."""
-    size = q1.shape[1]
     table, gram, r1, r2 = _forward(q1, q2, n)
     cost = table[-1, -1]
     gamma = jax.vmap(lambda t, g, x, y: _backtrack(t, g, x, y, n), in_axes=(2, 2, 2, 2))(
         table, gram, r1, r2
     )
-    del size
     return gamma, cost
 
 
@@ -311,21 +336,39 @@ def _block_size(size: int) -> int:
     return int(min(256, max(8, 6400 // size)))
 
 
-def _dp_batched(q1: Array, q2: Array, n: int):
-    """`_dp_block` over blocks of the batch (sequential `lax.map`, bounded memory)."""
-    batch, size, d = q1.shape
-    block = _block_size(size)
-    if batch <= block:
-        return _dp_block(q1, q2, n)
-    n_blocks = -(-batch // block)
-    pad = n_blocks * block - batch
-    if pad:
-        q1 = jnp.concatenate([q1, jnp.broadcast_to(q1[-1:], (pad, size, d))])
-        q2 = jnp.concatenate([q2, jnp.broadcast_to(q2[-1:], (pad, size, d))])
-    q1 = q1.reshape(n_blocks, block, size, d)
-    q2 = q2.reshape(n_blocks, block, size, d)
-    gamma, cost = jax.lax.map(lambda x: _dp_block(x[0], x[1], n), (q1, q2))
-    return gamma.reshape(-1, size)[:batch], cost.reshape(-1)[:batch]
+def _dp_batched(q1: Array, q2: Array, active: Array, n: int):
+    """`_dp_block` over the *active* pairs of a batch, one block after another.
+
+    Active pairs are packed into blocks (inactive ones get the identity warp and cost 0), so a
+    vmapped loop whose lanes finish at different times (the rotation/warp alternation) pays
+    for the lanes still running, not for the whole batch at every step. Blocks run in a
+    `fori_loop`, bounding memory.
+    """
+    batch, size, _ = q1.shape
+    block = min(_block_size(size), batch)
+    n_slots = -(-batch // block) * block
+    if n_slots == batch and block == batch:
+        # One full block: no packing needed, inactive lanes are simply computed too.
+        gamma, cost = _dp_block(q1, q2, n)
+        identity = jnp.linspace(0, 1, size, dtype=q1.dtype)
+        return jnp.where(active[:, None], gamma, identity), jnp.where(active, cost, 0)
+    (lanes_all,) = jnp.nonzero(active, size=n_slots, fill_value=batch)
+    n_blocks = (jnp.sum(active) + block - 1) // block
+
+    def run(s, out):
+        gamma_out, cost_out = out
+        lanes = jax.lax.dynamic_slice_in_dim(lanes_all, s * block, block)
+        safe = jnp.where(lanes < batch, lanes, 0)
+        gamma, cost = _dp_block(q1[safe], q2[safe], n)
+        # Padding lanes (index ``batch``) are dropped by the scatter.
+        return (
+            gamma_out.at[lanes].set(gamma, mode="drop"),
+            cost_out.at[lanes].set(cost, mode="drop"),
+        )
+
+    gamma0 = jnp.broadcast_to(jnp.linspace(0, 1, size, dtype=q1.dtype), (batch, size))
+    cost0 = jnp.zeros((batch,), q1.dtype)
+    return jax.lax.fori_loop(0, n_blocks, run, (gamma0, cost0))
 
 
 @functools.lru_cache(maxsize=None)
@@ -334,23 +377,20 @@ def _dp_kernel(n: int):
 
     Plain `vmap` of the single-pair scan puts the batch on the leading axis and runs ~5× slower
     than the batch-minor layout of `_forward`; this rule gives `jax.vmap(dp_warp)` the fast
-    path. Nested vmaps are flattened into one batch. Not differentiable: callers pass
-    `stop_gradient`-ed inputs (the warp is piecewise constant in q1, q2).
+    path. ``active`` (a bool) only matters when batched: inactive pairs are skipped and get
+    the identity warp and cost 0. Nested vmaps are flattened into one batch. Not
+    differentiable: callers pass `stop_gradient`-ed inputs (γ is piecewise constant in q).
     """
 
     @jax.custom_batching.custom_vmap
-    def single(q1, q2):
-        gamma, cost = _dp_batched(q1[None], q2[None], n)
+    def single(q1, q2, active):
+        gamma, cost = _dp_block(q1[None], q2[None], n)
         return gamma[0], cost[0]
 
     @single.def_vmap
-    def _rule(axis_size, in_batched, q1, q2):
-        q1b, q2b = in_batched
-        if not q1b:
-            q1 = jnp.broadcast_to(q1, (axis_size,) + q1.shape)
-        if not q2b:
-            q2 = jnp.broadcast_to(q2, (axis_size,) + q2.shape)
-        return _batched_kernel(n)(q1, q2), (True, True)
+    def _rule(axis_size, in_batched, q1, q2, active):
+        args = _broadcast_unbatched(axis_size, in_batched, (q1, q2, active))
+        return _batched_kernel(n)(*args), (True, True)
 
     return single
 
@@ -360,21 +400,26 @@ def _batched_kernel(n: int):
     """`_dp_batched` on (B, T, d), flattening any further vmapped axes into the batch."""
 
     @jax.custom_batching.custom_vmap
-    def batched(q1, q2):
-        return _dp_batched(q1, q2, n)
+    def batched(q1, q2, active):
+        return _dp_batched(q1, q2, active, n)
 
     @batched.def_vmap
-    def _rule(axis_size, in_batched, q1, q2):
-        q1b, q2b = in_batched
-        if not q1b:
-            q1 = jnp.broadcast_to(q1, (axis_size,) + q1.shape)
-        if not q2b:
-            q2 = jnp.broadcast_to(q2, (axis_size,) + q2.shape)
-        outer, inner = q1.shape[:2]
-        gamma, cost = batched(q1.reshape((-1,) + q1.shape[2:]), q2.reshape((-1,) + q2.shape[2:]))
+    def _rule(axis_size, in_batched, q1, q2, active):
+        q1, q2, active = _broadcast_unbatched(axis_size, in_batched, (q1, q2, active))
+        outer, inner = active.shape
+        gamma, cost = batched(
+            q1.reshape((-1,) + q1.shape[2:]), q2.reshape((-1,) + q2.shape[2:]), active.reshape(-1)
+        )
         return (gamma.reshape(outer, inner, -1), cost.reshape(outer, inner)), (True, True)
 
     return batched
+
+
+def _broadcast_unbatched(axis_size, in_batched, args):
+    return tuple(
+        x if batched else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x))
+        for x, batched in zip(args, in_batched)
+    )
 
 
 def _prepare(q1, q2, neighbourhood, what):
@@ -398,7 +443,16 @@ def dp_warp_and_energy(
     Neither output carries gradients.
     """
     q1, q2, n = _prepare(q1, q2, neighbourhood, "dp_warp")
-    return _dp_kernel(n)(q1, q2)
+    return _dp_kernel(n)(q1, q2, jnp.asarray(True))
+
+
+def _dp_warp_if(
+    q1: Array, q2: Array, active: Array, *, neighbourhood: int
+) -> tuple[Array, Array]:
+    """`dp_warp_and_energy` for loops under `vmap`: lanes with ``active`` False are skipped
+    (identity warp, cost 0) instead of being computed and thrown away."""
+    q1, q2, n = _prepare(q1, q2, neighbourhood, "dp_warp")
+    return _dp_kernel(n)(q1, q2, jnp.asarray(active, bool))
 
 
 def dp_warp(

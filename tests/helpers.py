@@ -133,3 +133,103 @@ def render_root_image(polylines, *, shape, width=5.0, noise=0.05, dark=True, see
     fg, bg = (0.25, 0.85) if dark else (0.85, 0.25)
     img = np.where(mask, fg, bg) + noise * np.random.default_rng(seed).standard_normal(shape)
     return np.clip(img, 0.0, 1.0), mask
+
+
+# --- DP warp references (tests/test_warp.py, tests/test_elastic.py) -------------------------
+# Slow, obvious numpy versions of the DP of rootshape_jax._warp, written from the definition
+# (merged breakpoints, linear interpolation, trapezoid), sharing no code with the library.
+
+
+def reference_moves(neighbourhood: int) -> list[tuple[int, int]]:
+    import math
+
+    n = neighbourhood
+    return [(a, b) for a in range(1, n + 1) for b in range(1, n + 1) if math.gcd(a, b) == 1]
+
+
+def _ref_lerp(v: np.ndarray, x: float) -> np.ndarray:
+    i0 = min(int(np.floor(x)), len(v) - 2)
+    f = x - i0
+    return v[i0] * (1 - f) + v[i0 + 1] * f
+
+
+def reference_warp_energy(q1: np.ndarray, q2: np.ndarray, gamma: np.ndarray) -> float:
+    """∫|q1 − √γ' q2∘γ|² for γ piecewise linear on the grid: on each grid interval, trapezoid
+    on its ends plus every point where γ crosses a node of q2's grid."""
+    q1, q2 = np.asarray(q1, float), np.asarray(q2, float)
+    T = len(q1)
+    g = np.asarray(gamma, float) * (T - 1)
+    total = 0.0
+    for i in range(T - 1):
+        s = g[i + 1] - g[i]
+        xs = [float(i), float(i + 1)]
+        if s > 0:
+            for j in range(int(np.floor(g[i])) + 1, int(np.ceil(g[i + 1]))):
+                xs.append(i + (j - g[i]) / s)
+        xs.sort()
+        f = [
+            np.sum((_ref_lerp(q1, x) - np.sqrt(max(s, 0.0)) * _ref_lerp(q2, g[i] + s * (x - i))) ** 2)
+            for x in xs
+        ]
+        total += sum((xs[p + 1] - xs[p]) * (f[p] + f[p + 1]) / 2 for p in range(len(xs) - 1))
+    return total / (T - 1)
+
+
+def path_to_gamma(vertices, T: int) -> np.ndarray:
+    """γ on the grid for a grid path given by its vertices (k, l), linear in between."""
+    v = np.asarray(vertices, float)
+    return np.interp(np.arange(T), v[:, 0], v[:, 1]) / (T - 1)
+
+
+def reference_dp(q1: np.ndarray, q2: np.ndarray, neighbourhood: int) -> tuple[np.ndarray, float]:
+    """Plain DP over the T×T grid with the coprime moves; segment cost = reference energy of
+    the segment. Returns (γ on the grid, minimum energy)."""
+    q1, q2 = np.asarray(q1, float), np.asarray(q2, float)
+    T = len(q1)
+    moves = reference_moves(neighbourhood)
+    E = np.full((T, T), np.inf)
+    E[0, 0] = 0.0
+    back = {}
+    for k in range(1, T):
+        for l in range(1, T):
+            for a, b in moves:
+                if k - a < 0 or l - b < 0 or not np.isfinite(E[k - a, l - b]):
+                    continue
+                # The segment's energy: the energy of a γ that is this segment, on a sub-grid.
+                seg1 = q1[k - a : k + 1]
+                seg2 = q2[l - b : l + 1]
+                c = _ref_segment(seg1, seg2, a, b) / (T - 1)
+                if E[k - a, l - b] + c < E[k, l]:
+                    E[k, l] = E[k - a, l - b] + c
+                    back[k, l] = (k - a, l - b)
+    path = [(T - 1, T - 1)]
+    while path[-1] != (0, 0):
+        path.append(back[path[-1]])
+    return path_to_gamma(path[::-1], T), float(E[-1, -1])
+
+
+def _ref_segment(seg1: np.ndarray, seg2: np.ndarray, a: int, b: int) -> float:
+    """∫ over one straight move from (0, 0) to (a, b), in grid units of t (times a, not h)."""
+    from fractions import Fraction
+
+    s = b / a
+    pts = sorted({Fraction(i, a) for i in range(a + 1)} | {Fraction(j, b) for j in range(b + 1)})
+    xs = [a * float(p) for p in pts]
+    f = [np.sum((_ref_lerp(seg1, a * float(p)) - np.sqrt(s) * _ref_lerp(seg2, b * float(p))) ** 2) for p in pts]
+    return sum((xs[i + 1] - xs[i]) * (f[i] + f[i + 1]) / 2 for i in range(len(xs) - 1))
+
+
+def all_grid_paths(T: int, neighbourhood: int):
+    """Every path from (0, 0) to (T−1, T−1) made of the coprime moves (brute force; small T)."""
+    moves = reference_moves(neighbourhood)
+
+    def extend(path):
+        k, l = path[-1]
+        if (k, l) == (T - 1, T - 1):
+            yield path
+            return
+        for a, b in moves:
+            if k + a <= T - 1 and l + b <= T - 1:
+                yield from extend(path + [(k + a, l + b)])
+
+    yield from extend([(0, 0)])

@@ -251,6 +251,7 @@ def roots_from_image(
     min_lateral_length: float = 10.0,
     smooth: float = 2.0,
     spacing: float | None = 2.0,
+    refine_junctions: bool = True,
     pixel_size: float | None = None,
     unit: str = "pixel",
 ) -> list[Root]:
@@ -286,6 +287,10 @@ def roots_from_image(
       (end points are kept fixed); 0 disables.
     - `spacing`: resample every branch uniformly at this arc-length spacing (px); None keeps
       one point per skeleton pixel.
+    - `refine_junctions`: where a thick lateral meets the main root, the skeleton junction
+      slides downstream (a few px, more at acute angles); if True (default) each lateral's
+      direction beyond the junction zone is extended back to the main root, which becomes its
+      attachment point, and its start is made straight. False keeps the raw skeleton junction.
     - `pixel_size`, `unit`: multiply coordinates by `pixel_size` and record `unit` (e.g.
       ``pixel_size=0.05, unit="mm"``); default pixels.
 
@@ -297,13 +302,15 @@ def roots_from_image(
     Attachment fractions come from where each lateral leaves the main path, and each lateral
     starts exactly on the main root.
 
-    **Returns** one `Root` per connected root (or per base point), sorted by base position
-    (x, then y), in ``(x, y)`` coordinates with **x = column, y = row (y points down)**.
+    **Returns** one `Root` per connected root sorted by base position (x, then y) — or one
+    per base point, in the points' order — in ``(x, y)`` coordinates with **x = column, y = row (y points down)**.
     ``metadata`` holds ``source``, ``unit``, ``threshold``, ``roots_dark``, ``base_xy``,
     ``component_pixels``, ``y_axis = "down"`` (and ``resolution`` = 1 / pixel_size).
 
     Raises `ImageError` when the image is unusable or contains no root.
     """
+    if isinstance(base, str) and base.lower() not in ("top", "bottom", "left", "right"):
+        raise ValueError(f"base must be 'top', 'bottom', 'left', 'right' or (x, y) point(s), got {base!r}.")
     arr, stem = _load(image)
     source = str(image) if isinstance(image, (str, os.PathLike)) else "array"
     if arr.size == 0:
@@ -393,10 +400,14 @@ def roots_from_image(
         lats, attach = [], []
         for path in lat_paths:
             k = pos_on_main[int(path[0])]
-            p_attach = _at(main_s, cum, cum[k])
+            lat = _smooth(xy[path], smooth)
+            s_attach = cum[k]
+            if refine_junctions:
+                jr, jc = rc[nodes[path[0]]]
+                s_attach, lat = _refine_junction(main_s, cum, k, lat, float(halfwidth[jr, jc]))
+            p_attach = _at(main_s, cum, s_attach)
             frac = project_onto_polyline(main_out, p_attach)
             start = _at(main_out, cum_out, frac * cum_out[-1])
-            lat = _smooth(xy[path], smooth)
             lat[0] = start
             lat = _resample(lat, spacing)
             lat[0] = start
@@ -428,8 +439,48 @@ def roots_from_image(
         )
     if not results:
         raise ImageError(_no_root_message(source, threshold, t, roots_dark, f"no main path reaches min_root_length={min_root_length} px"))
-    results.sort(key=lambda item: item[0])
+    if isinstance(base, str):  # base points keep the caller's order
+        results.sort(key=lambda item: item[0])
     return [Root(name=f"{stem}/{k + 1}", **kw) for k, (_, kw) in enumerate(results)]
+
+
+def _refine_junction(main, cum, k, lat, hw):
+    """Move a lateral's attachment from the skeleton junction to its true insertion.
+
+    Where a thick lateral meets the main root at an acute angle, the skeleton's branch point
+    slides downstream and the lateral's first pixels bend along the main root. The lateral's
+    direction is measured beyond that junction zone (from arc length ``a = 2·hw + 2`` to
+    ``b = a + max(6, 2·hw)``, ``hw`` the main root's half-width there) and extended back to the
+    main root; the attachment becomes that crossing and the lateral starts with the straight
+    segment to its point at ``a``. Laterals too short to measure, or whose extension does not
+    cross the main root nearby, are left as they are. Returns (attachment arc length, lateral).
+    """
+    s = _cumlen(lat)
+    a = 2.0 * hw + 2.0
+    b = a + max(6.0, 2.0 * hw)
+    if s[-1] < b + 2.0:
+        return cum[k], lat
+    A, B = _at(lat, s, a), _at(lat, s, b)
+    u = A - B
+    norm = float(np.linalg.norm(u))
+    if norm == 0:
+        return cum[k], lat
+    u /= norm
+    lo = max(int(np.searchsorted(cum, cum[k] - 3 * b)) - 1, 0)
+    hi = min(int(np.searchsorted(cum, cum[k] + 3 * b)), main.shape[0] - 1)
+    best = None
+    for i in range(lo, hi):
+        p, q = main[i], main[i + 1]
+        m = np.column_stack([u, p - q])
+        det = float(np.linalg.det(m))
+        if abs(det) < 1e-12:
+            continue
+        t, v = np.linalg.solve(m, p - A)
+        if 0 <= t <= a + 4 * hw + 5 and 0 <= v <= 1 and (best is None or t < best[0]):
+            best = (t, cum[i] + v * (cum[i + 1] - cum[i]), A + t * u)
+    if best is None:
+        return cum[k], lat
+    return best[1], np.concatenate([best[2][None], A[None], lat[s > a]])
 
 
 def _lateral_paths(sub, main_idx, halfwidth, rc, min_lateral_length) -> list[np.ndarray]:

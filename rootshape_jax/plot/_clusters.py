@@ -212,6 +212,7 @@ def plot_dendrogram(
     linewidth: float = 1.0,
     invert_y: bool = True,
     projection: str | None = None,
+    unit: str | None = None,
     title: str | None = "Hierarchical clustering of roots",
 ):
     """Dendrogram coloured by flat cluster, optionally with a row of roots per cluster.
@@ -227,7 +228,7 @@ def plot_dendrogram(
       cluster gets a row with its first `max_roots_per_cluster` members (dendrogram order),
       drawn in the cluster's colour at one shared scale.
     - `ax`: an Axes for the dendrogram (only without `roots`); a new figure when None.
-    - `linewidth`, `invert_y`, `projection`: root drawing options, as in `plot_root`.
+    - `linewidth`, `invert_y`, `projection`, `unit`: root drawing options, as in `plot_root`.
 
     **Returns** ``(fig, axes)`` with ``axes = {"dendrogram": ax, "roots": rows of Axes}``.
     """
@@ -276,7 +277,7 @@ def plot_dendrogram(
         fig = new_figure((fig_w, 3.8 + k * (h + 0.15)))
         gs = fig.add_gridspec(1 + k, ncols, height_ratios=[3.2] + [h] * k)
         ax = fig.add_subplot(gs[0, :])
-        unit = common_unit(drawings)
+        unit = unit if unit is not None else common_unit(drawings)
         for c, idx in enumerate(per):
             row = []
             for j, i in enumerate(idx):

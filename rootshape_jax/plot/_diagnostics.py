@@ -13,7 +13,9 @@ from ._draw import new_figure, slot_color
 def _as_trace(trace: Any, what: str) -> tuple[np.ndarray, np.ndarray]:
     y = np.asarray(trace, dtype=float)
     if y.ndim != 1:
-        raise ValueError(f"{what}: expected a 1D array of energies per iteration, got shape {y.shape}.")
+        raise ValueError(
+            f"{what}: expected a 1D array of energies per iteration, got shape {y.shape}."
+        )
     # Solvers pad the steps they did not take with NaN / inf: those are not iterations.
     steps = np.flatnonzero(np.isfinite(y))
     if steps.size == 0:
@@ -44,7 +46,10 @@ def plot_energy_trace(
     traces = dict(trace) if isinstance(trace, Mapping) else {None: trace}
     if not traces:
         raise ValueError("plot_energy_trace: no trace given.")
-    data = {k: _as_trace(v, f"plot_energy_trace: trace {k!r}" if k else "plot_energy_trace") for k, v in traces.items()}
+    data = {
+        k: _as_trace(v, f"plot_energy_trace: trace {k!r}" if k else "plot_energy_trace")
+        for k, v in traces.items()
+    }
     if ax is None:
         fig = new_figure((5.5, 3.6))
         ax = fig.add_subplot()
@@ -120,7 +125,10 @@ def plot_explained_variance(
     else:
         fig = ax.figure
     ax.bar(x, 100 * ratio[:m], color="#7aa6c8", width=0.8, label="each component")
-    ax.plot(x, 100 * cum[:m], color="#1a1a1a", marker="o", markersize=3, linewidth=1.3, label="cumulative")
+    ax.plot(
+        x, 100 * cum[:m], color="#1a1a1a", marker="o", markersize=3, linewidth=1.3,
+        label="cumulative",
+    )
     if threshold is not None:
         needed = int(np.searchsorted(cum, threshold - 1e-12) + 1)
         ax.axhline(100 * threshold, color="#c0392b", linestyle="--", linewidth=0.9)

@@ -33,7 +33,9 @@ def _palette() -> tuple[str, ...]:
     # Grey is dropped: it reads as the (dark) main root or as a null.
     dark = [c for i, c in enumerate(tab10) if i != 7]
     light = [c for i, c in enumerate(tab20) if i % 2 == 1 and i != 15]
-    return tuple(mcolors.to_hex(c) for c in dark + light)
+    tab20b = matplotlib.colormaps["tab20b"].colors
+    extra = [tab20b[i] for i in (0, 4, 8, 12, 16, 2, 6, 10, 14, 18)]
+    return tuple(mcolors.to_hex(c) for c in dark + light + extra)
 
 
 SLOT_PALETTE = _palette()
@@ -42,8 +44,8 @@ SLOT_PALETTE = _palette()
 def slot_color(k: int) -> str:
     """Colour of lateral slot ``k``: fixed, so one slot has one colour in every plot.
 
-    The palette is matplotlib's qualitative ``tab10`` (without grey) followed by the light
-    half of ``tab20``: 18 colours, then it repeats.
+    The palette is matplotlib's qualitative ``tab10`` (without grey), the light half of
+    ``tab20``, then ten colours of ``tab20b``: 28 colours, then it repeats.
     """
     return SLOT_PALETTE[int(k) % len(SLOT_PALETTE)]
 
@@ -145,7 +147,9 @@ def as_drawing_list(xs: Any, *, what: str) -> list[Drawing]:
         raise ValueError(f"{what}: no roots to draw.")
     dims = {d.dim for d in out}
     if len(dims) != 1:
-        raise ValueError(f"{what}: roots mix dimensions {sorted(dims)}; draw 2D and 3D roots apart.")
+        raise ValueError(
+            f"{what}: roots mix dimensions {sorted(dims)}; draw 2D and 3D roots apart."
+        )
     return out
 
 
@@ -339,7 +343,11 @@ def base_frame(drawings: Sequence[Drawing], projection: str, show_nulls: bool) -
     cols = list(COLUMNS[projection])
     rel = [points_of(d, projection, show_nulls) - d.main[0, cols] for d in drawings]
     pts = np.concatenate(rel)
-    return _pad(pts.min(axis=0), pts.max(axis=0))
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    # Horizontal axes symmetric about the base: every main root sits on the panel's centre line.
+    half = np.maximum(-lo[:-1], hi[:-1])
+    lo[:-1], hi[:-1] = -half, half
+    return _pad(lo, hi)
 
 
 def apply_frame(ax, frame: Frame, *, projection: str, invert_y: bool, offset=None) -> None:
@@ -350,7 +358,7 @@ def apply_frame(ax, frame: Frame, *, projection: str, invert_y: bool, offset=Non
     if projection == "3d":
         ax.set_ylim(lo[1], hi[1])
         ax.set_zlim(*((hi[2], lo[2]) if invert_y else (lo[2], hi[2])))
-        ax.set_box_aspect(tuple(frame.span))
+        ax.set_box_aspect(tuple(frame.span), zoom=0.85)  # room for the axis labels
     else:
         ax.set_ylim(*((hi[1], lo[1]) if invert_y else (lo[1], hi[1])))
         ax.set_aspect("equal", adjustable="box")
@@ -407,7 +415,7 @@ def add_scale_bar(ax, frame: Frame, unit: str | None, *, projection: str) -> Non
     label = f"{length:g} {unit}" if unit else f"{length:g}"
     bar = AnchoredSizeBar(
         ax.transData, length, label, loc="lower right", frameon=False, pad=0.1, sep=2,
-        size_vertical=0, color="#333333", fontproperties={"size": 7},
+        size_vertical=0, color="#333333", fontproperties={"size": 8},
     )
     ax.add_artist(bar)
 

@@ -18,10 +18,12 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+from matplotlib.ticker import MaxNLocator
 
 from ._draw import (
     COLUMNS,
     Drawing,
+    Frame,
     absolute_frame,
     add_scale_bar,
     apply_frame,
@@ -60,6 +62,7 @@ def plot_root(
     show_nulls: bool = False,
     invert_y: bool = True,
     projection: str | None = None,
+    unit: str | None = None,
     title: str | None = None,
 ):
     """Draw one root.
@@ -77,6 +80,7 @@ def plot_root(
     - `invert_y`: depth axis pointing down, base of the root at the top (image convention).
     - `projection`: for 3D roots, ``"xz"`` (default: x against depth), ``"yz"``, ``"xy"`` or
       ``"3d"``; 2D roots only take ``"xy"``.
+    - `unit`: length unit for the axis labels; default ``root.metadata["unit"]`` (a `Root`).
     - `title`: Axes title; default the root's name (if any).
 
     **Returns** ``(fig, ax)``.
@@ -95,6 +99,8 @@ def plot_root(
     else:
         fig = ax.figure
         own_axes = False
+        if ax.has_data():
+            frame = _extend_frame(ax, frame, projection)
         if (projection == "3d") != (getattr(ax, "name", "") == "3d"):
             raise ValueError(
                 f"projection={projection!r} needs {'a 3D' if projection == '3d' else 'a 2D'} Axes; "
@@ -104,17 +110,17 @@ def plot_root(
         ax, drawing, projection=projection, colors=colors, slot_colors=slot_colors,
         linewidth=linewidth, show_nulls=show_nulls,
     )
+    apply_frame(ax, frame, projection=projection, invert_y=invert_y)
     if own_axes:
-        apply_frame(ax, frame, projection=projection, invert_y=invert_y)
-        labels = axis_labels(drawing.dim, projection, drawing.unit)
+        labels = axis_labels(drawing.dim, projection, unit if unit is not None else drawing.unit)
         ax.set_xlabel(labels[0])
         ax.set_ylabel(labels[1])
         if projection == "3d":
             ax.set_zlabel(labels[2])
+            for axis in (ax.xaxis, ax.yaxis):
+                axis.set_major_locator(MaxNLocator(4))
         else:
             ax.spines[["top", "right"]].set_visible(False)
-    else:
-        _extend_limits(ax, drawing, projection, invert_y, show_nulls)
     name = drawing.name if title is None else title
     if name:
         ax.set_title(name)
@@ -128,20 +134,12 @@ def _single_size(frame, projection) -> tuple[float, float]:
     return (max(w + 1.2, 3.5), h + 0.8)
 
 
-def _extend_limits(ax, drawing: Drawing, projection: str, invert_y: bool, show_nulls: bool):
-    """Drawing into a user's Axes: grow its limits to hold the root, keep depth pointing down."""
-    if projection == "3d":
-        from ._draw import points_of
-
-        pts = points_of(drawing, projection, show_nulls)
-        ax.auto_scale_xyz(pts[:, 0], pts[:, 1], pts[:, 2], had_data=True)
-        if invert_y and not ax.zaxis_inverted():
-            ax.invert_zaxis()
-        return
-    ax.autoscale_view()
-    ax.set_aspect("equal", adjustable="datalim")
-    if invert_y and not ax.yaxis_inverted():
-        ax.invert_yaxis()
+def _extend_frame(ax, frame: Frame, projection: str) -> Frame:
+    """Drawing into an Axes that already shows data: the union of its limits and ``frame``."""
+    lims = [ax.get_xlim(), ax.get_ylim()] + ([ax.get_zlim()] if projection == "3d" else [])
+    lo = np.minimum(frame.lo, [min(v) for v in lims])
+    hi = np.maximum(frame.hi, [max(v) for v in lims])
+    return Frame(lo, hi)
 
 
 # --------------------------------------------------------------------------------------------
@@ -176,9 +174,14 @@ def _style(colors, slot_colors, linewidth, show_nulls) -> dict:
     return dict(colors=colors, slot_colors=slot_colors, linewidth=linewidth, show_nulls=show_nulls)
 
 
-def _suptitle(fig, title):
+def _suptitle(fig, title, *, own_figure: bool = True):
     if title:
         fig.suptitle(title, fontsize=12)
+        # A narrow strip of panels must not cut its title off (~0.09 inch per character).
+        w, h = fig.get_size_inches()
+        need = 0.09 * max(len(line) for line in title.split("\n")) + 0.3
+        if own_figure and w < need:
+            fig.set_size_inches(need, h)
 
 
 def plot_geodesic(
@@ -192,6 +195,7 @@ def plot_geodesic(
     show_nulls: bool = False,
     invert_y: bool = True,
     projection: str | None = None,
+    unit: str | None = None,
     panel_height: float = 2.6,
     title: str | None = "Geodesic (optimal deformation); colour = corresponding lateral",
 ):
@@ -206,6 +210,7 @@ def plot_geodesic(
       from 0 to 1).
     - `ncols`: wrap the strip after this many panels (default: one row).
     - `colors`, `linewidth`, `show_nulls`, `invert_y`, `projection`: as in `plot_root`.
+    - `unit`: length unit of the scale bar (a `RootTree` does not carry one).
     - `panel_height`: inches per panel. `title`: figure title (None for none).
 
     Every panel shows the same region at the same scale, so only the deformation moves.
@@ -227,14 +232,16 @@ def plot_geodesic(
         w, h = panel_size(frame, panel_height)
         fig = new_figure((ncols * w + 0.3, nrows * (h + 0.35) + (0.45 if title else 0.1)))
         axes = _panel_grid(fig, nrows, ncols, n, projection)
+        own_figure = True
     else:
+        own_figure = False
         axes = list(np.ravel(axes))
         if len(axes) != n:
             raise ValueError(f"plot_geodesic: {len(axes)} axes for {n} steps; give one per step.")
         fig = axes[0].figure
     _draw_panels(
         axes, drawings, frame, projection=projection, invert_y=invert_y, align_bases=False,
-        style=style, unit=common_unit(drawings),
+        style=style, unit=unit if unit is not None else common_unit(drawings),
     )
     for i, (ax, tau) in enumerate(zip(axes, taus)):
         label = f"\u03c4 = {_fmt(tau, 2)}"
@@ -243,7 +250,7 @@ def plot_geodesic(
         elif n > 1 and i == n - 1:
             label = "end, " + label
         ax.set_title(label, fontsize=9)
-    _suptitle(fig, title)
+    _suptitle(fig, title, own_figure=own_figure)
     return fig, axes
 
 
@@ -259,6 +266,7 @@ def plot_mean(
     linewidth: float = 1.0,
     invert_y: bool = True,
     projection: str | None = None,
+    unit: str | None = None,
     title: str | None = "Mean root",
 ):
     """Input roots beside their (Karcher) mean, as in the paper's "mean root" figure.
@@ -272,7 +280,8 @@ def plot_mean(
       panel on the right) or ``"overlay"`` (one panel: inputs in light grey, translated so
       their bases meet the mean's, with the mean drawn on top in colour).
     - `ncols`: columns of the sample grid (default about square).
-    - `colors`, `slot_colors`, `linewidth`, `invert_y`, `projection`: as in `plot_root`.
+    - `colors`, `slot_colors`, `linewidth`, `invert_y`, `projection`, `unit`: as in
+      `plot_root` (`unit` labels the scale bars).
 
     **Returns** ``(fig, axes)`` with ``axes = {"samples": [...], "mean": ax}`` (for the
     overlay layout ``"samples"`` is the same single Axes as ``"mean"``).
@@ -287,7 +296,8 @@ def plot_mean(
     projection = resolve_projection(mean_d.dim, projection)
     if not isinstance(max_samples, int) or max_samples < 1:
         raise ValueError(f"max_samples must be a positive integer, got {max_samples!r}.")
-    unit = common_unit(drawings + [mean_d])
+    if unit is None:
+        unit = common_unit(drawings + [mean_d])
     if layout == "overlay":
         return _mean_overlay(drawings, mean_d, projection, invert_y, style, unit, title)
     if layout != "grid":
@@ -295,11 +305,15 @@ def plot_mean(
 
     shown = drawings[:max_samples]
     n = len(shown)
-    if ncols is None:
-        ncols = max(1, int(np.ceil(np.sqrt(n * 1.5))))
-    nrows, ncols = grid_shape(n, ncols, max_cols=ncols)
     frame = base_frame(shown + [mean_d], projection, False)
     w, h = panel_size(frame, 1.35)
+    if ncols is None:
+        # About 1.3 times wider than tall, whatever the roots' own aspect; among the nearby
+        # column counts prefer the one leaving fewest empty cells in the last row.
+        c = float(np.sqrt(1.3 * n * h / w))
+        candidates = [k for k in range(int(c) - 1, int(c) + 3) if 1 <= k <= n] or [1]
+        ncols = min(candidates, key=lambda k: ((-n) % k, abs(k - c)))
+    nrows, ncols = grid_shape(n, ncols, max_cols=ncols)
     mean_h = max(nrows * h, 3.2)
     mean_w = mean_h * w / h
     fig = new_figure((ncols * w + mean_w + 0.6, mean_h + 0.9))
@@ -308,7 +322,7 @@ def plot_mean(
     sample_axes = _panel_grid(fig, nrows, ncols, n, projection, gridspec=inner)
     _draw_panels(
         sample_axes, shown, frame, projection=projection, invert_y=invert_y, align_bases=True,
-        style=style, unit=unit, scale_bar=False,
+        style=style, unit=unit,
     )
     mean_ax = fig.add_subplot(outer[0, 1], **subplot_kw(projection))
     mean_style = dict(style, linewidth=1.6 * linewidth)
@@ -343,7 +357,8 @@ def _mean_overlay(drawings, mean_d, projection, invert_y, style, unit, title):
             nulls=(), unit=d.unit,
         )
         draw(ax, moved, projection=projection, alpha=alpha, zorder=1.0, **faint)
-    draw(ax, mean_d, projection=projection, zorder=3.0, **dict(style, linewidth=2 * style["linewidth"]))
+    bold = dict(style, linewidth=2 * style["linewidth"])
+    draw(ax, mean_d, projection=projection, zorder=3.0, **bold)
     apply_frame(ax, frame, projection=projection, invert_y=invert_y, offset=base)
     clean_panel(ax, projection)
     add_scale_bar(ax, frame, unit, projection=projection)
@@ -361,6 +376,7 @@ def plot_modes(
     linewidth: float = 1.2,
     invert_y: bool = True,
     projection: str | None = None,
+    unit: str | None = None,
     panel_height: float = 2.2,
     title: str | None = "Principal modes of variation",
 ):
@@ -374,7 +390,7 @@ def plot_modes(
     - `alphas`: the multiples of the standard deviation, e.g. ``[-2, -1, 0, 1, 2]``; the
       ``α = 0`` column (the mean) is shaded.
     - `explained`: optional fraction of variance explained by each component (row labels).
-    - `colors`, `linewidth`, `invert_y`, `projection`: as in `plot_root`.
+    - `colors`, `linewidth`, `invert_y`, `projection`, `unit`: as in `plot_root`.
 
     **Returns** ``(fig, axes)`` with `axes` a list of rows of Axes.
     """
@@ -396,6 +412,7 @@ def plot_modes(
     style = _style(colors, True, linewidth, False)
     projection = resolve_projection(flat[0].dim, projection)
     frame = base_frame(flat, projection, False)
+    unit = unit if unit is not None else common_unit(flat)
     nrows, ncols = len(rows), alphas.shape[0]
     w, h = panel_size(frame, panel_height)
     fig = new_figure((ncols * w + 0.7, nrows * (h + 0.1) + 0.4 + (0.45 if title else 0)))
@@ -405,7 +422,7 @@ def plot_modes(
         axes = [fig.add_subplot(gs[i, j], **subplot_kw(projection)) for j in range(ncols)]
         _draw_panels(
             axes, row, frame, projection=projection, invert_y=invert_y, align_bases=True,
-            style=style, unit=common_unit(flat), scale_bar=(i == nrows - 1),
+            style=style, unit=unit, scale_bar=(i == nrows - 1),
         )
         label = f"PC {i + 1}"
         if explained is not None:
@@ -433,6 +450,7 @@ def plot_samples_by_distance(
     linewidth: float = 1.1,
     invert_y: bool = True,
     projection: str | None = None,
+    unit: str | None = None,
     panel_height: float = 1.9,
     title: str | None = "Random roots from the fitted model, grouped by distance to the mean",
 ):
@@ -444,7 +462,7 @@ def plot_samples_by_distance(
     - `samples`: the roots (batched `RootTree` or list); `distances_to_mean`: one distance each.
     - `n_groups`: number of rows, closest group first.
     - `max_per_group`: panels per row; larger groups show evenly spaced members (by distance).
-    - `colors`, `linewidth`, `invert_y`, `projection`: as in `plot_root`.
+    - `colors`, `linewidth`, `invert_y`, `projection`, `unit`: as in `plot_root`.
 
     **Returns** ``(fig, axes)`` with `axes` a list of rows of Axes.
     """
@@ -482,7 +500,8 @@ def plot_samples_by_distance(
         axes = [fig.add_subplot(gs[g, j], **subplot_kw(projection)) for j in range(len(members))]
         _draw_panels(
             axes, [drawings[i] for i in members], frame, projection=projection,
-            invert_y=invert_y, align_bases=True, style=style, unit=common_unit(drawings),
+            invert_y=invert_y, align_bases=True, style=style,
+            unit=unit if unit is not None else common_unit(drawings),
             scale_bar=(g == n_groups - 1),
         )
         for ax, i in zip(axes, members):
@@ -512,12 +531,13 @@ def plot_regression_sweep(
     values: Sequence[float],
     *,
     trait_name: str,
-    unit: str | None = None,
+    trait_unit: str | None = None,
     measured: Sequence[float] | None = None,
     colors: Any = None,
     linewidth: float = 1.3,
     invert_y: bool = True,
     projection: str | None = None,
+    unit: str | None = None,
     panel_height: float = 2.6,
     title: str | None = None,
 ):
@@ -527,10 +547,10 @@ def plot_regression_sweep(
 
     - `trees`: the predicted roots (batched `RootTree` or list), one per value.
     - `values`: the requested values of the varied trait.
-    - `trait_name`: e.g. ``"main root length"``; `unit`: its unit for the panel titles.
+    - `trait_name`: e.g. ``"main root length"``; `trait_unit`: its unit for the panel titles.
     - `measured`: optional trait values measured on the predicted roots, shown under the
       requested ones so you can judge how well the model honours the request.
-    - `colors`, `linewidth`, `invert_y`, `projection`: as in `plot_root`.
+    - `colors`, `linewidth`, `invert_y`, `projection`, `unit`: as in `plot_root`.
     - `title`: figure title; None names the trait, ``""`` gives none.
 
     **Returns** ``(fig, axes)`` with `axes` a list.
@@ -559,9 +579,9 @@ def plot_regression_sweep(
     axes = _panel_grid(fig, 1, n, n, projection)
     _draw_panels(
         axes, drawings, frame, projection=projection, invert_y=invert_y, align_bases=True,
-        style=style, unit=common_unit(drawings),
+        style=style, unit=unit if unit is not None else common_unit(drawings),
     )
-    u = f" {unit}" if unit else ""
+    u = f" {trait_unit}" if trait_unit else ""
     for i, ax in enumerate(axes):
         text = f"{_fmt(values[i])}{u}"
         if measured is not None:

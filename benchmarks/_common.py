@@ -1,0 +1,80 @@
+"""Shared benchmark utilities: device setup, timing, machine description, JSON output.
+
+Benchmarks are scripts, not tests. Each one sets the number of XLA CPU devices *before* JAX
+initialises (the library itself never touches global configuration), warms up, times compiled
+calls with `block_until_ready`, and reports compile time separately.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import time
+from pathlib import Path
+
+RESULTS = Path(__file__).parent / "results"
+
+
+def setup_jax(n_devices: int | None = None, *, x64: bool = False):
+    """Import JAX with `n_devices` CPU devices (default: every core) and optional float64."""
+    import jax
+
+    n = n_devices or os.cpu_count() or 1
+    jax.config.update("jax_num_cpu_devices", n)
+    if x64:
+        jax.config.update("jax_enable_x64", True)
+    return jax
+
+
+def machine() -> dict:
+    import jax
+    import numpy as np
+
+    cpu = platform.processor() or ""
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        load = None
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "memory_gib": round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1),
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "numpy": np.__version__,
+        "xla_devices": len(jax.devices()),
+        "load_average_1min_at_start": load,
+        "git": subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip(),
+        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+    }
+
+
+def timed(fn, *args, repeats: int = 3, **kwargs):
+    """(first-call seconds, best warm seconds, result): the first call includes compilation."""
+    import jax
+
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(fn(*args, **kwargs))
+    first = time.perf_counter() - t0
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(fn(*args, **kwargs))
+        best = min(best, time.perf_counter() - t0)
+    return first, best, out
+
+
+def write_json(name: str, payload: dict) -> Path:
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    path = RESULTS / f"{name}.json"
+    path.write_text(json.dumps(payload, indent=2, default=float))
+    return path

@@ -1,0 +1,350 @@
+"""The `rootshape` command line, run as a user runs it: in a subprocess, on tiny inputs.
+
+Fast tests cover help, traits and every way bad input must fail (one line on stderr, non-zero
+exit code, no traceback). Runs that register roots compile JAX programs (tens of seconds), so
+they are marked slow.
+"""
+
+from __future__ import annotations
+
+import csv
+import re
+import subprocess
+import sys
+from html.parser import HTMLParser
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import rootshape_jax as rs
+from rootshape_jax.datasets import synthetic_roots
+from rootshape_jax.io import read_rsml, write_rsml
+
+DATA = Path(__file__).parent / "data" / "rsml"
+
+
+def run_cli(*args, cwd=None, timeout=1800) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "rootshape_jax", *map(str, args)],
+        capture_output=True, text=True, cwd=cwd, timeout=timeout,
+    )
+
+
+def assert_one_line_error(proc: subprocess.CompletedProcess, *fragments: str) -> str:
+    assert proc.returncode != 0, proc.stdout + proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("rootshape: error: "), lines[0]
+    for f in fragments:
+        assert f in lines[0], (f, lines[0])
+    return lines[0]
+
+
+def read_matrix(path: Path) -> tuple[list[str], np.ndarray]:
+    with open(path, newline="") as f:
+        rows = list(csv.reader(f))
+    names = rows[0][1:]
+    assert [r[0] for r in rows[1:]] == names
+    return names, np.array([[float(x) for x in r[1:]] for r in rows[1:]])
+
+
+@pytest.fixture(scope="module")
+def rsml_files(tmp_path_factory) -> Path:
+    """A folder with two RSML files of two synthetic roots each (mm)."""
+    folder = tmp_path_factory.mktemp("rsml")
+    write_rsml(synthetic_roots(2, condition="control", seed=1), folder / "control.rsml")
+    write_rsml(synthetic_roots(2, condition="drought", seed=1), folder / "drought.rsml")
+    return folder
+
+
+# --------------------------------------------------------------------------------------------
+# Help and fast commands
+
+
+def test_help_lists_every_command():
+    proc = run_cli("--help")
+    assert proc.returncode == 0, proc.stderr
+    for cmd in ("distances", "geodesic", "mean", "pca", "sample", "regress", "cluster", "traits", "demo"):
+        assert re.search(rf"^\s+{cmd}\b", proc.stdout, re.M), cmd
+
+
+@pytest.mark.parametrize("cmd", ["distances", "geodesic", "mean", "pca", "sample", "regress", "cluster", "traits", "demo"])
+def test_subcommand_help(cmd, capsys):
+    from rootshape_jax._cli import main
+
+    assert main([cmd, "--help"]) == 0
+    text = capsys.readouterr().out
+    assert f"usage: rootshape {cmd}" in text
+    assert "--out" in text
+
+
+def test_entry_point_matches_module():
+    # The installed `rootshape` script calls the same main(); check the declared target exists.
+    import tomllib
+
+    root = Path(__file__).resolve().parents[1]
+    scripts = tomllib.loads((root / "pyproject.toml").read_text())["project"]["scripts"]
+    module, func = scripts["rootshape"].split(":")
+    assert (module, func) == ("rootshape_jax._cli", "main")
+
+
+def test_traits_end_to_end(rsml_files, tmp_path):
+    out = tmp_path / "out"
+    proc = run_cli("traits", rsml_files, "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    assert str(out.resolve()) in proc.stdout
+    with open(out / "traits.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    roots = read_rsml(rsml_files / "control.rsml") + read_rsml(rsml_files / "drought.rsml")
+    assert len(rows) == len(roots) == 4
+    # Same values as the library (files are read in sorted order: control, then drought).
+    for row, root in zip(rows, roots):
+        assert float(row["main_length"]) == pytest.approx(root.main_length, rel=1e-12)
+        assert int(row["n_laterals"]) == root.n_laterals
+
+
+def test_traits_samples_subsamples_evenly(tmp_path):
+    out = tmp_path / "out"
+    proc = run_cli("traits", "--synthetic", 5, "--condition", "control", "--condition", "drought",
+                   "--samples", 3, "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    with open(out / "traits.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    # 10 roots (5 control, then 5 drought); the evenly spread ones are numbers 0, 4 and 9.
+    assert [r["name"] for r in rows] == ["control_s0_000", "control_s0_004", "drought_s0_004"]
+    assert {r["condition"] for r in rows} == {"control", "drought"}
+
+
+# --------------------------------------------------------------------------------------------
+# Bad input: one clear line, non-zero exit code, no traceback
+
+
+def test_missing_path(tmp_path):
+    proc = run_cli("distances", tmp_path / "nope.rsml", "--out", tmp_path / "o")
+    assert_one_line_error(proc, "nope.rsml", "no such file")
+
+
+@pytest.mark.parametrize(
+    "content, fragment",
+    [("this is not xml", "not well-formed XML"), ("<rsml><metadata/></rsml>", "no <scene>")],
+)
+def test_bad_rsml_file(tmp_path, content, fragment):
+    bad = tmp_path / "bad.rsml"
+    bad.write_text(content)
+    proc = run_cli("distances", bad, "--out", tmp_path / "o")
+    assert_one_line_error(proc, "bad.rsml", fragment)
+
+
+@pytest.mark.parametrize("fixture", ["malformed.rsml", "no_geometry.rsml"])
+def test_unreadable_fixture_files(tmp_path, fixture):
+    proc = run_cli("mean", DATA / fixture, "--out", tmp_path / "o")
+    assert_one_line_error(proc, fixture)
+
+
+def test_partly_bad_file_warns_in_one_line_and_goes_on(tmp_path):
+    proc = run_cli("traits", DATA / "bad_roots.rsml", "--out", tmp_path / "o")
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    warn = [ln for ln in proc.stderr.splitlines() if ln.startswith("rootshape: warning:")]
+    assert len(warn) == 1 and "bad_roots.rsml" in warn[0]
+    assert (tmp_path / "o" / "traits.csv").exists()
+
+
+def test_unsupported_file_type(tmp_path):
+    f = tmp_path / "notes.txt"
+    f.write_text("hello")
+    assert_one_line_error(run_cli("cluster", f, "--out", tmp_path / "o"), "notes.txt", "unsupported file type")
+
+
+def test_blank_image(tmp_path):
+    from skimage.io import imsave
+
+    img = tmp_path / "blank.png"
+    imsave(img, np.full((40, 40), 255, np.uint8), check_contrast=False)
+    assert_one_line_error(run_cli("distances", img, "--out", tmp_path / "o"), "blank.png")
+
+
+def test_empty_folder_and_no_input(tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert_one_line_error(run_cli("pca", empty, "--out", tmp_path / "o"), "empty", "no RSML files")
+    assert_one_line_error(run_cli("distances", "--out", tmp_path / "o"), "no input")
+
+
+def test_too_few_roots(rsml_files, tmp_path):
+    proc = run_cli("distances", rsml_files / "control.rsml", "--samples", 1, "--out", tmp_path / "o")
+    assert_one_line_error(proc, "at least 2 roots")
+
+
+def test_geodesic_root_index_out_of_range(rsml_files, tmp_path):
+    f = rsml_files / "control.rsml"
+    proc = run_cli("geodesic", f, f, "--root-b", 5, "--out", tmp_path / "o")
+    assert_one_line_error(proc, "control.rsml", "root number 5")
+
+
+def test_out_is_a_file(rsml_files, tmp_path):
+    f = tmp_path / "file"
+    f.write_text("x")
+    assert_one_line_error(run_cli("traits", rsml_files, "--out", f), "not a folder")
+
+
+def test_unknown_condition(tmp_path):
+    proc = run_cli("traits", "--synthetic", 2, "--condition", "flooded", "--out", tmp_path / "o")
+    assert_one_line_error(proc, "flooded")
+
+
+def test_bad_requested_csv_fails_before_computing(rsml_files, tmp_path):
+    req = tmp_path / "req.csv"
+    req.write_text("main_length,foo\n1,2\n")
+    proc = run_cli("regress", rsml_files, "--requested", req, "--out", tmp_path / "o")
+    assert_one_line_error(proc, "req.csv", "mean_lateral_length")
+
+
+@pytest.mark.parametrize(
+    "option",
+    [["--weights", "1,2"], ["--weights", "a,b,c"], ["--weights", "-1,1,1"], ["--points", "1"], ["--samples", "0"]],
+)
+def test_bad_option_values_are_usage_errors(rsml_files, option):
+    proc = run_cli("distances", rsml_files, *option)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    assert "error: argument" in proc.stderr
+
+
+def test_unknown_command():
+    proc = run_cli("frobnicate")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+
+
+# --------------------------------------------------------------------------------------------
+# Helpers of the command line (in-process)
+
+
+def test_limit_laterals_keeps_the_longest_in_order():
+    from rootshape_jax._cli import limit_laterals
+
+    root = synthetic_roots(1, seed=3)[0]
+    kept = limit_laterals(root, 3)
+    lengths = root.lateral_lengths
+    top = np.sort(np.argsort(-lengths)[:3])
+    assert kept.n_laterals == 3
+    for k, i in enumerate(top):
+        np.testing.assert_array_equal(kept.laterals[k], root.laterals[i])
+        assert kept.attach[k] == root.attach[i]
+    assert limit_laterals(root, 100) is root
+
+
+def test_subsample_is_even_and_ordered():
+    from rootshape_jax._cli import subsample
+
+    items = list(range(53))
+    assert subsample(items, 6) == [0, 10, 21, 31, 42, 52]
+    assert subsample(items, 100) == items
+    assert subsample(items, None) == items
+
+
+def test_scale_tree_scales_about_the_base():
+    from rootshape_jax._cli import scale_tree
+
+    tree = rs.batch(synthetic_roots(2, seed=0), n_points=20)
+    scaled = scale_tree(tree, [2.0, 0.5])
+    o = np.asarray(tree.main)[:, :1]
+    np.testing.assert_allclose(np.asarray(scaled.main)[0], o[0] + 2.0 * (np.asarray(tree.main)[0] - o[0]))
+    np.testing.assert_allclose(np.asarray(scaled.laterals)[1], o[1] + 0.5 * (np.asarray(tree.laterals)[1] - o[1]))
+    np.testing.assert_array_equal(np.asarray(scaled.mask), np.asarray(tree.mask))
+
+
+# --------------------------------------------------------------------------------------------
+# End to end (compiles registrations: slow)
+
+
+class _Links(HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.links: list[str] = []
+        self.images: list[str] = []
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        if tag == "a" and "href" in a:
+            self.links.append(a["href"])
+        if tag == "img":
+            self.images.append(a["src"])
+
+
+@pytest.mark.slow
+def test_demo_tiny_index_links_exist(tmp_path):
+    out = tmp_path / "demo"
+    proc = run_cli("demo", "--samples", 6, "--points", 30, "--laterals", 4, "-n", 4, "--max-steps", 5,
+                   "--out", out)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr
+    assert str(out.resolve()) in proc.stdout
+    index = out / "index.html"
+    parser = _Links()
+    parser.feed(index.read_text(encoding="utf-8"))
+    assert len(parser.images) >= 9  # every analysis has at least one figure
+    for ref in parser.links + parser.images:
+        assert (out / ref).is_file(), ref
+        assert (out / ref).stat().st_size > 0, ref
+    for img in parser.images:
+        assert (out / img).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", img
+    # Every file written is shown or linked.
+    written = {p.name for p in out.iterdir()} - {"index.html"}
+    linked = set(parser.links) | set(parser.images)
+    steps = {n for n in written if n.startswith("geodesic_step_")}
+    assert written - steps <= linked, written - linked
+    # Timings of every step are on the page.
+    text = index.read_text(encoding="utf-8")
+    for step in ("Distance matrix", "Mean root", "Modes of variation", "Clusters"):
+        assert re.search(rf"{step}[^<]*<span class='time'>\(\d+\.\d s\)", text), step
+    # The outputs are what they claim.
+    names, D = read_matrix(out / "distances.csv")
+    assert len(names) == 6
+    np.testing.assert_allclose(D, D.T)
+    assert np.all(np.diag(D) == 0) and np.all(D[~np.eye(6, dtype=bool)] > 0)
+    assert len(read_rsml(out / "mean.rsml")) == 1
+    assert len(read_rsml(out / "random_roots.rsml")) == 4
+    with open(out / "clusters.csv", newline="") as f:
+        clusters = list(csv.DictReader(f))
+    assert [c["root"] for c in clusters] == names
+    assert {c["condition"] for c in clusters} == {"control", "drought", "high_nitrate"}
+
+
+@pytest.mark.slow
+def test_distances_match_the_library(rsml_files, tmp_path):
+    """The CSV matrix is the library's pairwise_distances of the same roots, same settings."""
+    out = tmp_path / "o"
+    proc = run_cli("distances", rsml_files, "--points", 24, "--laterals", 3, "--weights", "0.1,1,0.5",
+                   "--float64", "--quiet", "--out", out)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert (out / "distances.png").read_bytes()[:4] == b"\x89PNG"
+    names, D = read_matrix(out / "distances.csv")
+    from rootshape_jax._cli import limit_laterals
+
+    roots = read_rsml(rsml_files / "control.rsml") + read_rsml(rsml_files / "drought.rsml")
+    roots = [limit_laterals(r, 3) for r in roots]
+    tree = rs.batch(roots, n_points=24, normalise_scale=True)
+    ref = np.asarray(rs.pairwise_distances(tree, weights=rs.Weights(0.1, 1.0, 0.5), progress=False))
+    np.testing.assert_allclose(D, ref, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_geodesic_end_to_end(rsml_files, tmp_path):
+    out = tmp_path / "o"
+    a, b = rsml_files / "control.rsml", rsml_files / "drought.rsml"
+    proc = run_cli("geodesic", a, b, "--root-b", 1, "--steps", 5, "--points", 30, "--laterals", 3,
+                   "--quiet", "--out", out)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert (out / "geodesic.png").read_bytes()[:4] == b"\x89PNG"
+    steps = [read_rsml(out / f"geodesic_step_{i:02d}.rsml") for i in range(5)]
+    assert all(len(s) == 1 for s in steps)
+    ra, rb = read_rsml(a)[0], read_rsml(b)[1]
+    # Scale-normalised shapes are scaled back: the ends have the inputs' main-root lengths
+    # (up to resampling to 30 points), and the unit is kept.
+    assert steps[0][0].main_length == pytest.approx(ra.main_length, rel=0.02)
+    assert steps[-1][0].main_length == pytest.approx(rb.main_length, rel=0.02)
+    assert steps[0][0].metadata["unit"] == ra.metadata["unit"] == "mm"
+    assert "elastic distance" in proc.stdout

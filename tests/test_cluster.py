@@ -1,0 +1,130 @@
+"""Hierarchical clustering and leave-one-out classification from distance matrices."""
+
+import numpy as np
+import pytest
+import scipy.cluster.hierarchy as sch
+import scipy.spatial.distance as ssd
+
+import rootshape_jax as rs
+from rootshape_jax._cluster import (
+    Clustering,
+    class_mean_distances,
+    cluster,
+    confusion_matrix,
+    loo_accuracy,
+)
+
+from helpers import random_root
+
+
+def _points(seed=0, n=(5, 7), sep=3.0, dim=4):
+    rng = np.random.default_rng(seed)
+    X = np.concatenate([rng.normal(size=(k, dim)) + sep * c for c, k in enumerate(n)])
+    y = np.repeat(np.arange(len(n)), n)
+    return X, y
+
+
+def _D(X):
+    return ssd.squareform(ssd.pdist(X))
+
+
+def _same_partition(a, b):
+    a, b = np.asarray(a), np.asarray(b)
+    return np.array_equal(a[:, None] == a[None], b[:, None] == b[None])
+
+
+@pytest.mark.parametrize("method", ["single", "complete", "average", "weighted", "ward"])
+def test_cluster_matches_scipy(method):
+    X, _ = _points(1, (4, 5, 6), sep=1.0)
+    D = _D(X)
+    res = cluster(D, n_clusters=3, method=method)
+    assert isinstance(res, Clustering) and res.n_clusters == 3
+    Z = sch.linkage(ssd.pdist(X), method=method)
+    np.testing.assert_allclose(res.linkage, Z)
+    assert _same_partition(res.labels, sch.fcluster(Z, 3, "maxclust"))
+    np.testing.assert_array_equal(res.order, sch.leaves_list(Z))
+    # Labels are numbered by first appearance along the dendrogram.
+    first = [res.labels[i] for i in res.order]
+    assert first[0] == 0 and sorted(set(first)) == [0, 1, 2]
+
+
+def test_cut_at_height():
+    X, y = _points(2, (4, 4), sep=10.0)
+    res = cluster(_D(X), n_clusters=None, height=8.0, method="complete")
+    assert _same_partition(res.labels, y)
+
+
+def test_loo_nearest_neighbour_matches_brute_force():
+    X, y = _points(3, (6, 6), sep=1.2)
+    D = _D(X)
+    out = loo_accuracy(D, y)
+    pred = []
+    for i in range(len(y)):
+        best, lab = np.inf, None
+        for j in range(len(y)):
+            if j != i and D[i, j] < best:
+                best, lab = D[i, j], y[j]
+        pred.append(lab)
+    np.testing.assert_array_equal(out["predicted"], pred)
+    np.testing.assert_allclose(out["accuracy"], np.mean(np.array(pred) == y))
+
+
+def test_nearest_mean_is_exact_for_euclidean_points():
+    X, y = _points(4, (5, 6, 4), sep=1.0, dim=3)
+    D = _D(X)
+    d2, classes = class_mean_distances(D, y, leave_out=True)
+    for i in range(len(y)):
+        for c, cls in enumerate(classes):
+            members = [j for j in range(len(y)) if y[j] == cls and j != i]
+            m = X[members].mean(axis=0)
+            np.testing.assert_allclose(d2[i, c], np.sum((X[i] - m) ** 2), rtol=1e-9, atol=1e-12)
+    out = loo_accuracy(D, y, rule="nearest_mean")
+    ref = classes[np.argmin(d2, axis=1)]
+    np.testing.assert_array_equal(out["predicted"], ref)
+
+
+def test_confusion_matrix():
+    C, classes = confusion_matrix(["a", "a", "b", "b"], ["a", "b", "b", "b"])
+    np.testing.assert_array_equal(classes, ["a", "b"])
+    np.testing.assert_array_equal(C, [[1, 1], [0, 2]])
+
+
+def test_bad_input():
+    D = _D(_points()[0])
+    with pytest.raises(ValueError, match="square"):
+        cluster(D[:3])
+    bad = D.copy()
+    bad[0, 1] += 1
+    with pytest.raises(ValueError, match="symmetric"):
+        cluster(bad)
+    bad = D.copy()
+    bad[0, 1] = bad[1, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        cluster(bad)
+    with pytest.raises(ValueError, match="method"):
+        cluster(D, method="kmeans")
+    with pytest.raises(ValueError, match="exactly one"):
+        cluster(D, n_clusters=2, height=1.0)
+    with pytest.raises(ValueError, match="rule"):
+        loo_accuracy(D, np.zeros(len(D)), rule="svm")
+    with pytest.raises(ValueError, match="labels"):
+        loo_accuracy(D, np.zeros(3))
+
+
+def test_two_conditions_are_separated_perfectly():
+    """Elastic distances between two clearly different synthetic conditions: few short
+    laterals vs. many long ones."""
+    rng = np.random.default_rng(51)
+    sparse = [random_root(rng, n_laterals=1) for _ in range(3)]
+    dense = []
+    for _ in range(3):
+        r = random_root(rng, n_laterals=3)
+        lats = [lat[0] + (lat - lat[0]) * 2.5 for lat in r.laterals]
+        dense.append(rs.Root(main=r.main, laterals=lats, attach=r.attach))
+    labels = np.array([0, 0, 0, 1, 1, 1])
+    trees = rs.batch(sparse + dense, n_points=30)
+    D = np.asarray(rs.pairwise_distances(trees, progress=False))
+    for method in ("average", "complete", "single"):
+        assert _same_partition(cluster(D, n_clusters=2, method=method).labels, labels)
+    assert loo_accuracy(D, labels)["accuracy"] == 1.0
+    assert loo_accuracy(D, labels, rule="nearest_mean")["accuracy"] == 1.0

@@ -1,0 +1,135 @@
+"""The io readers on real public data in ../shared/data (skipped in a clone without it).
+
+See shared/data/NOTICE.md for the sources: RhizoScan Arabidopsis plate (3 dates + photograph),
+SmartRoot lupin / maize / root_ramifie (no geometry), RootNav oilseed rape.
+"""
+
+from __future__ import annotations
+
+import warnings
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rootshape_jax._errors import RSMLError, RSMLWarning
+from rootshape_jax.io import read_rsml, roots_from_image, write_rsml
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+RSML_FILES = sorted((DATA / "rsml").glob("*/*.rsml")) if DATA.is_dir() else []
+PLATE_IMAGE = DATA / "images" / "arabidopsis_plate" / "2012_11_19_18h00_chl110_1_1.jpg"
+PLATE_RSML = DATA / "rsml" / "arabidopsis_plate" / "2012_11_19_18h00_chl110_1_1.rsml"
+
+pytestmark = pytest.mark.skipif(
+    not RSML_FILES, reason=f"real data folder {DATA} not present (only in the team workspace)"
+)
+
+
+def _usable(root_el) -> bool:
+    poly = root_el.find("geometry/polyline")
+    return poly is not None and len([p for p in poly if p.tag.lower() == "point"]) >= 2
+
+
+def _raw_counts(path):
+    """Independent plain-ElementTree counts: per plant, per usable top-level root, the number
+    of usable direct child roots."""
+    top = ET.parse(path).getroot()
+    out = []
+    for plant in top.find("scene").findall("plant"):
+        out.append([sum(_usable(c) for c in r.findall("root")) for r in plant.findall("root") if _usable(r)])
+    return out
+
+
+def _count(root) -> int:
+    return 1 + sum(_count(c) for c in root.children)
+
+
+@pytest.mark.parametrize("path", RSML_FILES, ids=lambda p: p.name)
+def test_counts_match_raw_xml(path):
+    raw = _raw_counts(path)
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        roots = read_rsml(path)
+    n_plants_raw = sum(1 for p in raw if p)
+    assert len({r.metadata["plant_id"] for r in roots}) == n_plants_raw
+    assert [r.n_laterals for r in roots] == [n for plant in raw for n in plant]
+    # Every <root> element is either returned (as a Root or a child, recursively) or skipped,
+    # and a warning is issued if and only if something was skipped.
+    n_elements = len(list(ET.parse(path).getroot().iter("root")))
+    n_read = sum(_count(r) for r in roots)
+    assert n_read <= n_elements
+    assert (n_read < n_elements) == any(issubclass(w.category, RSMLWarning) for w in rec)
+    for r in roots:
+        assert r.metadata["file"] == str(path)
+        assert len(r.children) == r.n_laterals
+        assert np.all((r.attach >= 0) & (r.attach <= 1))
+
+
+def test_expected_structure_of_known_files():
+    by_name = {p.name: p for p in RSML_FILES}
+    plate = read_rsml(by_name["2012_11_19_18h00_chl110_1_1.rsml"], strict=True)
+    assert len(plate) == 5 and [r.n_laterals for r in plate] == [4, 5, 4, 3, 4]
+    # RhizoScan gives exact parent-node indices: every lateral attached through them.
+    assert {c.metadata["attach_method"] for r in plate for c in r.children} == {"parent-node"}
+    (lupin,) = read_rsml(by_name["lupin.rsml"], strict=True)
+    assert lupin.n_laterals == 60 and lupin.metadata["unit"] == "inch"
+    # SmartRoot writes each root's length (cm) as a property: our inch lengths agree.
+    ratios = [lupin.main_length * 2.54 / lupin.metadata["properties"]["length"]]
+    ratios += [c.main_length * 2.54 / c.metadata["properties"]["length"] for c in lupin.children]
+    np.testing.assert_allclose(ratios, 1.0, atol=1e-4)
+    with pytest.raises(RSMLError, match="root id="):
+        read_rsml(by_name["maize.rsml"], strict=True)  # 17 one-point laterals
+    with pytest.warns(RSMLWarning, match="skipped 17"):
+        (maize,) = read_rsml(by_name["maize.rsml"])
+    assert maize.n_laterals == 438 - 17
+    with pytest.raises(RSMLError, match="nothing readable"):
+        read_rsml(by_name["root_ramifie.rsml"], strict=True)
+    with pytest.warns(RSMLWarning, match="nothing readable"):
+        assert read_rsml(by_name["root_ramifie.rsml"]) == []
+    (osr,) = read_rsml(by_name["B_osr_0099.rsml"], strict=True)  # empty ID attributes
+    assert osr.n_laterals == 61 and osr.name == "B_osr_0099/1/1"
+
+
+@pytest.mark.parametrize("path", [p for p in RSML_FILES if p.name != "root_ramifie.rsml"], ids=lambda p: p.name)
+def test_real_round_trip(tmp_path, path):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RSMLWarning)
+        roots = read_rsml(path)
+    out = tmp_path / path.name
+    write_rsml(roots, out)
+    back = read_rsml(out, strict=True)
+    assert [b.name for b in back] == [r.name for r in roots]
+    for a, b in zip(roots, back):
+        np.testing.assert_allclose(b.main, a.main, rtol=1e-9)
+        assert b.n_laterals == a.n_laterals
+        for la, lb in zip(a.laterals, b.laterals):
+            np.testing.assert_allclose(lb, la, rtol=1e-9)
+        np.testing.assert_allclose(b.attach, a.attach, atol=1e-9)
+        assert b.metadata["unit"] == a.metadata["unit"]
+
+
+# The seedling region of the plate (rows, then columns), inside the plate's rim and above its
+# hand-written labels; thin roots on a photographed plate need background flattening.
+_PLATE_OPTS = dict(
+    roi=(450, 1200, 1450, 2950), background=15, threshold="triangle", min_root_length=150, close_gaps=7
+)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not PLATE_IMAGE.is_file(), reason="plate photograph not present")
+def test_plate_photograph_against_rsml():
+    ref = read_rsml(PLATE_RSML, strict=True)
+    roots = roots_from_image(PLATE_IMAGE, **_PLATE_OPTS)
+    assert len(roots) == 5  # the plate's five seedlings, sorted left to right like the plants
+    for r, t in zip(roots, ref):
+        # Tips agree with the hand tracing within a few pixels (measured <= 5 px).
+        assert np.linalg.norm(r.main[-1] - t.main[-1]) < 8
+        # From the top-most pixel, the main path includes the cotyledons and hypocotyl above
+        # the traced root base: measured ratios 1.078-1.145.
+        assert 1.0 < r.main_length / t.main_length < 1.2
+    # Starting each root at the traced base (base points in image x, y): measured 0.7-1.2 %.
+    bases = np.array([t.main[0] for t in ref])
+    from_bases = roots_from_image(PLATE_IMAGE, base=bases, **_PLATE_OPTS)
+    rel = [r.main_length / t.main_length - 1 for r, t in zip(from_bases, ref)]
+    assert max(abs(x) for x in rel) < 0.03
