@@ -2,7 +2,7 @@
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
-EXTRAS ?= test,bench
+EXTRAS ?= test,bench,sim
 OUT ?= demo_output
 
 .PHONY: install test test-slow demo bench clean

@@ -349,7 +349,10 @@ def _registration_options(registration: dict | None) -> dict:
         dp_batch_size=256, assignment="callback",
     )
     defaults.update(reg)
-    return _options(**defaults)
+    # _options gives (dynamic, static): the dynamic ones (rotation, max_iterations, rtol) are
+    # arrays passed to `_search` as its `dynamic` argument, so changing them never recompiles.
+    dynamic, static = _options(**defaults)
+    return dict(static, dynamic=dynamic)
 
 
 # --------------------------------------------------------------------------------------------

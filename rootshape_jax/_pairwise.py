@@ -18,11 +18,11 @@ from ._tree import RootTree, SRVFTree, batch_size, check_compatible, to_srvf
 
 
 @eqx.filter_jit
-def _chunk_energies(a: SRVFTree, b: SRVFTree, active, weights: Weights, **options):
+def _chunk_energies(a: SRVFTree, b: SRVFTree, active, weights: Weights, dynamic, **options):
     """Squared distances of the pairs (a[k], b[k]); inactive pairs do no DP work. The shapes
     depend on the chunk size only, so one compiled program serves every chunk and every N."""
     search = functools.partial(_search_split_args, **_device_safe(options))
-    O, perm, g0, gam, _, n_dp, n_skipped = split_over_devices(search, (a, b, active), (weights,))
+    O, perm, g0, gam, _, n_dp, n_skipped = split_over_devices(search, (a, b, active), (weights, dynamic))
     registered = jax.vmap(_apply)(a, b, O, perm, g0, gam)
     energy = preshape_terms(a, registered, weights).total
     return energy, n_dp, n_skipped
@@ -41,7 +41,8 @@ def _as_batch(trees, name) -> SRVFTree:
     return s
 
 
-def _run_pairs(s, t, I, J, *, weights, chunk_size, progress, desc, opts):
+def _run_pairs(s, t, I, J, *, weights, chunk_size, progress, desc, options):
+    dynamic, opts = options
     if not isinstance(chunk_size, int) or chunk_size < 1:
         raise ValueError(f"chunk_size must be an integer >= 1, got {chunk_size!r}.")
     n = len(I)
@@ -58,7 +59,7 @@ def _run_pairs(s, t, I, J, *, weights, chunk_size, progress, desc, opts):
             active = np.arange(chunk_size) < m
             a = jax.tree.map(lambda x: x[ii], s)
             b = jax.tree.map(lambda x: x[jj], t)
-            e, n_dp, n_skipped = _chunk_energies(a, b, jnp.asarray(active), weights, **opts)
+            e, n_dp, n_skipped = _chunk_energies(a, b, jnp.asarray(active), weights, dynamic, **opts)
             energies[start:stop] = np.asarray(e)[:m]
             stats["lateral_dp"] += int(np.sum(np.asarray(n_dp)[:m]))
             stats["lateral_skipped"] += int(np.sum(np.asarray(n_skipped)[:m]))
@@ -95,7 +96,7 @@ def pairwise_distances(
     I, J = np.triu_indices(n, 1)
     e, stats = _run_pairs(
         s, s, I, J, weights=weights, chunk_size=chunk_size, progress=progress,
-        desc="distances", opts=opts,
+        desc="distances", options=opts,
     )
     D = np.zeros((n, n), dtype=e.dtype)
     D[I, J] = np.sqrt(np.maximum(e, 0.0))
@@ -129,7 +130,7 @@ def cross_distances(
     I, J = (x.ravel() for x in np.meshgrid(np.arange(n), np.arange(m), indexing="ij"))
     e, _ = _run_pairs(
         s, t, I, J, weights=weights, chunk_size=chunk_size, progress=progress,
-        desc="cross distances", opts=opts,
+        desc="cross distances", options=opts,
     )
     return jnp.asarray(np.sqrt(np.maximum(e, 0.0)).reshape(n, m))
 

@@ -109,16 +109,19 @@ def _search(
     b: SRVFTree,
     weights: Weights,
     active: Bool[Array, " B"],
+    dynamic: tuple,
     *,
-    rotation: bool,
-    max_iterations: int,
-    rtol: float,
     neighbourhood: int,
     prune: bool,
     dp_batch_size: int,
     assignment: str,
 ):
-    """Optimal (rotation, permutation, warps) for a batch of B pairs; no gradients."""
+    """Optimal (rotation, permutation, warps) for a batch of B pairs; no gradients.
+
+    `dynamic` = (rotation, max_iterations, rtol) as arrays: traced, so changing them never
+    recompiles; the keyword options change the program's structure and are static.
+    """
+    rotation, max_iterations, rtol = dynamic
     a, b, weights = jax.lax.stop_gradient((a, b, weights))
     B, K, T, d = b.q.shape
     dtype = a.q0.dtype
@@ -251,8 +254,8 @@ def _search(
 
     eye = jnp.broadcast_to(jnp.eye(d, dtype=dtype), (B, d, d))
     # Start from the rotation that aligns the main roots.
-    O_start = jax.vmap(optimal_rotation)(a.q0, b.q0) if rotation else eye
-    n_rounds = max_iterations if rotation else 1
+    O_start = jnp.where(rotation, jax.vmap(optimal_rotation)(a.q0, b.q0), eye)
+    n_rounds = jnp.where(rotation, max_iterations, 1)
 
     def cond(state):
         it, done = state[0], state[6]
@@ -309,8 +312,8 @@ def _device_safe(options: dict) -> dict:
     return options
 
 
-def _search_split_args(a, b, active, weights, **options):
-    return _search(a, b, weights, active, **options)
+def _search_split_args(a, b, active, weights, dynamic, **options):
+    return _search(a, b, weights, active, dynamic, **options)
 
 
 def _apply(a: SRVFTree, b: SRVFTree, O, perm, g0, gam) -> SRVFTree:
@@ -350,9 +353,13 @@ def split_over_devices(fn, batched: tuple, shared: tuple = ()):
 
 
 @eqx.filter_jit
-def _register_batch(a: SRVFTree, b: SRVFTree, weights: Weights, active, **options) -> Registration:
+def _register_batch(
+    a: SRVFTree, b: SRVFTree, weights: Weights, active, dynamic, **options
+) -> Registration:
     search = functools.partial(_search_split_args, **_device_safe(options))
-    O, perm, g0, gam, iters, n_dp, n_skipped = split_over_devices(search, (a, b, active), (weights,))
+    O, perm, g0, gam, iters, n_dp, n_skipped = split_over_devices(
+        search, (a, b, active), (weights, dynamic)
+    )
     registered = jax.vmap(_apply)(a, b, O, perm, g0, gam)
     terms = preshape_terms(a, registered, weights)
     return Registration(
@@ -368,7 +375,11 @@ def _register_batch(a: SRVFTree, b: SRVFTree, weights: Weights, active, **option
     )
 
 
-def _options(rotation, max_iterations, rtol, neighbourhood, prune, dp_batch_size, assignment) -> dict:
+def _options(
+    rotation, max_iterations, rtol, neighbourhood, prune, dp_batch_size, assignment
+) -> tuple[tuple, dict]:
+    """(dynamic, static) registration options: the dynamic ones are arrays (no recompilation
+    when they change), the static ones shape the compiled program."""
     if not isinstance(max_iterations, int) or max_iterations < 1:
         raise ValueError(f"max_iterations must be an integer >= 1, got {max_iterations!r}.")
     if not isinstance(neighbourhood, int) or neighbourhood < 1:
@@ -377,10 +388,10 @@ def _options(rotation, max_iterations, rtol, neighbourhood, prune, dp_batch_size
         raise ValueError(f"dp_batch_size must be an integer >= 1, got {dp_batch_size!r}.")
     if assignment not in ("callback", "jax"):
         raise ValueError(f"assignment must be 'callback' or 'jax', got {assignment!r}.")
-    return dict(
-        rotation=bool(rotation),
-        max_iterations=max_iterations,
-        rtol=float(rtol),
+    if not rtol >= 0:
+        raise ValueError(f"rtol must be a non-negative number, got {rtol!r}.")
+    dynamic = (jnp.asarray(bool(rotation)), jnp.asarray(max_iterations, jnp.int32), jnp.asarray(float(rtol)))
+    return dynamic, dict(
         neighbourhood=neighbourhood,
         prune=bool(prune),
         dp_batch_size=dp_batch_size,
@@ -446,10 +457,10 @@ def register(
     - `dp_batch_size`: lateral DPs solved per slab (memory vs. padding trade-off).
     - `assignment`: "callback" (scipy through a host callback) or "jax" (pure-JAX, exact).
     """
-    opts = _options(rotation, max_iterations, rtol, neighbourhood, prune, dp_batch_size, assignment)
+    dynamic, opts = _options(rotation, max_iterations, rtol, neighbourhood, prune, dp_batch_size, assignment)
     a, b, single = _as_pair_batch(a, b)
     active = jnp.ones(a.batch_shape, bool)
-    reg = _register_batch(a, b, weights, active, **opts)
+    reg = _register_batch(a, b, weights, active, dynamic, **opts)
     if single:
         reg = jax.tree.map(lambda x: x[0], reg)
     return reg

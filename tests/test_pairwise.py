@@ -12,6 +12,7 @@ from rootshape_jax import _pairwise
 from helpers import random_root
 
 T = 30
+K = 10  # the capacity the registration tests use: shared compilations
 W = rs.Weights(main=0.5, lateral=1.0, position=1.0)
 
 
@@ -19,11 +20,11 @@ W = rs.Weights(main=0.5, lateral=1.0, position=1.0)
 def trees():
     rng = np.random.default_rng(0)
     roots = [random_root(rng, n_laterals=n) for n in (0, 2, 3, 4, 2)]
-    return rs.batch(roots, n_points=T, normalise_scale=True)
+    return rs.batch(roots, n_points=T, max_laterals=K, normalise_scale=True)
 
 
 def test_matrix_equals_pair_by_pair_calls(trees):
-    D = np.asarray(rs.pairwise_distances(trees, weights=W, chunk_size=3, progress=False))
+    D = np.asarray(rs.pairwise_distances(trees, weights=W, chunk_size=4, progress=False))
     n = D.shape[0]
     assert np.all(np.diag(D) == 0)
     np.testing.assert_array_equal(D, D.T)
@@ -46,8 +47,8 @@ def test_cross_distances_and_stats(trees):
 def test_no_retrace_across_chunks(trees, monkeypatch):
     counted = eqx.filter_jit(eqx.debug.assert_max_traces(_pairwise._chunk_energies.__wrapped__, max_traces=1))
     monkeypatch.setattr(_pairwise, "_chunk_energies", counted)
-    # 10 pairs in chunks of 3: four chunks, one compiled program (the last chunk is padded).
-    rs.pairwise_distances(trees, weights=W, chunk_size=3, progress=False)
+    # 10 pairs in chunks of 4: three chunks, one compiled program (the last chunk is padded).
+    rs.pairwise_distances(trees, weights=W, chunk_size=4, progress=False)
 
 
 def test_bad_inputs(trees):
@@ -93,7 +94,7 @@ def test_lateral_added_grows_from_zero():
     lat = np.stack([np.linspace(0, 0.3, 20), np.zeros(20)], 1)
     r1 = rs.Root(main=main, laterals=[lat + [0, 0.3]], attach=[0.3])
     r2 = rs.Root(main=main, laterals=[lat + [0, 0.3], -lat + [0, 0.7]], attach=[0.3, 0.7])
-    a, b = rs.unstack(rs.batch([r1, r2], n_points=T))
+    a, b = rs.unstack(rs.batch([r1, r2], n_points=T, max_laterals=K))
     path = rs.geodesic(a, b, n_steps=5, weights=W)
     lengths = np.asarray(rs.curve_length(path.laterals))  # (steps, K)
     grown = int(np.argmax(lengths[-1] * (lengths[0] < 1e-12)))
@@ -107,7 +108,7 @@ def test_lateral_added_grows_from_zero():
 
 def test_geodesic_in_3d_and_errors():
     rng = np.random.default_rng(3)
-    t = rs.batch([random_root(rng, n_laterals=2, d=3) for _ in range(2)], n_points=T)
+    t = rs.batch([random_root(rng, n_laterals=2, d=3) for _ in range(2)], n_points=T, max_laterals=K)
     a, b = rs.unstack(t)
     path = rs.geodesic(a, b, n_steps=3, weights=W)
     assert path.main.shape == (3, T, 3)

@@ -18,14 +18,15 @@ from rootshape_jax._warp import dp_warp
 from helpers import random_root, reparameterise, rotation_matrix
 
 T = 30  # small grids keep the suite fast; the maths does not depend on T
+K = 10  # one capacity for (almost) every test: each new shape costs a compilation
 W = rs.Weights(main=0.5, lateral=1.0, position=1.0)
 
 
-def _pair(seed, d=2, na=3, nb=4, K=None, scale=True):
+def _pair(seed, d=2, na=3, nb=4, capacity=K, scale=True):
     rng = np.random.default_rng(seed)
     ra = random_root(rng, n_laterals=na, d=d)
     rb = random_root(rng, n_laterals=nb, d=d)
-    t = rs.batch([ra, rb], n_points=T, max_laterals=K or 2 * max(na, nb, 1), normalise_scale=scale)
+    t = rs.batch([ra, rb], n_points=T, max_laterals=capacity, normalise_scale=scale)
     a, b = rs.unstack(t)
     return ra, rb, a, b
 
@@ -111,7 +112,7 @@ def test_energy_terms_consistent_with_preshape_metric(seed, d):
 
 def test_assignment_is_exact_by_brute_force():
     # Small K: enumerate every permutation of the registration's own cost matrix.
-    _, _, a, b = _pair(4, na=2, nb=2, K=4)
+    _, _, a, b = _pair(4, na=2, nb=2, capacity=4)
     reg = rs.register(a, b, weights=W, prune=False, rotation=False)
     sa, rb = rs.to_srvf(a), reg.registered
     best = np.inf
@@ -206,7 +207,7 @@ def test_moving_a_lateral_along_the_main_root_changes_only_the_position_term():
     lat = np.stack([np.linspace(0, 0.3, 20), np.zeros(20)], 1)
     r1 = rs.Root(main=main, laterals=[lat + [0, 0.3]], attach=[0.3])
     r2 = rs.Root(main=main, laterals=[lat + [0, 0.5]], attach=[0.5])
-    a, b = rs.unstack(rs.batch([r1, r2], n_points=T))
+    a, b = rs.unstack(rs.batch([r1, r2], n_points=T, max_laterals=K))
     reg = rs.register(a, b, weights=W)
     assert float(reg.terms.main) < 1e-12
     assert float(reg.terms.lateral) < 1e-12
@@ -216,7 +217,7 @@ def test_moving_a_lateral_along_the_main_root_changes_only_the_position_term():
 def test_batched_register_equals_loop_and_does_not_retrace():
     rng = np.random.default_rng(13)
     roots = [random_root(rng, n_laterals=n) for n in (2, 3, 4, 3)]
-    t = rs.batch(roots, n_points=T, max_laterals=8, normalise_scale=True)
+    t = rs.batch(roots, n_points=T, max_laterals=K, normalise_scale=True)
     a = jax.tree.map(lambda x: x[:2], t)
     b = jax.tree.map(lambda x: x[2:], t)
     batched = rs.register(a, b, weights=W)
@@ -228,10 +229,12 @@ def test_batched_register_equals_loop_and_does_not_retrace():
     # Same shapes, different values: the compiled program is reused.
     counted = eqx.debug.assert_max_traces(_register_batch.__wrapped__, max_traces=1)
     f = eqx.filter_jit(counted)
-    opts = dict(rotation=True, max_iterations=3, rtol=1e-6, neighbourhood=7, prune=True, dp_batch_size=64, assignment="callback")
+    from rootshape_jax._registration import _options
+
     active = jnp.ones((2,), bool)
-    for x, y in ((a, b), (b, a), (a, a)):
-        f(rs.to_srvf(x), rs.to_srvf(y), W, active, **opts)
+    for (x, y), (rot, its, rtol) in zip(((a, b), (b, a), (a, a)), ((True, 3, 1e-6), (False, 2, 1e-3), (True, 5, 0.0))):
+        dynamic, opts = _options(rot, its, rtol, 7, True, 32, "callback")
+        f(rs.to_srvf(x), rs.to_srvf(y), W, active, dynamic, **opts)
 
 
 def test_distance_gradient_matches_finite_differences():
