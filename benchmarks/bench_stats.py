@@ -124,6 +124,7 @@ def main(argv=None):
         entry["speedup_vs_paper"] = PAPER["karcher_mean_s"] / t
         out["mean"][method] = entry
         means[method] = res
+        write_json("bench_stats" + ("_quick" if args.quick else ""), out)  # partial results
         print(f"{method}: first {first:.1f} s, run {second} s, steps {entry['steps']}, "
               f"energy {entry['energy']:.5f} (start {entry['energy_start']:.5f}), "
               f"last rel. change {rel:.2e}, {entry['result']}", flush=True)

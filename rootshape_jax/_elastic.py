@@ -3,9 +3,11 @@
 ``d(β1, β2) = min_{O ∈ SO(d), γ} ||q1 − O (q2∘γ)√γ'||``, minimised by alternating the two exact
 partial problems: for a fixed rotation, the DP warp (`dp_warp`); for a fixed warp, weighted
 Kabsch (`optimal_rotation`) on the very quadrature that defines the energy (`warp_samples`).
-Each step can only lower the energy, so the alternation is monotone; it starts from the
-rotation that aligns the unwarped SRVFs and stops when the relative decrease falls below
-``rtol`` or after ``max_iterations`` DP solves.
+Each step can only lower the energy, so the alternation is monotone. The problem is not
+convex, so it is started twice — from the identity (the result is then never worse than
+without rotation) and from the rotation aligning the unwarped SRVFs — and continued from the
+better start until an iteration lowers the energy by less than ``rtol`` (relative) or
+``max_iterations`` alternation steps are done.
 """
 
 from __future__ import annotations
@@ -30,7 +32,8 @@ class CurveRegistration(eqx.Module):
     - `gamma`: the warp of β2 on the grid ``linspace(0, 1, n_samples)``; the registered curve
       is ``apply_warp_curve(resample_curve(β2, n_samples) @ O.T, gamma)`` (divided by its
       length when ``scale=True``).
-    - `n_iterations`: number of DP solves performed.
+    - `n_iterations`: number of DP solves performed (with rotation: two starts + further
+      alternation steps).
 
     With ``scale=True`` (unit-length curves) ``||q1|| = ||q2|| = 1`` and the geodesic distance
     on the pre-shape sphere is ``2·arcsin(distance / 2)``.
@@ -80,30 +83,34 @@ def _register(q1, q2, *, rotation: bool, neighbourhood: int, max_iterations, rto
         diff = A - B @ O.T
         return O, jnp.sum(w * 0.5 * jnp.sum(diff * diff, axis=(1, 2)))
 
-    O0 = optimal_rotation(q1, q2) if rotation else eye
-    # Without rotation one DP solves the problem exactly.
-    cap = max_iterations if rotation else 1
+    # Two starting points, each one DP + one rotation step: the identity (so the result is
+    # never worse than without rotation) and the rotation aligning the unwarped SRVFs; the
+    # alternation continues from the better. Without rotation one DP is exact.
+    O_kabsch = optimal_rotation(q1, q2) if rotation else eye
+    cap = max_iterations + 1 if rotation else 1
+    forced = jnp.minimum(3, cap) if rotation else 1
 
     def cond(state):
-        i, _, _, energy, previous = state
-        return (i == 0) | ((i < cap) & (previous - energy > rtol * energy))
+        i, _, _, _, energy, previous = state
+        return (i < forced) | ((i < cap) & (previous - energy > rtol * energy))
 
     def body(state):
-        i, O, gamma, energy, _ = state
-        # Under vmap, lanes that have converged are skipped by the DP's batching rule.
-        gamma_new = _dp_warp_if(q1, q2 @ O.T, cond(state), neighbourhood=neighbourhood)[0]
+        i, O_next, O, gamma, energy, _ = state
+        # Under vmap, lanes that have stopped are skipped by the DP's batching rule.
+        gamma_new = _dp_warp_if(q1, q2 @ O_next.T, cond(state), neighbourhood=neighbourhood)[0]
         O_new, energy_new = rotation_step(gamma_new)
-        # Monotone in exact arithmetic; keep the best in case rounding says otherwise.
+        # Monotone in exact arithmetic after the starts; keep the best in any case.
         better = energy_new <= energy
         O = jnp.where(better, O_new, O)
         gamma = jnp.where(better, gamma_new, gamma)
-        return i + 1, O, gamma, jnp.minimum(energy, energy_new), energy
+        O_next = jnp.where(i == 0, O_kabsch, O)
+        return i + 1, O_next, O, gamma, jnp.minimum(energy, energy_new), energy
 
-    # The first DP runs inside the loop too, so the DP kernel is compiled once.
+    # Every DP runs inside the loop, so the DP kernel is compiled once.
     inf = jnp.asarray(jnp.inf, dtype)
     identity = jnp.linspace(0, 1, q1.shape[0], dtype=dtype)
-    init = (jnp.asarray(0, jnp.int32), O0, identity, inf, inf)
-    n_it, O, gamma, energy, _ = jax.lax.while_loop(cond, body, init)
+    init = (jnp.asarray(0, jnp.int32), eye, eye, identity, inf, inf)
+    n_it, _, O, gamma, energy, _ = jax.lax.while_loop(cond, body, init)
     return O, gamma, energy, n_it
 
 
@@ -129,7 +136,8 @@ def elastic_curve_distance(
       off, curve size counts (growth studies).
     - `n_samples`: points of the arc-length resampling, ``T`` (static: one compile per value).
     - `neighbourhood`: DP move size (static; 7 by default, fdasrsf uses 10).
-    - `max_iterations`: cap on DP solves of the rotation/warp alternation (not static).
+    - `max_iterations`: cap on the rotation/warp alternation steps (one DP solve each, plus
+      one DP for the second starting point; not static).
     - `rtol`: stop once an iteration lowers the energy by less than this fraction (not static).
 
     **Returns** a `CurveRegistration`. Gradients of `distance`/`energy` with respect to the

@@ -109,35 +109,24 @@ def _broadcast(tree, n: int):
     return jax.tree.map(lambda x: jnp.broadcast_to(x, (n,) + x.shape), tree)
 
 
-def _registered_energies(mu: SRVFTree, samples: SRVFTree, weights: Weights, opts: dict):
+def _registered_energies(mu: SRVFTree, samples: SRVFTree, weights: Weights, opts: "_RegOptions"):
     """Every sample registered onto mu (single tree): (registered batch, energies, rotations)."""
     return _register_onto(_broadcast(mu, samples.q0.shape[0]), samples, weights, opts)
 
 
-def _register_onto(a: SRVFTree, x: SRVFTree, weights: Weights, opts: dict):
-    """Register the batch x onto the batch a (element-wise) with `register`'s search; where
-    the pruning bound may have changed the chosen assignment (see `_uncertified`), register
-    that sample again without pruning. Returns (registered, energies, rotations)."""
+def _register_onto(a: SRVFTree, x: SRVFTree, weights: Weights, opts: "_RegOptions"):
+    """Register the batch x onto the batch a (element-wise) with `register`'s search (exact
+    lazy assignment, any masks). Returns (registered, energies, rotations)."""
     n = x.q0.shape[0]
     active = jnp.ones((n,), bool)
-    found = _search(a, x, weights, active, **opts)
-    O, perm, g0, gam = found[:4]
-    if opts["prune"]:
-        redo = _uncertified(a, x, perm, weights)
-
-        def again():
-            return _search(a, x, weights, redo, **dict(opts, prune=False))[:4]
-
-        O2, perm2, g02, gam2 = jax.lax.cond(jnp.any(redo), again, lambda: (O, perm, g0, gam))
-        pick = lambda new, old: jnp.where(redo.reshape((n,) + (1,) * (new.ndim - 1)), new, old)  # noqa: E731
-        O, perm, g0, gam = pick(O2, O), pick(perm2, perm), pick(g02, g0), pick(gam2, gam)
+    O, perm, g0, gam, *_ = _search(a, x, weights, active, opts.dynamic, **dict(opts.static))
     registered = jax.vmap(_apply)(a, x, O, perm, g0, gam)
     energies = preshape_terms(a, registered, weights).total
     return registered, energies, O
 
 
 @eqx.filter_jit
-def _objective(mu: SRVFTree, samples: SRVFTree, weights: Weights, opts: dict):
+def _objective(mu: SRVFTree, samples: SRVFTree, weights: Weights, opts: "_RegOptions"):
     _, energies, _ = _registered_energies(mu, samples, weights, opts)
     return jnp.mean(energies)
 
@@ -298,7 +287,7 @@ def _project_rotation(O):
 
 
 def _lower_bound(a: SRVFTree, b: SRVFTree, weights: Weights):
-    """Per-pair lateral lower bound and the null costs, as in `_registration._search`."""
+    """Per-pair Cauchy–Schwarz lower bound of the lateral costs ``λs(√La − √Lb)² + λp Δs²``."""
     dtype = a.q0.dtype
     lam_s = jnp.asarray(weights.lateral, dtype)
     lam_p = jnp.asarray(weights.position, dtype)
@@ -310,24 +299,6 @@ def _lower_bound(a: SRVFTree, b: SRVFTree, weights: Weights):
     return La, Lb, lower, both
 
 
-def _uncertified(a: SRVFTree, b: SRVFTree, perm, weights: Weights):
-    """Pairs whose DP the registration may have skipped (pruning bound) but that the
-    assignment chose, where the bound is not the true cost (both laterals non-empty).
-
-    `register`'s pruning is exact only when K >= n_a + n_b; the mean has every slot real, so
-    the chosen assignment is checked: if it uses no skipped pair it is optimal (the skipped
-    entries were lower bounds). A flagged sample is registered again without pruning. The
-    test is conservative (a relative margin), so a pair that was in fact computed may be
-    flagged, which only costs time.
-    """
-    La, Lb, lower, both = _lower_bound(a, b, weights)
-    lam_s = jnp.asarray(weights.lateral, a.q0.dtype)
-    null_sum = lam_s * (La[..., :, None] + Lb[..., None, :])
-    maybe_pruned = both & (lower >= null_sum * (1 - 1e-4)) & (La[..., :, None] > 0) & (Lb[..., None, :] > 0)
-    chosen = jnp.take_along_axis(maybe_pruned, perm[..., None], axis=-1)[..., 0]
-    return jnp.any(chosen, axis=-1)
-
-
 def _check_samples(samples: SRVFTree, what: str) -> int:
     n = batch_size(samples)
     if n < 1:
@@ -335,7 +306,22 @@ def _check_samples(samples: SRVFTree, what: str) -> int:
     return n
 
 
-def _registration_options(registration: dict | None) -> dict:
+class _RegOptions(eqx.Module):
+    """`register`'s options split as `_registration._options` does: `dynamic` arrays (rotation
+    on/off, max_iterations, rtol; traced, no recompilation) and `static` items."""
+
+    dynamic: tuple
+    static: tuple = eqx.field(static=True)
+
+    def option(self, name: str):
+        return dict(self.static)[name]
+
+    def without_rotation(self) -> "_RegOptions":
+        rotation, max_iterations, rtol = self.dynamic
+        return _RegOptions((jnp.zeros_like(rotation), max_iterations, rtol), self.static)
+
+
+def _registration_options(registration: dict | None) -> _RegOptions:
     reg = dict(registration or {})
     allowed = {"rotation", "max_iterations", "rtol", "neighbourhood", "prune", "dp_batch_size", "assignment"}
     unknown = set(reg) - allowed
@@ -349,10 +335,8 @@ def _registration_options(registration: dict | None) -> dict:
         dp_batch_size=256, assignment="callback",
     )
     defaults.update(reg)
-    # _options gives (dynamic, static): the dynamic ones (rotation, max_iterations, rtol) are
-    # arrays passed to `_search` as its `dynamic` argument, so changing them never recompiles.
     dynamic, static = _options(**defaults)
-    return dict(static, dynamic=dynamic)
+    return _RegOptions(dynamic, tuple(sorted(static.items())))
 
 
 # --------------------------------------------------------------------------------------------
@@ -457,7 +441,7 @@ def _fixed_point_fn(y: _FPIterate, args):
     # exact for its own discretisation of the warp energy, not for the grid energy used here,
     # so the fresh solution is kept only where it is better: the energy never increases.
     xb = _rotate_tree(samples, O)
-    new, e_new, _ = _register_onto(a, xb, weights, dict(opts, rotation=False))
+    new, e_new, _ = _register_onto(a, xb, weights, opts.without_rotation())
     better = e_new < e_old
     registered = _pick(better, new, old)
     energy = jnp.mean(jnp.where(better, e_new, e_old))
@@ -637,7 +621,7 @@ def karcher_mean(
         start = int(init)
     elif init == "medoid":
         if distances is None:
-            distances = _lower_bound_distances(samples, weights, opts["assignment"])
+            distances = _lower_bound_distances(samples, weights, opts.option("assignment"))
         start = _medoid(distances, n)
     else:
         raise ValueError(f"init must be 'medoid' or a sample index, got {init!r}.")

@@ -260,7 +260,7 @@ def _sample(pc: TangentPCA, key, n: int, m: int, truncate: float | None):
 
 
 @eqx.filter_jit
-def _project(pc: TangentPCA, x: SRVFTree, opts: dict):
+def _project(pc: TangentPCA, x: SRVFTree, opts):
     a = _broadcast(pc.mean, x.q0.shape[0])
     registered, energies, _ = _register_onto(a, x, pc.weights, opts)
     V = _tangent(registered, pc.mean, pc.scales)

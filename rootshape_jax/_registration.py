@@ -35,7 +35,7 @@ from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import Array, Bool, Float, Int
 
 from ._assignment import linear_assignment
-from ._curves import _safe_sqrt, _tiny, l2_norm_squared
+from ._curves import _safe_sqrt, _tiny, l2_norm_squared, safe_norm, safe_normalise
 from ._metric import MetricTerms, Weights, preshape_terms
 from ._rotation import optimal_rotation
 from ._tree import RootTree, SRVFTree, check_compatible, to_srvf
@@ -100,6 +100,21 @@ def _warp_preserving_norm(q: Float[Array, "T d"], gamma: Float[Array, " T"]) -> 
     return w * _safe_sqrt(jnp.where(ok, n2 / jnp.where(ok, w2, 1.0), 0.0))
 
 
+def _direction_cone(q: Float[Array, "*B T d"]) -> tuple[Array, Array]:
+    """Axis (unit chord direction) and half-angle of a cone holding every direction of q.
+
+    Branches with no direction (nulls) get half-angle π: no information.
+    """
+    n = safe_norm(q)
+    u = safe_normalise(q)
+    axis = safe_normalise(jnp.sum(q * n[..., None], axis=-2))
+    cos = jnp.sum(u * axis[..., None, :], axis=-1)
+    angle = jnp.arccos(jnp.clip(cos, -1.0, 1.0))
+    half = jnp.max(jnp.where(n > 0, angle, 0.0), axis=-1)
+    has_axis = safe_norm(axis) > 0
+    return axis, jnp.where(has_axis, half, jnp.pi)
+
+
 def _identity_grid(T: int, dtype) -> Array:
     return jnp.linspace(0.0, 1.0, T, dtype=dtype)
 
@@ -133,17 +148,32 @@ def _search(
     null_a = lam_s * La
     null_b = lam_s * Lb
     both = a.mask[:, :, None] & b.mask[:, None, :]
-    # Exact lower bound of every real-real cost (Cauchy-Schwarz; warps preserve the norm).
-    lower = lam_s * (jnp.sqrt(La)[:, :, None] - jnp.sqrt(Lb)[:, None, :]) ** 2 + pos
-    base_cost = jnp.where(
-        both,
-        lower,
-        jnp.where(
-            a.mask[:, :, None],
-            null_a[:, :, None],
-            jnp.where(b.mask[:, None, :], null_b[:, None, :], 0.0),
-        ),
+    others = jnp.where(
+        a.mask[:, :, None],
+        null_a[:, :, None],
+        jnp.where(b.mask[:, None, :], null_b[:, None, :], 0.0),
     )
+    ca, half_a = _direction_cone(a.q)
+    cb, half_b = _direction_cone(b.q)
+    sqrt_LaLb = jnp.sqrt(La)[:, :, None] * jnp.sqrt(Lb)[:, None, :]
+
+    def lower_bounds(O):
+        """Exact lower bound of every real-real cost at rotation O, without any DP.
+
+        ``||qa − w||² = La + Lb − 2<qa, w>`` for the warped, norm-preserved w. Every value of w
+        is a positive multiple of an interpolation of values of qb, so its direction lies in
+        the convex cone (half-angle < 90°) holding b's directions; with qa's cone, the angle
+        between the two cones caps the cosine: ``<qa, w> ≤ max(cos φ, 0) √(La Lb)``, where
+        ``φ = angle(axes) − half_a − half_b``. With φ ≤ 0 this is plain Cauchy–Schwarz.
+        """
+        cos_axes = jnp.einsum("bid,bje,bed->bij", ca, cb, O)
+        phi = jnp.arccos(jnp.clip(cos_axes, -1.0, 1.0)) - half_a[:, :, None] - half_b[:, None, :]
+        phi = phi - 1e-6  # rounding margin: keep the bound on the safe side
+        convex = (half_a[:, :, None] < jnp.pi / 2) & (half_b[:, None, :] < jnp.pi / 2)
+        cos_cap = jnp.where(convex, jnp.clip(jnp.cos(jnp.maximum(phi, 0.0)), 0.0, 1.0), 1.0)
+        lower = lam_s * jnp.maximum(La[:, :, None] + Lb[:, None, :] - 2 * cos_cap * sqrt_LaLb, 0.0)
+        return jnp.where(both, lower + pos, others)
+
     n_pairs = B * K * K
     identity = _identity_grid(T, dtype)
     dp = jax.vmap(functools.partial(dp_warp, neighbourhood=neighbourhood))
@@ -193,6 +223,8 @@ def _search(
             bi, rem = jnp.divmod(lanes, K * K)
             i, j = jnp.divmod(rem, K)
             return a.q[bi, i], qb[bi, j]
+
+        base_cost = lower_bounds(O)
 
         def costs(E, computed):
             return jnp.where(computed, lam_s * E.reshape(B, K, K) + pos, base_cost)

@@ -14,7 +14,7 @@ from rootshape_jax._cluster import (
     loo_accuracy,
 )
 
-from helpers import random_root
+from helpers import random_root, rotation_matrix
 
 
 def _points(seed=0, n=(5, 7), sep=3.0, dim=4):
@@ -111,18 +111,32 @@ def test_bad_input():
         loo_accuracy(D, np.zeros(3))
 
 
+def _condition(rng, template, n):
+    """n members of a condition: the template turned at random, lateral lengths and
+    positions perturbed a little."""
+    out = []
+    for _ in range(n):
+        O = rotation_matrix(rng, 2)
+        o = template.main[0]
+        rot = lambda p: (p - o) @ O.T + o  # noqa: E731
+        lats = [rot(lat[0] + (lat - lat[0]) * rng.uniform(0.9, 1.1)) for lat in template.laterals]
+        attach = np.clip(template.attach + rng.normal(0, 0.02, template.n_laterals), 0.05, 0.95)
+        out.append(rs.Root(main=rot(template.main), laterals=lats, attach=attach))
+    return out
+
+
 def test_two_conditions_are_separated_perfectly():
-    """Elastic distances between two clearly different synthetic conditions: few short
-    laterals vs. many long ones."""
+    """Elastic distances between two synthetic conditions: one short lateral vs. four long
+    ones, members varying in pose, lateral lengths and positions."""
     rng = np.random.default_rng(51)
-    sparse = [random_root(rng, n_laterals=1) for _ in range(3)]
-    dense = []
-    for _ in range(3):
-        r = random_root(rng, n_laterals=3)
-        lats = [lat[0] + (lat - lat[0]) * 2.5 for lat in r.laterals]
-        dense.append(rs.Root(main=r.main, laterals=lats, attach=r.attach))
+    sparse = random_root(rng, n_laterals=1)
+    dense = random_root(rng, n_laterals=4)
+    dense = rs.Root(
+        main=dense.main, laterals=[lat[0] + (lat - lat[0]) * 2.0 for lat in dense.laterals], attach=dense.attach
+    )
+    roots = _condition(rng, sparse, 3) + _condition(rng, dense, 3)
     labels = np.array([0, 0, 0, 1, 1, 1])
-    trees = rs.batch(sparse + dense, n_points=30)
+    trees = rs.batch(roots, n_points=30)
     D = np.asarray(rs.pairwise_distances(trees, progress=False))
     for method in ("average", "complete", "single"):
         assert _same_partition(cluster(D, n_clusters=2, method=method).labels, labels)

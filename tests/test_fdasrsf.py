@@ -21,10 +21,12 @@ N_PAIRS = 24
 def _fdasrsf_curve(rng):
     """A smooth open curve under fdasrsf's conventions: (2, 100), unit length, centred.
 
-    fdasrsf's `resamplecurve` reverses a curve whose first x-step is negative, so the curve
-    heads along +x; both methods are then given the very same resampled array anyway.
+    fdasrsf's `resamplecurve` reverses a curve whose first x-step is negative, so such a curve
+    is mirrored (x -> -x) first; both methods then get the very same resampled array.
     """
-    c = smooth_curve(rng, n=60, bend=2.0)[:, ::-1]  # heading +y -> heading +x
+    c = smooth_curve(rng, n=60, bend=2.0)
+    if c[1, 0] < c[0, 0]:
+        c[:, 0] = -c[:, 0]
     r = cf.resamplecurve(c.T.copy(), 100)
     assert np.allclose(r[:, 0], c[0]), "fdasrsf reversed the curve"
     r = r / np.sum(np.linalg.norm(np.diff(r, axis=1), axis=0))

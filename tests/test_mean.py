@@ -259,7 +259,7 @@ def test_medoid_from_given_distances(population):
 def test_max_steps_is_reported(population):
     res = karcher_mean(population, max_steps=1, rtol=0.0, throw=False)
     assert res.result == optx.RESULTS.nonlinear_max_steps_reached
-    with pytest.raises(Exception):
+    with pytest.raises(Exception, match="maximum number of steps"):
         karcher_mean(population, max_steps=1, rtol=0.0, throw=True)
 
 

@@ -71,7 +71,9 @@ def test_two_mode_population_has_two_dominant_components(two_mode):
 
 def test_pca_of_copies_has_zero_variance():
     root = random_root(np.random.default_rng(8), n_laterals=2)
-    copies = transformed_copies(root, np.random.default_rng(9), 4, reparam=False)
+    # 8 copies of a 2-lateral root: the shapes (n, K, T) = (8, 4, 30) of `two_mode`, so the
+    # compiled programs are shared.
+    copies = transformed_copies(root, np.random.default_rng(9), 8, reparam=False)
     mean = karcher_mean(rs.batch(copies, n_points=T), max_steps=10)
     pc = tangent_pca(mean)
     scale = float(rs.l2_norm_squared(mean.fitted.q0))
@@ -84,7 +86,7 @@ def test_pca_of_copies_has_zero_variance():
 def rs_fit_regression_on(pc):
     from rootshape_jax._regression import TraitRegression
 
-    return TraitRegression.fit(pc, traits=(), covariates=np.zeros((4, 1)))
+    return TraitRegression.fit(pc, traits=(), covariates=np.zeros((8, 1)))
 
 
 def test_scores_reconstruct_the_samples(two_mode):

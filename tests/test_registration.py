@@ -51,9 +51,9 @@ def reference_energy(a, b, weights, *, neighbourhood=7, iterations=5):
     K = qa.shape[0]
     lm, ls, lp = float(weights.main), float(weights.lateral), float(weights.position)
     l2 = lambda x: float(rs.l2_norm_squared(jnp.asarray(x)))  # noqa: E731
-    warp = lambda q1, q2: np.asarray(  # noqa: E731
-        _warp_preserving_norm(jnp.asarray(q2), dp_warp(jnp.asarray(q1), jnp.asarray(q2), neighbourhood=neighbourhood))
-    )
+    # One branch pair at a time (jitted only so that the loop does not dispatch op by op).
+    one = jax.jit(lambda q1, q2: _warp_preserving_norm(q2, dp_warp(q1, q2, neighbourhood=neighbourhood)))
+    warp = lambda q1, q2: np.asarray(one(jnp.asarray(q1), jnp.asarray(q2)))  # noqa: E731
     O = np.asarray(optimal_rotation(qa0, qb0))
     best = np.inf
     for _ in range(iterations):
@@ -83,7 +83,7 @@ def reference_energy(a, b, weights, *, neighbourhood=7, iterations=5):
     return best
 
 
-@pytest.mark.parametrize("seed,d", [(0, 2), (1, 3)])
+@pytest.mark.parametrize("seed,d", [(0, 2), pytest.param(1, 3, marks=pytest.mark.slow)])
 def test_matches_slow_reference(seed, d):
     _, _, a, b = _pair(seed, d=d)
     for prune in (False, True):
@@ -144,7 +144,13 @@ def test_pruning_is_exact(seed):
     assert int(pruned.n_lateral_skipped) > 0
     assert int(pruned.n_lateral_dp) < int(full.n_lateral_dp)
     assert float(pruned.energy) == pytest.approx(float(full.energy), rel=1e-12)
-    np.testing.assert_array_equal(np.asarray(pruned.permutation), np.asarray(full.permutation))
+    # The same real-real matches (which null slot a lateral goes to is an arbitrary tie).
+    def real_pairs(reg):
+        perm = np.asarray(reg.permutation)
+        ma, mb = np.asarray(a.mask), np.asarray(b.mask)
+        return {(k, int(perm[k])) for k in range(len(perm)) if ma[k] and mb[perm[k]]}
+
+    assert real_pairs(pruned) == real_pairs(full)
 
 
 @pytest.mark.parametrize("d", [2, 3])
