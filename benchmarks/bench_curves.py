@@ -80,7 +80,7 @@ def _per_pair_time(fn, firsts, seconds):
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__)
-    p.add_argument("--quick", action="store_true", help="T = 100 and batch 64 only, for a smoke run")
+    p.add_argument("--quick", action="store_true", help="T = 100, batch 64 only (smoke run)")
     p.add_argument("--devices", type=int, default=None, help="XLA CPU devices (default: all cores)")
     p.add_argument("--x64", action="store_true", help="float64 (default float32)")
     p.add_argument("--neighbourhood", type=int, default=7)
@@ -147,14 +147,19 @@ def main(argv=None):
                 batch=B, pairs_per_s=B / sec, compile_s=comp_s,
                 recompiled_on_new_data=jitted._cache_size() != size)
         if cf is not None:
-            qa = [np.ascontiguousarray(cf.curve_to_q(np.asarray(x, float).T)[0]) for x in b1[:n_single]]
-            qb = [np.ascontiguousarray(cf.curve_to_q(np.asarray(x, float).T)[0]) for x in b2[:n_single]]
+            def fd_srvf(x):
+                return np.ascontiguousarray(cf.curve_to_q(np.asarray(x, float).T)[0])
+
+            qa = [fd_srvf(x) for x in b1[:n_single]]
+            qb = [fd_srvf(x) for x in b2[:n_single]]
             sec = _per_pair_time(lambda a, b: cf.optimum_reparam_curve(a, b), qa, qb)
             add(T=T, what="dp_warp", method="fdasrsf optimum_reparam_curve", batch=1,
                 pairs_per_s=1 / sec, compile_s=None)
 
         # --- elastic curve distance ------------------------------------------------------
-        elastic = functools.partial(elastic_curve_distance, scale=True, n_samples=T, neighbourhood=n)
+        elastic = functools.partial(
+            elastic_curve_distance, scale=True, n_samples=T, neighbourhood=n
+        )
         comp_s, _, exe = _compile(elastic, c1[0], c2[0])
         sec = _per_pair_time(exe, c1[:n_single], c2[:n_single])
         add(T=T, what="elastic_curve_distance", method="rootshape_jax single", batch=1,

@@ -1,12 +1,12 @@
 """Elastic shape distance between two open curves (SRVF framework; DESIGN.md §3, §4).
 
-``d(β1, β2) = min_{O ∈ SO(d), γ} ||q1 − O (q2∘γ)√γ'||``, minimised by alternating the two exact
-partial problems: for a fixed rotation, the DP warp (`dp_warp`); for a fixed warp, weighted
+``d(β1, β2) = min_{O ∈ SO(d), γ} ||q1 − O (q2∘γ)√γ'||``, minimised by alternating the two
+exact partial problems: for a fixed rotation, the DP warp (`dp_warp`); for a fixed warp, weighted
 Kabsch (`optimal_rotation`) on the very quadrature that defines the energy (`warp_samples`).
 Each step can only lower the energy, so the alternation is monotone. The problem is not
 convex, so it is started twice — from the identity (the result is then never worse than
 without rotation) and from the rotation aligning the unwarped SRVFs — and continued from the
-better start until an iteration lowers the energy by less than ``rtol`` (relative) or
+better start until a rotation step lowers the energy by less than ``rtol`` (relative) or
 ``max_iterations`` alternation steps are done.
 """
 
@@ -75,36 +75,45 @@ def _register(q1, q2, *, rotation: bool, neighbourhood: int, max_iterations, rto
     d = q1.shape[-1]
     eye = jnp.eye(d, dtype=dtype)
 
-    def rotation_step(gamma):
+    def rotation_step(gamma, O_used):
         # The energy is Σ w·(|A − O·B|² at both interval ends)/2, a weighted Procrustes
-        # problem in O: its Kabsch solution is exact for this γ.
+        # problem in O: its Kabsch solution is exact for this γ. Also returns the energy at
+        # the rotation the DP used, to measure what the rotation step gained.
         A, B, w = warp_samples(q1, q2, gamma)
         O = optimal_rotation(A, B, w) if rotation else eye
-        diff = A - B @ O.T
-        return O, jnp.sum(w * 0.5 * jnp.sum(diff * diff, axis=(1, 2)))
+
+        def energy(R):
+            diff = A - B @ R.T
+            return jnp.sum(w * 0.5 * jnp.sum(diff * diff, axis=(1, 2)))
+
+        return O, energy(O), energy(O_used)
 
     # Two starting points, each one DP + one rotation step: the identity (so the result is
     # never worse than without rotation) and the rotation aligning the unwarped SRVFs; the
-    # alternation continues from the better. Without rotation one DP is exact.
+    # alternation continues from the better. It stops when the rotation step of the best
+    # state gained less than rtol (relative): γ is then DP-optimal for (nearly) the final
+    # rotation, and another DP would gain about as little. Without rotation one DP is exact.
     O_kabsch = optimal_rotation(q1, q2) if rotation else eye
     cap = max_iterations + 1 if rotation else 1
-    forced = jnp.minimum(3, cap) if rotation else 1
+    forced = 2 if rotation else 1
 
     def cond(state):
-        i, _, _, _, energy, previous = state
-        return (i < forced) | ((i < cap) & (previous - energy > rtol * energy))
+        i, _, _, _, energy, gain = state
+        return (i < forced) | ((i < cap) & (gain > rtol * energy))
 
     def body(state):
-        i, O_next, O, gamma, energy, _ = state
+        i, O_next, O, gamma, energy, gain = state
         # Under vmap, lanes that have stopped are skipped by the DP's batching rule.
         gamma_new = _dp_warp_if(q1, q2 @ O_next.T, cond(state), neighbourhood=neighbourhood)[0]
-        O_new, energy_new = rotation_step(gamma_new)
+        O_new, energy_new, energy_at_dp = rotation_step(gamma_new, O_next)
         # Monotone in exact arithmetic after the starts; keep the best in any case.
         better = energy_new <= energy
         O = jnp.where(better, O_new, O)
         gamma = jnp.where(better, gamma_new, gamma)
+        # A worse second start leaves the first one to continue; later, no gain means stop.
+        gain = jnp.where(better, energy_at_dp - energy_new, jnp.where(i == 1, gain, 0))
         O_next = jnp.where(i == 0, O_kabsch, O)
-        return i + 1, O_next, O, gamma, jnp.minimum(energy, energy_new), energy
+        return i + 1, O_next, O, gamma, jnp.minimum(energy, energy_new), gain
 
     # Every DP runs inside the loop, so the DP kernel is compiled once.
     inf = jnp.asarray(jnp.inf, dtype)
@@ -138,7 +147,8 @@ def elastic_curve_distance(
     - `neighbourhood`: DP move size (static; 7 by default, fdasrsf uses 10).
     - `max_iterations`: cap on the rotation/warp alternation steps (one DP solve each, plus
       one DP for the second starting point; not static).
-    - `rtol`: stop once an iteration lowers the energy by less than this fraction (not static).
+    - `rtol`: stop once a rotation step lowers the energy by less than this fraction (not
+      static).
 
     **Returns** a `CurveRegistration`. Gradients of `distance`/`energy` with respect to the
     curves follow the envelope theorem (the registration is held fixed). Works under
@@ -147,7 +157,8 @@ def elastic_curve_distance(
     """
     if isinstance(n_samples, bool) or not isinstance(n_samples, int) or n_samples < 2:
         raise ValueError(f"n_samples must be a Python int >= 2, got {n_samples!r}.")
-    if isinstance(max_iterations, bool) or not isinstance(max_iterations, int) or max_iterations < 1:
+    bad_cap = isinstance(max_iterations, bool) or not isinstance(max_iterations, int)
+    if bad_cap or max_iterations < 1:
         raise ValueError(f"max_iterations must be a Python int >= 1, got {max_iterations!r}.")
     if not isinstance(rtol, (int, float)) or not rtol >= 0:
         raise ValueError(f"rtol must be a float >= 0, got {rtol!r}.")

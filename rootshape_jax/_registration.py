@@ -166,9 +166,10 @@ def _search(
         between the two cones caps the cosine: ``<qa, w> ≤ max(cos φ, 0) √(La Lb)``, where
         ``φ = angle(axes) − half_a − half_b``. With φ ≤ 0 this is plain Cauchy–Schwarz.
         """
-        cos_axes = jnp.einsum("bid,bje,bed->bij", ca, cb, O)
+        cos_axes = jnp.einsum("bie,bjd,bed->bij", ca, cb, O)
         phi = jnp.arccos(jnp.clip(cos_axes, -1.0, 1.0)) - half_a[:, :, None] - half_b[:, None, :]
-        phi = phi - 1e-6  # rounding margin: keep the bound on the safe side
+        # Rounding margin (arccos near ±1 loses half the digits): keep the bound on the safe side.
+        phi = phi - 4 * float(jnp.finfo(dtype).eps) ** 0.5
         convex = (half_a[:, :, None] < jnp.pi / 2) & (half_b[:, None, :] < jnp.pi / 2)
         cos_cap = jnp.where(convex, jnp.clip(jnp.cos(jnp.maximum(phi, 0.0)), 0.0, 1.0), 1.0)
         lower = lam_s * jnp.maximum(La[:, :, None] + Lb[:, None, :] - 2 * cos_cap * sqrt_LaLb, 0.0)

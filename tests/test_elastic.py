@@ -36,8 +36,8 @@ def _angle(O):
 
 
 def test_known_rotation_warp_and_translation_are_recovered():
-    # β2(t) = R β(φ(t)) + c: the registration should find O ≈ Rᵀ and γ ≈ φ⁻¹, with an energy
-    # comparable to that of the true (O, γ) sampled on the grid (the grid limits both; not 0).
+    # β2(t) = R β(φ(t)) + c: the registration should find O ≈ Rᵀ and γ ≈ φ⁻¹, with an
+    # energy comparable to that of the true (O, γ) sampled on the grid (not 0).
     T = 60
     rng = np.random.default_rng(0)
     dense = smooth_curve(rng, n=400, bend=1.5)
@@ -57,7 +57,7 @@ def test_known_rotation_warp_and_translation_are_recovered():
     assert 0 < float(energy) <= 5 * true_energy
     assert abs(_angle(np.asarray(O)) - _angle(R.T)) < 0.02
     assert np.max(np.abs(np.asarray(gamma) - _phi_inv(t))) < 3.0 / (T - 1)
-    assert 3 <= int(n_it) <= 11
+    assert 2 <= int(n_it) <= 11
 
 
 def test_distance_is_invariant_to_rotation_translation_and_parameterisation():
@@ -137,8 +137,9 @@ def test_vmap_equals_a_python_loop():
     for i in range(4):
         single = f(b1[i], b2[i])
         assert float(batched.energy[i]) == pytest.approx(float(single.energy), rel=1e-12)
-        np.testing.assert_allclose(np.asarray(batched.gamma[i]), np.asarray(single.gamma), atol=1e-12)
-        np.testing.assert_allclose(np.asarray(batched.rotation[i]), np.asarray(single.rotation), atol=1e-12)
+        for field in ("gamma", "rotation"):
+            got, want = getattr(batched, field)[i], getattr(single, field)
+            np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=1e-12)
         assert int(batched.n_iterations[i]) == int(single.n_iterations)
 
 

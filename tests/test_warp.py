@@ -281,7 +281,8 @@ def test_apply_warp_matches_numpy():
     np.testing.assert_allclose(np.asarray(apply_warp_curve(q, g)), moved, atol=1e-14)
     rs = np.sqrt(np.diff(g) * (T - 1))
     speed = 0.5 * (np.concatenate([rs[:1], rs]) + np.concatenate([rs, rs[-1:]]))
-    np.testing.assert_allclose(np.asarray(apply_warp_srvf(q, g)), moved * speed[:, None], atol=1e-14)
+    expected = moved * speed[:, None]
+    np.testing.assert_allclose(np.asarray(apply_warp_srvf(q, g)), expected, atol=1e-14)
 
 
 def test_apply_warp_srvf_is_safe_where_the_warp_is_flat():
