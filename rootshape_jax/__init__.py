@@ -12,6 +12,7 @@ from ._errors import (
     MissingDependencyError as MissingDependencyError,
     RootShapeError as RootShapeError,
     RSMLError as RSMLError,
+    RSMLWarning as RSMLWarning,
 )
 from ._root import Root as Root
 from ._curves import (
@@ -47,5 +48,41 @@ from ._pairwise import (
     pairwise_distances as pairwise_distances,
 )
 from ._geodesic import geodesic as geodesic
+from ._warp import (
+    apply_warp_curve as apply_warp_curve,
+    apply_warp_srvf as apply_warp_srvf,
+    dp_warp as dp_warp,
+    dp_warp_batch as dp_warp_batch,
+)
+from ._elastic import (
+    CurveRegistration as CurveRegistration,
+    elastic_curve_distance as elastic_curve_distance,
+)
+from ._assignment import (
+    InvalidCostError as InvalidCostError,
+    assignment_cost as assignment_cost,
+    linear_assignment as linear_assignment,
+)
+from ._mean import (
+    KarcherMean as KarcherMean,
+    karcher_mean as karcher_mean,
+    karcher_objective as karcher_objective,
+)
+from ._pca import (
+    TangentPCA as TangentPCA,
+    modes as modes,
+    project as project,
+    reconstruct as reconstruct,
+    sample as sample,
+    tangent_pca as tangent_pca,
+)
+from ._regression import TraitRegression as TraitRegression
+from ._cluster import (
+    Clustering as Clustering,
+    cluster as cluster,
+    confusion_matrix as confusion_matrix,
+    loo_accuracy as loo_accuracy,
+)
+from ._traits import traits as traits, traits_to_csv as traits_to_csv
 
 __version__ = "0.1.0"

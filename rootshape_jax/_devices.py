@@ -33,6 +33,10 @@ def device_vmap(fn: Callable, *, devices: Sequence[Any] | None = None) -> Callab
     returning `fn`'s outputs stacked along a leading axis of size B. The batch is padded (by
     repeating its last element, so padding is valid input) to a multiple of the device count.
     Use it inside `jax.jit`/`eqx.filter_jit` so the split compiles once.
+
+    ``fn`` must not raise runtime errors (`eqx.error_if`) on the data it gets: raised on one
+    device of a multi-device program, the error leaves the other devices waiting in a
+    collective until XLA aborts the process. Check inputs beforehand, or return NaN.
     """
     vfn = jax.vmap(fn)
 

@@ -428,14 +428,28 @@ def _broadcast_unbatched(axis_size, in_batched, args):
     )
 
 
-def _prepare(q1, q2, neighbourhood, what):
+def _prepare(q1, q2, neighbourhood, what, *, check=True):
     q1, q2 = _check_srvf_pair(q1, q2, what)
     n = _check_neighbourhood(neighbourhood)
     # Moves longer than the grid can never be used; dropping them changes nothing.
     n = min(n, q1.shape[0] - 1)
-    q1 = _check_finite(jax.lax.stop_gradient(q1), f"{what} (q1)")
-    q2 = _check_finite(jax.lax.stop_gradient(q2), f"{what} (q2)")
+    q1, q2 = jax.lax.stop_gradient((q1, q2))
+    if check:
+        q1 = _check_finite(q1, f"{what} (q1)")
+        q2 = _check_finite(q2, f"{what} (q2)")
     return q1, q2, n
+
+
+def _dp_warp_nan(q1, q2, *, neighbourhood):
+    """`dp_warp` that returns a NaN warp for non-finite input instead of raising.
+
+    For use under `device_vmap`: a runtime error (`eqx.error_if`) raised by one device of a
+    multi-device program leaves the others waiting in a collective, and the process aborts.
+    """
+    q1, q2, n = _prepare(q1, q2, neighbourhood, "dp_warp", check=False)
+    ok = jnp.all(jnp.isfinite(q1)) & jnp.all(jnp.isfinite(q2))
+    gamma = _dp_kernel(n)(jnp.where(ok, q1, 0), jnp.where(ok, q2, 0), jnp.asarray(True))[0]
+    return jnp.where(ok, gamma, jnp.nan)
 
 
 @eqx.filter_jit
@@ -609,6 +623,8 @@ def dp_warp_batch(
 
     With several devices (``jax.config.update("jax_num_cpu_devices", n)`` before JAX starts)
     each gets an equal share of the batch (`device_vmap`); otherwise it is `jax.vmap(dp_warp)`.
+    A pair with NaN or inf values gets a NaN warp (no runtime error: raised on one device of
+    a multi-device program, it would leave the other devices waiting forever).
     """
     q1s, q2s = jnp.asarray(q1s), jnp.asarray(q2s)
     if q1s.ndim != 3 or q1s.shape != q2s.shape:
@@ -616,5 +632,5 @@ def dp_warp_batch(
             f"dp_warp_batch: q1s and q2s must share the shape (B, T, d), got {q1s.shape} and "
             f"{q2s.shape}."
         )
-    fn = functools.partial(dp_warp, neighbourhood=neighbourhood)
+    fn = functools.partial(_dp_warp_nan, neighbourhood=neighbourhood)
     return device_vmap(fn)(q1s, q2s)

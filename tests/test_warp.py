@@ -1,6 +1,8 @@
 """The DP warp: exact against plain-numpy and brute-force references, batching, errors."""
 
 import logging
+import subprocess
+import sys
 
 import equinox as eqx
 import jax
@@ -329,6 +331,41 @@ def test_clear_errors_for_bad_input():
         warp_energy(q, q, np.linspace(0, 1, 9))
     with pytest.raises(InvalidRootError, match="gamma must be"):
         apply_warp_curve(q, np.linspace(0, 1, 9))
+
+
+def test_batch_gives_nan_warps_for_non_finite_pairs():
+    q1s, q2s = _batch(70, 3, 20)
+    q1s[1, 5, 0] = np.inf
+    g = np.asarray(dp_warp_batch(q1s, q2s))
+    assert np.all(np.isnan(g[1]))
+    np.testing.assert_array_equal(g[[0, 2]], np.stack([dp_warp(q1s[i], q2s[i]) for i in (0, 2)]))
+
+
+_TWO_DEVICES = """
+import jax
+jax.config.update("jax_num_cpu_devices", 2)
+jax.config.update("jax_enable_x64", True)
+import numpy as np
+from rootshape_jax._warp import dp_warp, dp_warp_batch
+assert len(jax.devices()) == 2
+rng = np.random.default_rng(0)
+q1, q2 = rng.normal(size=(2, 7, 15, 2))  # odd batch: padded to 8, split 4 + 4
+q1[6, 3, 1] = np.nan
+g = np.asarray(dp_warp_batch(q1, q2))
+assert np.all(np.isnan(g[6])), g[6]
+loop = np.stack([np.asarray(dp_warp(a, b)) for a, b in zip(q1[:6], q2[:6])])
+assert np.array_equal(g[:6], loop)
+print("ok")
+"""
+
+
+@pytest.mark.slow
+def test_batch_split_over_two_devices_equals_a_loop():
+    # Several host devices must be configured before JAX starts: use a fresh interpreter.
+    out = subprocess.run(
+        [sys.executable, "-c", _TWO_DEVICES], capture_output=True, text=True, timeout=600
+    )
+    assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]
 
 
 def test_runtime_errors_for_bad_values():
