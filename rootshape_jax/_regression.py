@@ -49,10 +49,17 @@ def _as_matrix(x, n: int | None, what: str) -> np.ndarray:
 
 
 @eqx.filter_jit
-def _synthesize(pca: TangentPCA, G, v):
+def _synthesize(pca: TangentPCA, G, v, curves: bool):
     ones = jnp.ones(v.shape[:-1] + (1,), v.dtype)
     t = _to_tree(pca, jnp.concatenate([v, ones], axis=-1) @ G)
-    return t, to_curves(t)
+    return to_curves(t) if curves else t
+
+
+@eqx.filter_jit
+def _compose(M, components, eigenvalues):
+    """``Mᵀ`` composed with the PCA basis ``√σ_i Λ_i``: an ``(l+1) × p`` matrix."""
+    m = M.shape[0]
+    return (M.T * jnp.sqrt(eigenvalues[:m])) @ components[:m]
 
 
 class TraitRegression(eqx.Module):
@@ -123,15 +130,11 @@ class TraitRegression(eqx.Module):
         p = np.concatenate(columns, axis=1)
         P = np.concatenate([p, np.ones((n, 1))], axis=1).T  # (l+1, n)
         B = np.asarray(pca.scores[:, :m], dtype=np.float64).T  # (m, n)
-        M = B @ np.linalg.pinv(P)
-        basis = np.asarray(pca.components[:m], np.float64) * np.sqrt(
-            np.asarray(pca.eigenvalues[:m], np.float64)
-        )[:, None]
-        dtype = pca.mean.q0.dtype
+        M = jnp.asarray(B @ np.linalg.pinv(P), pca.mean.q0.dtype)
         return cls(
             pca=pca,
-            matrix=jnp.asarray(M, dtype),
-            linear=jnp.asarray(M.T @ basis, dtype),
+            matrix=M,
+            linear=_compose(M, pca.components, pca.eigenvalues),
             names=tuple(names),
             trait_names=traits,
             n_components=m,
@@ -157,8 +160,7 @@ class TraitRegression(eqx.Module):
                 f"values must have shape (..., {len(self.names)}) in the order {self.names}, "
                 f"got {v.shape}."
             )
-        t, curves = _synthesize(self.pca, self.linear, v)
-        return t if srvf else curves
+        return _synthesize(self.pca, self.linear, v, not srvf)
 
     def report(self, trees: RootTree, *, covariates=None) -> dict:
         """How well synthesised roots reproduce requested traits, on (held-out) roots.
@@ -166,7 +168,7 @@ class TraitRegression(eqx.Module):
         The traits of `trees` are measured (plus their `covariates`), roots are synthesised
         from them, and the synthesised roots' traits are measured again. Returns a dict per
         measured trait: ``r2`` (coefficient of determination of synthesised vs requested;
-        NaN when the requested values do not vary), ``mean_relative_error``,
+        NaN when the requested values do not vary beyond rounding), ``mean_relative_error``,
         ``requested`` and ``synthesised`` arrays.
         """
         if not isinstance(trees, RootTree) or len(trees.batch_shape) != 1:
@@ -184,7 +186,10 @@ class TraitRegression(eqx.Module):
         for j, name in enumerate(self.trait_names):
             y, yhat = requested[:, j], got[:, j]
             ss = float(np.sum((y - y.mean()) ** 2))
-            r2 = 1.0 - float(np.sum((yhat - y) ** 2)) / ss if ss > 0 else float("nan")
+            # Requested values constant up to rounding (e.g. main length after scale
+            # normalisation): R² is undefined.
+            varies = np.std(y) > 1e-6 * max(float(np.max(np.abs(y))), 1e-300)
+            r2 = 1.0 - float(np.sum((yhat - y) ** 2)) / ss if varies else float("nan")
             scale = np.maximum(np.abs(y), 1e-12)
             out[name] = {
                 "r2": r2,
