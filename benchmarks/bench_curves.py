@@ -176,6 +176,13 @@ def main(argv=None):
                 recompiled_on_new_data=jitted._cache_size() != size,
                 mean_dp_solves=float(jnp.mean(out.n_iterations)),
                 max_dp_solves=int(jnp.max(out.n_iterations)))
+        # The cost of the alternation's quality: the two starts only (2 DP solves per pair).
+        cheap = functools.partial(elastic, max_iterations=1)
+        comp_s, _, exe = _compile(device_vmap(cheap), c1[:big], c2[:big])
+        sec = _best_time(exe, c1[:big], c2[:big])
+        add(T=T, what="elastic_curve_distance",
+            method=f"rootshape_jax batched, max_iterations=1 ({len(jax.devices())} dev)",
+            batch=big, pairs_per_s=big / sec, compile_s=comp_s)
         if cf is not None:
             pa = [np.asarray(x, float).T.copy() for x in b1[:n_single]]
             pb = [np.asarray(x, float).T.copy() for x in b2[:n_single]]
