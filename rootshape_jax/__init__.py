@@ -86,3 +86,5 @@ from ._cluster import (
 from ._traits import traits as traits, traits_to_csv as traits_to_csv
 
 __version__ = "0.1.0"
+from . import baselines as baselines
+from .baselines import Shrinkage as Shrinkage, geodesic_shrinkage as geodesic_shrinkage

@@ -716,7 +716,7 @@ def run_traits(roots: list, out: Output, args) -> None:
                  _html_table(show, [[r[k] for k in show] for r in rows], max_rows=10))
 
 
-def run_geodesic(a_root, b_root, out: Output, args, *, title_suffix: str = "") -> None:
+def run_geodesic(a_root, b_root, out: Output, args) -> None:
     from ._geodesic import geodesic
     from ._registration import register
     from ._tree import unstack
@@ -724,7 +724,7 @@ def run_geodesic(a_root, b_root, out: Output, args, *, title_suffix: str = "") -
 
     pop = prepare([a_root, b_root], args, min_roots=2)
     pair = pop.roots
-    with out.step("Geodesic (optimal deformation)" + title_suffix) as sec:
+    with out.step("Geodesic (optimal deformation)") as sec:
         a, b = unstack(pop.tree)
         reg = register(a, b, weights=_make_weights(args))
         path = geodesic(a, b, n_steps=args.steps, weights=_make_weights(args), registration=reg)

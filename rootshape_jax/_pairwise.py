@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -67,10 +69,22 @@ def _run_pairs(s, t, I, J, *, weights, chunk_size, progress, desc, options):
     return energies, stats
 
 
+def _dispatch(s, t, I, J, kind, *, client, block_size, store, resume, **kwargs):
+    """The local loop, or the same loop in blocks on a Dask client (`_dask.run_pairs`)."""
+    if client is None:
+        if block_size is not None or store is not None:
+            raise ValueError("block_size and store apply to a Dask run only; pass client= too.")
+        return _run_pairs(s, t, I, J, **kwargs)
+    from ._dask import run_pairs
+
+    return run_pairs(client, s, t, I, J, kind=kind, block_size=block_size, store=store,
+                     resume=resume, **kwargs)
+
+
 def pairwise_distances(
     trees: RootTree | SRVFTree,
     *,
-    weights: Weights = Weights(),
+    weights: Weights | None = None,
     chunk_size: int = 32,
     progress: bool = True,
     return_stats: bool = False,
@@ -81,6 +95,10 @@ def pairwise_distances(
     prune: bool = True,
     dp_batch_size: int = 32,
     assignment: str = "callback",
+    client=None,
+    block_size: int | None = None,
+    store: str | os.PathLike | None = None,
+    resume: bool = True,
 ) -> Float[Array, "N N"]:
     """Symmetric (N, N) matrix of elastic distances between the roots of a batch.
 
@@ -89,14 +107,23 @@ def pairwise_distances(
     stops between chunks. The diagonal is 0. With `return_stats=True` also returns a dict with
     the number of lateral DPs run and skipped by the exact pruning bound. Registration options
     as in `register`.
+
+    **On a Dask cluster** (extra ``rootshape_jax[dask]``): with `client` (a
+    ``dask.distributed.Client``) the pairs are sent in blocks of `block_size` pairs (a multiple
+    of `chunk_size`; default ``8 × chunk_size``) through the same compiled kernel, so the matrix
+    equals the local one bit for bit. With `store` (a directory) every finished block is saved;
+    a rerun with ``resume=True`` computes only the missing blocks, and a store of another run is
+    refused. The stats then also count ``blocks``, ``blocks_computed`` and ``blocks_from_store``.
     """
+    weights = Weights() if weights is None else weights
     opts = _options(rotation, max_iterations, rtol, neighbourhood, prune, dp_batch_size, assignment)
     s = _as_batch(trees, "pairwise_distances: trees")
     n = batch_size(s)
     I, J = np.triu_indices(n, 1)
-    e, stats = _run_pairs(
-        s, s, I, J, weights=weights, chunk_size=chunk_size, progress=progress,
-        desc="distances", options=opts,
+    e, stats = _dispatch(
+        s, s, I, J, "pairwise", weights=weights, chunk_size=chunk_size, progress=progress,
+        desc="distances", options=opts, client=client, block_size=block_size, store=store,
+        resume=resume,
     )
     D = np.zeros((n, n), dtype=e.dtype)
     D[I, J] = np.sqrt(np.maximum(e, 0.0))
@@ -109,7 +136,7 @@ def cross_distances(
     A: RootTree | SRVFTree,
     B: RootTree | SRVFTree,
     *,
-    weights: Weights = Weights(),
+    weights: Weights | None = None,
     chunk_size: int = 32,
     progress: bool = True,
     rotation: bool = True,
@@ -119,18 +146,25 @@ def cross_distances(
     prune: bool = True,
     dp_batch_size: int = 32,
     assignment: str = "callback",
+    client=None,
+    block_size: int | None = None,
+    store: str | os.PathLike | None = None,
+    resume: bool = True,
 ) -> Float[Array, "N M"]:
     """(N, M) matrix of distances between every root of batch `A` and every root of batch `B`
-    (root ``B[j]`` registered onto ``A[i]``)."""
+    (root ``B[j]`` registered onto ``A[i]``). `client`, `block_size`, `store`, `resume`: as in
+    `pairwise_distances`."""
+    weights = Weights() if weights is None else weights
     opts = _options(rotation, max_iterations, rtol, neighbourhood, prune, dp_batch_size, assignment)
     s = _as_batch(A, "cross_distances: A")
     t = _as_batch(B, "cross_distances: B")
     check_compatible(s, t, "cross_distances: A and B")
     n, m = batch_size(s), batch_size(t)
     I, J = (x.ravel() for x in np.meshgrid(np.arange(n), np.arange(m), indexing="ij"))
-    e, _ = _run_pairs(
-        s, t, I, J, weights=weights, chunk_size=chunk_size, progress=progress,
-        desc="cross distances", options=opts,
+    e, _ = _dispatch(
+        s, t, I, J, "cross", weights=weights, chunk_size=chunk_size, progress=progress,
+        desc="cross distances", options=opts, client=client, block_size=block_size, store=store,
+        resume=resume,
     )
     return jnp.asarray(np.sqrt(np.maximum(e, 0.0)).reshape(n, m))
 

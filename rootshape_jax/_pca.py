@@ -176,16 +176,19 @@ def tangent_pca(
 
 def _to_tree(pc: TangentPCA, v: Array) -> SRVFTree:
     """SRVF trees ``μ + W^{-1/2} v`` for flattened whitened tangent vectors v (batched)."""
-    T, d = pc.mean.q0.shape
-    K = pc.mean.q.shape[0]
+    return _tangent_to_tree(pc.mean, pc.scales, pc.min_lateral_length, v)
+
+
+def _tangent_to_tree(mean: SRVFTree, c: _Params, min_lateral_length: Array, v: Array) -> SRVFTree:
+    T, d = mean.q0.shape
+    K = mean.q.shape[0]
     u = _unflatten(v, T, K, d)
-    c = pc.scales
-    q0 = pc.mean.q0 + u.q0 / c.q0
-    q = pc.mean.q + u.q / c.q
-    s = jnp.clip(pc.mean.s + u.s / c.s, 0.0, 1.0)
-    real = l2_norm_squared(q) >= pc.min_lateral_length
+    q0 = mean.q0 + u.q0 / c.q0
+    q = mean.q + u.q / c.q
+    s = jnp.clip(mean.s + u.s / c.s, 0.0, 1.0)
+    real = l2_norm_squared(q) >= min_lateral_length
     q = q * real[..., None, None]
-    origin = jnp.broadcast_to(pc.mean.origin, q0.shape[:-2] + pc.mean.origin.shape)
+    origin = jnp.broadcast_to(mean.origin, q0.shape[:-2] + mean.origin.shape)
     return SRVFTree(q0=q0, q=q, s=s, mask=real, origin=origin)
 
 

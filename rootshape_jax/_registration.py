@@ -463,7 +463,7 @@ def register(
     a: RootTree | SRVFTree,
     b: RootTree | SRVFTree,
     *,
-    weights: Weights = Weights(),
+    weights: Weights | None = None,
     rotation: bool = True,
     max_iterations: int = 4,
     rtol: float = 1e-4,
@@ -490,6 +490,7 @@ def register(
     - `dp_batch_size`: lateral DPs solved per slab (memory vs. padding trade-off).
     - `assignment`: "callback" (scipy through a host callback) or "jax" (pure-JAX, exact).
     """
+    weights = Weights() if weights is None else weights
     dynamic, opts = _options(rotation, max_iterations, rtol, neighbourhood, prune, dp_batch_size, assignment)
     a, b, single = _as_pair_batch(a, b)
     active = jnp.ones(a.batch_shape, bool)
@@ -500,11 +501,12 @@ def register(
 
 
 def distance(
-    a: RootTree | SRVFTree, b: RootTree | SRVFTree, *, weights: Weights = Weights(), **options
+    a: RootTree | SRVFTree, b: RootTree | SRVFTree, *, weights: Weights | None = None, **options
 ) -> Float[Array, "*B"]:
     """Elastic distance ``sqrt(min d²)`` between roots a and b (see `register` for options).
 
     Differentiable with respect to both roots' coordinates (and the weights): the registration
     is held fixed under `stop_gradient` (envelope theorem).
     """
+    weights = Weights() if weights is None else weights
     return register(a, b, weights=weights, **options).distance

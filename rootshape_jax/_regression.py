@@ -14,12 +14,15 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import functools
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._pca import TangentPCA, _to_tree
+from ._pca import TangentPCA, _tangent_to_tree
 from ._traits import traits as measure_traits
 from ._tree import RootTree, SRVFTree, to_curves, to_roots
 
@@ -48,10 +51,11 @@ def _as_matrix(x, n: int | None, what: str) -> np.ndarray:
     return x
 
 
-@eqx.filter_jit
-def _synthesize(pca: TangentPCA, G, v, curves: bool):
-    ones = jnp.ones(v.shape[:-1] + (1,), v.dtype)
-    t = _to_tree(pca, jnp.concatenate([v, ones], axis=-1) @ G)
+@functools.partial(jax.jit, static_argnames="curves")
+def _synthesize(mean, scales, min_lateral_length, G, v, curves: bool):
+    # Plain jax.jit on the few arrays it needs: one root is a ~µs product, so per-call
+    # dispatch (flattening the whole PCA) would dominate.
+    t = _tangent_to_tree(mean, scales, min_lateral_length, v @ G[:-1] + G[-1])
     return to_curves(t) if curves else t
 
 
@@ -160,7 +164,8 @@ class TraitRegression(eqx.Module):
                 f"values must have shape (..., {len(self.names)}) in the order {self.names}, "
                 f"got {v.shape}."
             )
-        return _synthesize(self.pca, self.linear, v, not srvf)
+        pc = self.pca
+        return _synthesize(pc.mean, pc.scales, pc.min_lateral_length, self.linear, v, curves=not srvf)
 
     def report(self, trees: RootTree, *, covariates=None) -> dict:
         """How well synthesised roots reproduce requested traits, on (held-out) roots.
