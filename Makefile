@@ -2,7 +2,7 @@
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
-EXTRAS ?= test,bench,sim
+EXTRAS ?= test,bench,sim,dask
 OUT ?= demo_output
 
 .PHONY: install test test-slow demo bench clean
@@ -15,17 +15,21 @@ $(VENV)/.installed: pyproject.toml
 
 install: $(VENV)/.installed
 
+# Compilation dominates the test run: two workers compile in parallel and share compiled
+# programs through JAX's persistent cache (also used by the tests' subprocesses).
+PYTEST := JAX_COMPILATION_CACHE_DIR=$(CURDIR)/.jax_cache $(PY) -m pytest -q -n 2 --dist loadfile
+
 test: $(VENV)/.installed
-	$(PY) -m pytest -q -m "not slow"
+	$(PYTEST) -m "not slow"
 
 test-slow: $(VENV)/.installed
-	$(PY) -m pytest -q -m slow || [ $$? -eq 5 ]  # 5: no slow test selected
+	$(PYTEST) -m slow || [ $$? -eq 5 ]  # 5: no slow test selected
 
 demo: $(VENV)/.installed
 	$(PY) -m rootshape_jax demo --out $(OUT)
 
 bench: $(VENV)/.installed
-	$(PY) benchmarks/run_all.py
+	for b in curves trees stats assignment dask; do $(PY) benchmarks/bench_$$b.py || exit 1; done
 
 clean:
-	rm -rf $(VENV) $(OUT)
+	rm -rf $(VENV) $(OUT) .jax_cache
