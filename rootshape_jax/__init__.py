@@ -88,3 +88,4 @@ from ._traits import traits as traits, traits_to_csv as traits_to_csv
 __version__ = "0.1.0"
 from . import baselines as baselines
 from .baselines import Shrinkage as Shrinkage, geodesic_shrinkage as geodesic_shrinkage
+from ._dask import StoreMismatchError as StoreMismatchError

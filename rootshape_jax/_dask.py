@@ -24,7 +24,6 @@ before any array is made, so JAX objects travel pickled and are unpickled inside
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import math
 import os
@@ -256,7 +255,8 @@ def run_pairs(
     st = None
     if store is not None:
         manifest = {
-            "format": _FORMAT, "kind": kind, "n_pairs": n_pairs, "block_size": block_size,
+            "format": _FORMAT, "kind": kind, "n": int(s.q0.shape[0]), "m": int(t.q0.shape[0]),
+            "n_pairs": n_pairs, "block_size": block_size,
             "chunk_size": chunk_size, "dtype": str(dtype),
             "fingerprint": _fingerprint(kind, s, t, weights, options),
         }
@@ -405,7 +405,7 @@ class MeanOnCluster:
         payload = _pack((weights, origin, opts))
         rtol, atol = float(wrapped.rtol), float(wrapped.atol)
         trace = []
-        result = optx.RESULTS.max_steps_reached
+        result = optx.RESULTS.nonlinear_max_steps_reached
         for _ in range(max_steps):
             rows = _to_numpy((y.rotations, y.warped_q0, y.warped_q, y.reg_s, y.reg_real))
             registered, energies = self._map(

@@ -18,6 +18,9 @@ from rootshape_jax._dask import StoreMismatchError
 
 from helpers import random_root
 
+# ~5 min on the 2-core dev machine, mostly compiling the kernels in fresh worker processes.
+pytestmark = pytest.mark.slow
+
 distributed = pytest.importorskip("distributed")
 cloudpickle = pytest.importorskip("cloudpickle")
 # The worker-side patches below are defined here; workers cannot import this module.
@@ -64,18 +67,28 @@ def _mtimes(store):
     return {n: os.stat(store / n).st_mtime_ns for n in os.listdir(store) if n.startswith("block_")}
 
 
-# Worker-side patch of the pair loop the tasks call: once `after` blocks are on disk, either
-# kill the worker process in the middle of a task (once: a marker file records it, with the
-# blocks on disk at that moment) or fail every task (an interrupted run).
+# Worker-side patch of the pair loop the tasks call. A worker's first `after` tasks run
+# normally; at the next one it waits until `after` blocks are on disk (its own, at least), then
+# either kills its process in the middle of the task (once: a marker file records it, with the
+# blocks on disk at that moment) or fails this and every later task (an interrupted run).
 def _install_crash(store, marker, after, mode):
+    import time
+
     from rootshape_jax import _pairwise
 
     original = getattr(_pairwise, "_original_run_pairs", _pairwise._run_pairs)
     _pairwise._original_run_pairs = original
+    calls = [0]
+
+    def blocks():
+        return sorted(n for n in os.listdir(store) if n.startswith("block_"))
 
     def run_pairs(*args, **kwargs):
-        done = sorted(n for n in os.listdir(store) if n.startswith("block_"))
-        if len(done) >= after:
+        calls[0] += 1
+        if calls[0] > after:
+            deadline = time.monotonic() + 60
+            while len(blocks()) < after and time.monotonic() < deadline:
+                time.sleep(0.01)
             if mode == "fail":
                 raise RuntimeError("simulated crash")
             try:
@@ -83,7 +96,7 @@ def _install_crash(store, marker, after, mode):
             except FileExistsError:
                 fd = None
             if fd is not None:
-                stamps = {n: os.stat(os.path.join(store, n)).st_mtime_ns for n in done}
+                stamps = {n: os.stat(os.path.join(store, n)).st_mtime_ns for n in blocks()}
                 os.write(fd, json.dumps(stamps).encode())
                 os.close(fd)
                 os._exit(1)
@@ -152,14 +165,14 @@ def test_worker_killed_mid_run_loses_nothing(client, trees, local, tmp_path):
 def test_interrupted_run_resumes_without_recomputing(client, trees, local, tmp_path):
     store = tmp_path / "store"
     store.mkdir()
-    client.run(_install_crash, str(store), str(tmp_path / "unused"), 4, "fail")
+    client.run(_install_crash, str(store), str(tmp_path / "unused"), 2, "fail")
     try:
         with pytest.raises(RuntimeError, match="simulated crash"):
             _run(trees, client, block_size=BLOCK, store=store)
     finally:
         client.run(_remove_crash)
     finished = _mtimes(store)
-    assert 4 <= len(finished) < 14
+    assert 2 <= len(finished) < 14
     D, stats = _run(trees, client, block_size=BLOCK, store=store)
     assert stats["blocks_from_store"] == len(finished)
     assert stats["blocks_computed"] == 14 - len(finished)
