@@ -122,17 +122,8 @@ def resample_curve(beta: Float[ArrayLike, "n d"], n_points: int) -> Float[Array,
     beta = jnp.asarray(beta)
     if beta.ndim != 2 or beta.shape[0] < 2:
         raise ValueError(f"resample_curve needs an (n, d) polyline with n >= 2, got {beta.shape}.")
-    seg = safe_norm(jnp.diff(beta, axis=0))
-    cum = jnp.concatenate([jnp.zeros((1,), seg.dtype), cumulative_sum(seg, axis=-1)])
-    total = cum[-1]
-    target = jnp.linspace(0.0, 1.0, n_points, dtype=cum.dtype) * total
-    # Locate each target in the cumulative length (zero-length segments are never chosen).
-    # compare_all: one fused comparison; the default binary search is a loop of tiny steps.
-    idx = jnp.clip(jnp.searchsorted(cum, target, side="right", method="compare_all") - 1, 0, beta.shape[0] - 2)
-    seg_len = seg[idx]
-    frac = jnp.where(seg_len > 0, (target - cum[idx]) / jnp.where(seg_len > 0, seg_len, 1.0), 0.0)
-    frac = jnp.clip(frac, 0.0, 1.0)[:, None]
-    return beta[idx] * (1 - frac) + beta[idx + 1] * frac
+    fractions = jnp.linspace(0.0, 1.0, n_points, dtype=jnp.result_type(beta.dtype, float))
+    return interpolate_at_fraction(beta, fractions)
 
 
 def interpolate_at_fraction(
@@ -143,6 +134,8 @@ def interpolate_at_fraction(
     cum = jnp.concatenate([jnp.zeros((1,), seg.dtype), cumulative_sum(seg, axis=-1)])
     total = cum[-1]
     target = jnp.clip(jnp.asarray(fraction, cum.dtype), 0.0, 1.0) * total
+    # Locate each target in the cumulative length (zero-length segments are never chosen).
+    # compare_all: one fused comparison; the default binary search is a loop of tiny steps.
     idx = jnp.clip(jnp.searchsorted(cum, target, side="right", method="compare_all") - 1, 0, beta.shape[0] - 2)
     seg_len = seg[idx]
     frac = jnp.where(seg_len > 0, (target - cum[idx]) / jnp.where(seg_len > 0, seg_len, 1.0), 0.0)

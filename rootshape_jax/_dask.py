@@ -231,8 +231,6 @@ def run_pairs(
     ``blocks_computed`` (submitted in this call) and ``blocks_from_store``.
     """
     distributed = check_client(client, desc)
-    if not isinstance(chunk_size, int) or isinstance(chunk_size, bool) or chunk_size < 1:
-        raise ValueError(f"chunk_size must be an integer >= 1, got {chunk_size!r}.")
     block_size = 8 * chunk_size if block_size is None else _positive_int(block_size, "block_size")
     if block_size % chunk_size:
         raise ValueError(

@@ -51,7 +51,6 @@ def geodesic(
     precomputed `registration` (of b onto a) to skip registering again; other options as in
     `register`.
     """
-    weights = Weights() if weights is None else weights
     if not isinstance(n_steps, int) or n_steps < 2:
         raise ValueError(f"n_steps must be an integer >= 2, got {n_steps!r}.")
     if registration is None:

@@ -71,5 +71,4 @@ def preshape_terms(a: SRVFTree, b: SRVFTree, weights: Weights | None = None) -> 
 
 def preshape_distance_squared(a: SRVFTree, b: SRVFTree, weights: Weights | None = None) -> Float[Array, "*B"]:
     """Squared pre-shape distance (no registration). See `preshape_terms`."""
-    weights = Weights() if weights is None else weights
     return preshape_terms(a, b, weights).total

@@ -45,8 +45,6 @@ def _as_batch(trees, name) -> SRVFTree:
 
 def _run_pairs(s, t, I, J, *, weights, chunk_size, progress, desc, options):
     dynamic, opts = options
-    if not isinstance(chunk_size, int) or chunk_size < 1:
-        raise ValueError(f"chunk_size must be an integer >= 1, got {chunk_size!r}.")
     n = len(I)
     energies = np.zeros(n, dtype=np.asarray(s.q0).dtype)
     stats = {"pairs": n, "lateral_dp": 0, "lateral_skipped": 0}
@@ -71,6 +69,9 @@ def _run_pairs(s, t, I, J, *, weights, chunk_size, progress, desc, options):
 
 def _dispatch(s, t, I, J, kind, *, client, block_size, store, resume, **kwargs):
     """The local loop, or the same loop in blocks on a Dask client (`_dask.run_pairs`)."""
+    chunk_size = kwargs["chunk_size"]
+    if not isinstance(chunk_size, int) or isinstance(chunk_size, bool) or chunk_size < 1:
+        raise ValueError(f"chunk_size must be an integer >= 1, got {chunk_size!r}.")
     if client is None:
         if block_size is not None or store is not None:
             raise ValueError("block_size and store apply to a Dask run only; pass client= too.")

@@ -508,5 +508,4 @@ def distance(
     Differentiable with respect to both roots' coordinates (and the weights): the registration
     is held fixed under `stop_gradient` (envelope theorem).
     """
-    weights = Weights() if weights is None else weights
     return register(a, b, weights=weights, **options).distance
