@@ -4,8 +4,12 @@
 Each training root has standardised PCA coefficients ``b`` (`TangentPCA.scores`, the kept
 components) and a trait vector ``p`` — by default the paper's main-root length, mean lateral
 length and standard deviation of lateral lengths (`rootshape_jax.traits`), plus any user
-covariates. With ``P = [p; 1]`` (``(l+1) × n``) and ``B`` (``m × n``) the map is
-``M = B P⁺``; a root with traits p is synthesised as ``reconstruct(pca, M [p; 1])``.
+covariates. The paper's map is ``M = B P⁺`` with ``P = [p; 1]``; we regress on standardised
+values ``z = (p − mean) / std`` instead, ``Z = [z; 1]`` (``(l+1) × n``) and ``M = B Z⁺``. The
+fitted values are the same, but a trait that is constant in training (main-root length after
+scale normalisation) no longer gets cancelling coefficients of ~10⁶ that ruin a float32
+synthesis; it is ignored, with a warning. A root with traits p is
+``reconstruct(pca, M [z; 1])``.
 `TraitRegression.report` measures the traits of synthesised roots and compares them with the
 requested ones.
 """
@@ -15,6 +19,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import functools
+import warnings
 
 import equinox as eqx
 import jax
@@ -22,9 +27,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._pca import TangentPCA, _tangent_to_tree
+from ._curves import cumulative_sum, safe_norm, trapezoid_weights
+from ._pca import TangentPCA, _unflatten
 from ._traits import traits as measure_traits
-from ._tree import RootTree, SRVFTree, to_curves, to_roots
+from ._tree import RootTree, SRVFTree, to_roots
 
 PAPER_TRAITS: tuple[str, ...] = ("main_length", "mean_lateral_length", "std_lateral_length")
 
@@ -51,36 +57,168 @@ def _as_matrix(x, n: int | None, what: str) -> np.ndarray:
     return x
 
 
+def _standardise(p: np.ndarray, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
+    """Centre and scale each trait column; columns constant up to rounding are ignored.
+
+    Without this, a constant column (main-root length after scale normalisation is 1 ± 1e-8)
+    is collinear with the intercept: ``P⁺`` gives it coefficients of ~10⁶ that cancel only in
+    exact arithmetic, and a float32 synthesis loses every digit.
+    """
+    mean = p.mean(axis=0)
+    scale = p.std(axis=0)
+    constant = scale <= 1e-6 * np.maximum(np.abs(mean), np.finfo(np.float64).tiny)
+    ignored = tuple(n for n, c in zip(names, constant) if c)
+    if ignored:
+        warnings.warn(
+            f"trait(s) {ignored} do not vary across the training roots (e.g. main-root length "
+            "after scale normalisation), so they cannot be regressed: synthesize ignores their "
+            "values. Drop them from `traits` to silence this warning.",
+            stacklevel=3,
+        )
+    scale = np.where(constant, 1.0, scale)
+    return mean, scale, ignored
+
+
+def _stacked_to_curves(qa, s, keep, origin):
+    """`to_curves` for one tree whose SRVFs are stacked ``(d, T, K+1)``, main root in slot 0.
+
+    The same arithmetic as `to_curves` (cumulative trapezoid, then laterals from the main
+    root's point at arc-length fraction s), but every curve in one cumulative sum with the
+    curves on the minor axis: a few vectorised XLA:CPU kernels instead of a set per curve
+    (with d minor, as in `RootTree`, the same work takes 1.7× longer).
+    """
+    d, T, _ = qa.shape
+    speed = safe_norm(qa, axis=0)  # (T, K+1)
+    vel = qa * (speed * keep)
+    steps = 0.5 * (vel[:, 1:] + vel[:, :-1]) / (T - 1)  # (d, T-1, K+1)
+    seg = safe_norm(steps[:, :, 0], axis=0)  # main-root segment lengths
+    flat = jnp.concatenate([*steps, seg[:, None]], axis=1)  # (T-1, d (K+1) + 1)
+    flat = cumulative_sum(flat, axis=0)
+    flat = jnp.concatenate([jnp.zeros_like(flat[:1]), flat], axis=0)
+    cum = flat[:, -1]
+    curves = jnp.stack(jnp.split(flat[:, :-1], d, axis=1), axis=-1)  # (T, K+1, d)
+    main = curves[:, 0] + origin
+    # interpolate_at_fraction(main, s) with the segment lengths already at hand.
+    target = s * cum[-1]
+    idx = jnp.clip(jnp.sum(cum[None, :] <= target[:, None], axis=1) - 1, 0, T - 2)
+    seg_len = seg[idx]
+    frac = jnp.where(seg_len > 0, (target - cum[idx]) / jnp.where(seg_len > 0, seg_len, 1.0), 0.0)
+    frac = jnp.clip(frac, 0.0, 1.0)[:, None]
+    bases = main[idx] * (1 - frac) + main[idx + 1] * frac
+    laterals = jnp.swapaxes(curves[:, 1:], 0, 1) + bases[:, None, :]
+    return main, laterals
+
+
 @functools.partial(jax.jit, static_argnames="curves")
-def _synthesize(mean, scales, min_lateral_length, G, v, curves: bool):
-    # Plain jax.jit on the arrays it needs rather than the whole PCA Module: fewer leaves to
-    # flatten per call (one regressed root still costs ~0.5 ms, mostly small XLA:CPU kernels).
-    t = _tangent_to_tree(mean, scales, min_lateral_length, v @ G[:-1] + G[-1])
-    return to_curves(t) if curves else t
+def _synthesize(offset, slopes, s_offset, s_slopes, origin, min_len, trait_mean, trait_scale, v, curves):
+    # Plain jax.jit on the arrays it needs: one regressed root is dispatch-bound (~0.05 ms), so
+    # no Module flattening, and the affine map is unrolled over the few traits (XLA:CPU's
+    # dot for a (l,) × (l, p) product costs more than the whole root).
+    def one(v):
+        z = (v - trait_mean) / trait_scale
+        qa = offset + sum(z[i] * slopes[i] for i in range(slopes.shape[0]))  # (d, T, K+1)
+        s = jnp.clip(s_offset + sum(z[i] * s_slopes[i] for i in range(s_slopes.shape[0])), 0.0, 1.0)
+        w = trapezoid_weights(qa.shape[1], qa.dtype)
+        length = jnp.sum(jnp.sum(qa * qa, axis=0) * w[:, None], axis=0)
+        keep = (length >= min_len).at[0].set(True)  # slot 0 is the main root
+        real = keep[1:]
+        if curves:
+            main, laterals = _stacked_to_curves(qa, s, keep, origin)
+            return RootTree(main=main, laterals=laterals, attach=s, mask=real)
+        q = jnp.transpose(qa[:, :, 1:], (2, 1, 0)) * real[:, None, None]
+        return SRVFTree(q0=qa[:, :, 0].T, q=q, s=s, mask=real, origin=origin)
+
+    fn = one
+    for _ in v.shape[:-1]:
+        fn = jax.vmap(fn)
+    return fn(v)
 
 
-@eqx.filter_jit
-def _compose(M, components, eigenvalues):
-    """``Mᵀ`` composed with the PCA basis ``√σ_i Λ_i``: an ``(l+1) × p`` matrix."""
+def _affine_map(pca: TangentPCA, M: np.ndarray):
+    """``M`` composed with the PCA basis and un-whitened, in float64: the SRVF tree of
+    ``[z; 1]`` is ``offset + Σ z_i slopes[i]`` (stacked ``(T, K+1, d)``) and its positions
+    ``s_offset + Σ z_i s_slopes[i]`` (before clipping to [0, 1])."""
+    f64 = lambda x: np.asarray(x, dtype=np.float64)  # noqa: E731
     m = M.shape[0]
-    return (M.T * jnp.sqrt(eigenvalues[:m])) @ components[:m]
+    G = (M.T * np.sqrt(f64(pca.eigenvalues[:m]))) @ f64(pca.components[:m])  # (l+1, p) whitened
+    mean, c = pca.mean, pca.scales
+    T, d = mean.q0.shape
+    K = mean.q.shape[0]
+    u = _unflatten(G, T, K, d)
+    q0 = f64(u.q0) / f64(c.q0)  # (l+1, T, d)
+    q = f64(u.q) / f64(c.q)  # (l+1, K, T, d)
+    stacked = np.concatenate([q0[:, None], q], axis=1).transpose(0, 3, 2, 1)  # (l+1, d, T, K+1)
+    base = np.concatenate([f64(mean.q0)[None], f64(mean.q)], axis=0).transpose(2, 1, 0)
+    s = f64(u.s) / f64(c.s)
+    return base + stacked[-1], stacked[:-1], f64(mean.s) + s[-1], s[:-1]
+
+
+def _check_values(reg: "TraitRegression", values):
+    # Host-side checks for host data (no device round trip); a traced array passes through.
+    dtype = reg.matrix.dtype
+    if isinstance(values, jax.Array):
+        v = values.astype(dtype)
+    else:
+        v = np.asarray(values, dtype=dtype)
+        if not np.all(np.isfinite(v)):
+            raise ValueError("trait values contain NaN or inf.")
+    if v.ndim == 0 or v.shape[-1] != len(reg.names):
+        raise ValueError(
+            f"values must have shape (..., {len(reg.names)}) in the order {reg.names}, got {v.shape}."
+        )
+    return v
+
+
+def _synthesize_method(reg: "TraitRegression", values, *, srvf: bool = False) -> RootTree | SRVFTree:
+    """Roots with the requested trait values (``(l,)`` for one root, ``(N, l)`` for a
+    batch), in the order of `names`."""
+    pc = reg.pca
+    return _synthesize(
+        reg.offset, reg.slopes, reg.s_offset, reg.s_slopes, pc.mean.origin,
+        pc.min_lateral_length, reg.trait_mean, reg.trait_scale, _check_values(reg, values),
+        curves=not srvf,
+    )
+
+
+class _PlainMethod:
+    """A method whose bound form is a `functools.partial`. Equinox turns every bound method of
+    a Module into a `BoundMethod` Module (20–40 µs per attribute access), a cost that one
+    regressed root (~0.1 ms, dispatch-bound) cannot carry."""
+
+    def __init__(self, fn):
+        self.fn = fn
+        functools.update_wrapper(self, fn)
+
+    def __get__(self, obj, objtype=None):
+        return self.fn if obj is None else functools.partial(self.fn, obj)
 
 
 class TraitRegression(eqx.Module):
-    """Linear map from traits (and covariates) to PCA coefficients, ``b = M [p; 1]``.
+    """Linear map from traits (and covariates) to PCA coefficients, ``b = M [z; 1]`` with
+    standardised values ``z = (p − trait_mean) / trait_scale``.
 
     Build with `TraitRegression.fit`. **Fields**: `pca`; `matrix` ``M`` (``m × (l+1)``, the
-    last column the intercept); `linear` — ``Mᵀ`` composed with the PCA basis
-    (``(l+1) × p``), the whole map from ``[p, 1]`` to the whitened tangent vector, so that one
-    root costs one small product; `names` — the traits then the covariates, the order of the
-    values `synthesize` expects; `trait_names` — the measured ones; `n_components` ``m``.
+    last column the intercept); `trait_mean`, `trait_scale` (``l``) the training values'
+    mean and standard deviation; `names` — the traits then the covariates, the order of the
+    values `synthesize` expects; `trait_names` — the measured ones; `ignored` — values that
+    did not vary in training (their column of ``M`` is zero); `n_components` ``m``.
+
+    The rest is the whole map from ``z`` to an SRVF tree, precomputed so that one root costs
+    ``l`` multiply-adds per SRVF value: ``offset + Σ_i z_i slopes[i]`` stacked ``(d, T, K+1)``
+    with the main root in slot 0 of the last axis, and likewise for the attachment positions.
     """
 
     pca: TangentPCA
     matrix: Float[Array, "m l1"]
-    linear: Float[Array, "l1 p"]
+    trait_mean: Float[Array, " l"]
+    trait_scale: Float[Array, " l"]
+    offset: Float[Array, "d T K1"]
+    slopes: Float[Array, "l d T K1"]
+    s_offset: Float[Array, " K"]
+    s_slopes: Float[Array, "l K"]
     names: tuple[str, ...] = eqx.field(static=True)
     trait_names: tuple[str, ...] = eqx.field(static=True)
+    ignored: tuple[str, ...] = eqx.field(static=True)
     n_components: int = eqx.field(static=True)
 
     @classmethod
@@ -94,12 +232,14 @@ class TraitRegression(eqx.Module):
         covariate_names: Sequence[str] | None = None,
         n_components: int | None = None,
     ) -> "TraitRegression":
-        """Fit ``M = B P⁺`` on the PCA's training roots.
+        """Fit ``M = B Z⁺`` on the PCA's training roots (``Z = [z; 1]``, standardised traits).
 
         - `trees`: the training roots as a batched `RootTree`, in the order given to
           `karcher_mean` (their traits are measured with `rootshape_jax.traits`). Not needed
           when `traits` is empty.
         - `traits`: trait names (keys of `rootshape_jax.traits`); default the paper's three.
+          A trait that does not vary across the training roots (main-root length after scale
+          normalisation) cannot be regressed: it is ignored, with a warning.
         - `covariates`: optional ``(n, c)`` user covariates (e.g. treatment, soil humidity),
           with `covariate_names`.
         - `n_components`: PCA components regressed (default `pca.n_components`).
@@ -132,40 +272,36 @@ class TraitRegression(eqx.Module):
         if not names:
             raise ValueError("fit needs at least one trait or covariate.")
         p = np.concatenate(columns, axis=1)
-        P = np.concatenate([p, np.ones((n, 1))], axis=1).T  # (l+1, n)
+        mu, sd, ignored = _standardise(p, names)
+        z = np.where(np.isin(names, ignored), 0.0, (p - mu) / sd)
+        Z = np.concatenate([z, np.ones((n, 1))], axis=1).T  # (l+1, n)
         B = np.asarray(pca.scores[:, :m], dtype=np.float64).T  # (m, n)
-        M = jnp.asarray(B @ np.linalg.pinv(P), pca.mean.q0.dtype)
+        M = B @ np.linalg.pinv(Z)
+        M[:, np.flatnonzero(np.isin(names, ignored))] = 0.0  # exactly, not 1e-17
+        dtype = pca.mean.q0.dtype
+        offset, slopes, s_offset, s_slopes = _affine_map(pca, M)
         return cls(
             pca=pca,
-            matrix=M,
-            linear=_compose(M, pca.components, pca.eigenvalues),
+            matrix=jnp.asarray(M, dtype),
+            trait_mean=jnp.asarray(mu, dtype),
+            trait_scale=jnp.asarray(sd, dtype),
+            offset=jnp.asarray(offset, dtype),
+            slopes=jnp.asarray(slopes, dtype),
+            s_offset=jnp.asarray(s_offset, dtype),
+            s_slopes=jnp.asarray(s_slopes, dtype),
             names=tuple(names),
             trait_names=traits,
+            ignored=ignored,
             n_components=m,
         )
 
     def coefficients(self, values) -> Float[Array, "*N m"]:
-        """PCA coefficients ``M [p; 1]`` for trait values ``(..., l)`` in the order of `names`."""
-        v = jnp.asarray(values, self.matrix.dtype)
-        if v.ndim == 0 or v.shape[-1] != len(self.names):
-            raise ValueError(
-                f"values must have shape (..., {len(self.names)}) in the order {self.names}, "
-                f"got {v.shape}."
-            )
-        ones = jnp.ones(v.shape[:-1] + (1,), v.dtype)
-        return jnp.concatenate([v, ones], axis=-1) @ self.matrix.T
+        """PCA coefficients ``M [z; 1]`` for trait values ``(..., l)`` in the order of `names`."""
+        z = (jnp.asarray(_check_values(self, values)) - self.trait_mean) / self.trait_scale
+        ones = jnp.ones(z.shape[:-1] + (1,), z.dtype)
+        return jnp.concatenate([z, ones], axis=-1) @ self.matrix.T
 
-    def synthesize(self, values, *, srvf: bool = False) -> RootTree | SRVFTree:
-        """Roots with the requested trait values (``(l,)`` for one root, ``(N, l)`` for a
-        batch), in the order of `names`."""
-        v = jnp.asarray(values, self.matrix.dtype)
-        if v.ndim == 0 or v.shape[-1] != len(self.names):
-            raise ValueError(
-                f"values must have shape (..., {len(self.names)}) in the order {self.names}, "
-                f"got {v.shape}."
-            )
-        pc = self.pca
-        return _synthesize(pc.mean, pc.scales, pc.min_lateral_length, self.linear, v, curves=not srvf)
+    synthesize = _PlainMethod(_synthesize_method)
 
     def report(self, trees: RootTree, *, covariates=None) -> dict:
         """How well synthesised roots reproduce requested traits, on (held-out) roots.

@@ -1,6 +1,7 @@
 """Trait regression: M = B P⁺, synthesis from traits, and the trait report."""
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -9,7 +10,7 @@ from rootshape_jax._mean import karcher_mean
 from rootshape_jax._pca import tangent_pca
 from rootshape_jax._regression import PAPER_TRAITS, TraitRegression
 
-from helpers import linear_srvf_population, random_root
+from helpers import linear_srvf_population, random_root, tree_allclose
 
 T = 30
 
@@ -44,12 +45,85 @@ def test_matrix_is_the_least_squares_solution(linear):
     rng = np.random.default_rng(0)
     cov = np.concatenate([coef, rng.normal(size=(8, 1))], axis=1)
     reg = TraitRegression.fit(pc, traits=(), covariates=cov)
-    # Reference: each coefficient regressed on [p, 1] by numpy's least squares.
+    # Reference: each coefficient regressed on [z, 1] (standardised values) by numpy's least
+    # squares; the fitted values equal those of the regression on [p, 1].
+    mu, sd = cov.mean(axis=0), cov.std(axis=0)
+    Z = np.concatenate([(cov - mu) / sd, np.ones((8, 1))], axis=1)
     X = np.concatenate([cov, np.ones((8, 1))], axis=1)
     B = np.asarray(pc.scores[:, : pc.n_components])
+    ref_z, *_ = np.linalg.lstsq(Z, B, rcond=None)
     ref, *_ = np.linalg.lstsq(X, B, rcond=None)
-    np.testing.assert_allclose(np.asarray(reg.matrix), ref.T, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(reg.matrix), ref_z.T, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(reg.trait_mean, mu, rtol=1e-12)
+    np.testing.assert_allclose(reg.trait_scale, sd, rtol=1e-12)
     np.testing.assert_allclose(reg.coefficients(cov), X @ ref, rtol=1e-8, atol=1e-10)
+
+
+@pytest.fixture(scope="module")
+def linear3d():
+    rng = np.random.default_rng(32)
+    base = rs.to_srvf(rs.batch(random_root(rng, n_laterals=3, d=3), n_points=T, max_laterals=4))
+    coef = np.stack([rng.normal(0, 0.5, 8), rng.normal(0, 0.3, 8)], axis=1)
+    pc = tangent_pca(karcher_mean(linear_srvf_population(base, coef), max_steps=20))
+    return base, coef, pc
+
+
+@pytest.mark.parametrize("population", ["linear", "linear3d"])
+def test_synthesis_equals_the_pca_reconstruction(population, request):
+    # The precomputed affine map and the stacked curve integration against the slow path:
+    # coefficients → reconstruct (PCA basis, per-curve to_curves); d = 2 and 3.
+    from rootshape_jax._pca import reconstruct
+
+    _, coef, pc = request.getfixturevalue(population)
+    reg = TraitRegression.fit(pc, traits=(), covariates=coef)
+    new = np.array([[0.3, -0.2], [-0.8, 0.4], [1.5, 0.0], [-3.0, 2.0]])
+    got = reg.synthesize(new)
+    want = reconstruct(pc, reg.coefficients(new))
+    assert tree_allclose(got, want, rtol=1e-10, atol=1e-12)
+    assert tree_allclose(reg.synthesize(new, srvf=True), reconstruct(pc, reg.coefficients(new), srvf=True),
+                         rtol=1e-10, atol=1e-12)
+    assert tree_allclose(reg.synthesize(new[1]), jax.tree.map(lambda x: x[1], got), rtol=1e-12, atol=1e-14)
+
+
+def test_constant_trait_is_ignored_and_float32_keeps_its_digits(linear):
+    # A trait constant up to rounding (main-root length after scale normalisation) is collinear
+    # with the intercept: P⁺ gives it huge cancelling coefficients, which used to make a float32
+    # synthesis wrong by the size of the answer. It is now ignored, with a warning.
+    _, coef, pc = linear
+    rng = np.random.default_rng(5)
+    const = 1.0 + 1e-8 * rng.normal(size=(8, 1))
+    with pytest.warns(UserWarning, match="do not vary"):
+        reg = TraitRegression.fit(pc, traits=(), covariates=np.concatenate([const, coef], axis=1),
+                                  covariate_names=["length", "a", "b"])
+    assert reg.ignored == ("length",)
+    plain = TraitRegression.fit(pc, traits=(), covariates=coef)
+    new = np.array([[1.0, 0.3, -0.2], [1.0, -0.8, 0.4]])
+    np.testing.assert_allclose(reg.coefficients(new), plain.coefficients(new[:, 1:]), atol=1e-12)
+    moved = new.copy()
+    moved[:, 0] = 2.0
+    assert tree_allclose(reg.synthesize(moved), reg.synthesize(new), rtol=0, atol=0)
+    # float32: the same PCA cast down; the synthesis agrees with float64 to float32 precision.
+    pc32 = jax.tree.map(lambda x: x.astype(np.float32) if jnp.issubdtype(x.dtype, jnp.floating) else x, pc)
+    with pytest.warns(UserWarning, match="do not vary"):
+        reg32 = TraitRegression.fit(pc32, traits=(), covariates=np.concatenate([const, coef], axis=1))
+    got = reg32.synthesize(new)
+    want = reg.synthesize(new)
+    assert got.main.dtype == np.float32
+    np.testing.assert_allclose(got.main, want.main, atol=1e-5)
+    np.testing.assert_allclose(got.laterals, want.laterals, atol=1e-5)
+    np.testing.assert_allclose(got.attach, want.attach, atol=1e-5)
+
+
+def test_synthesize_does_not_retrace(linear):
+    from rootshape_jax import _regression
+
+    _, coef, pc = linear
+    reg = TraitRegression.fit(pc, traits=(), covariates=coef)
+    reg.synthesize(coef[0])
+    before = _regression._synthesize._cache_size()
+    for row in coef[1:4]:
+        reg.synthesize(row)
+    assert _regression._synthesize._cache_size() == before
 
 
 @pytest.fixture(scope="module")
@@ -111,3 +185,5 @@ def test_bad_input(linear, roots_population):
     reg = TraitRegression.fit(pc, traits=(), covariates=coef)
     with pytest.raises(ValueError, match="shape"):
         reg.synthesize(np.zeros(5))
+    with pytest.raises(ValueError, match="NaN"):
+        reg.synthesize([np.nan, 0.0])
