@@ -20,7 +20,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from ._curves import l2_norm_squared, resample_curve, srvf
 from ._errors import InvalidRootError
 from ._rotation import optimal_rotation
-from ._warp import _check_neighbourhood, _dp_warp_if, warp_samples
+from ._warp import _check_neighbourhood, _dp_warp_if, _warp_samples, warp_samples
 
 
 class CurveRegistration(eqx.Module):
@@ -79,7 +79,7 @@ def _register(q1, q2, *, rotation: bool, neighbourhood: int, max_iterations, rto
         # The energy is Σ w·(|A − O·B|² at both interval ends)/2, a weighted Procrustes
         # problem in O: its Kabsch solution is exact for this γ. Also returns the energy at
         # the rotation the DP used, to measure what the rotation step gained.
-        A, B, w = warp_samples(q1, q2, gamma)
+        A, B, w = _warp_samples(q1, q2, gamma)  # γ comes from the DP: no checks needed
         O = optimal_rotation(A, B, w) if rotation else eye
 
         def energy(R):

@@ -114,13 +114,28 @@ def test_warp_energy_at_identity_is_the_grid_l2_distance():
     assert abs(float(warp_energy(q1, q2, identity)) - float(l2_norm_squared(q1 - q2))) < 1e-12
 
 
-def test_warp_samples_reproduce_the_energy():
-    q1, q2 = _random_pair(6, 12)
-    g = _random_gamma(np.random.default_rng(0), 12)
+@pytest.mark.parametrize("kind", ["random", "flat", "dp"])
+def test_warp_samples_reproduce_the_energy(kind):
+    # The intervals are found without sorting: check them against a plain-numpy merge (np.sort
+    # of grid nodes and crossings) and the energy against the numpy reference, for warps with
+    # flat parts and for DP warps, whose crossings fall exactly on grid nodes (ties).
+    T = 12
+    q1, q2 = _random_pair(6, T)
+    rng = np.random.default_rng(0)
+    if kind == "dp":
+        g = np.asarray(dp_warp(q1, q2, neighbourhood=4))
+    else:
+        g = _random_gamma(rng, T, flat=kind == "flat")
     A, B, w = warp_samples(q1, q2, g)
     e = np.sum(np.asarray(w) * 0.5 * np.sum((np.asarray(A) - np.asarray(B)) ** 2, axis=(1, 2)))
+    assert abs(e - reference_warp_energy(q1, q2, g)) < 1e-12
     assert abs(e - float(warp_energy(q1, q2, g))) < 1e-12
-    assert np.all(np.asarray(w) >= 0) and abs(float(np.sum(w)) - 1.0) < 1e-12
+    w = np.asarray(w)
+    assert np.all(w >= 0) and abs(float(np.sum(w)) - 1.0) < 1e-12
+    grid = np.arange(T, dtype=float)
+    merged = np.sort(np.concatenate([grid, np.interp(grid, g * (T - 1), grid)]))
+    want = np.diff(merged) / (T - 1)
+    np.testing.assert_allclose(np.sort(w[w > 1e-14]), np.sort(want[want > 1e-14]), atol=1e-14)
 
 
 # --- properties -------------------------------------------------------------------------------
