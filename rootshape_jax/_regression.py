@@ -57,8 +57,9 @@ def _as_matrix(x, n: int | None, what: str) -> np.ndarray:
     return x
 
 
-def _standardise(p: np.ndarray, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
-    """Centre and scale each trait column; columns constant up to rounding are ignored.
+def _standardise(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean, scale and a mask of the trait columns constant up to rounding (given scale 1;
+    the regression ignores them).
 
     Without this, a constant column (main-root length after scale normalisation is 1 ± 1e-8)
     is collinear with the intercept: ``P⁺`` gives it coefficients of ~10⁶ that cancel only in
@@ -67,16 +68,7 @@ def _standardise(p: np.ndarray, names: Sequence[str]) -> tuple[np.ndarray, np.nd
     mean = p.mean(axis=0)
     scale = p.std(axis=0)
     constant = scale <= 1e-6 * np.maximum(np.abs(mean), np.finfo(np.float64).tiny)
-    ignored = tuple(n for n, c in zip(names, constant) if c)
-    if ignored:
-        warnings.warn(
-            f"trait(s) {ignored} do not vary across the training roots (e.g. main-root length "
-            "after scale normalisation), so they cannot be regressed: synthesize ignores their "
-            "values. Drop them from `traits` to silence this warning.",
-            stacklevel=3,
-        )
-    scale = np.where(constant, 1.0, scale)
-    return mean, scale, ignored
+    return mean, np.where(constant, 1.0, scale), constant
 
 
 def _stacked_to_curves(qa, s, keep, origin):
@@ -111,8 +103,8 @@ def _stacked_to_curves(qa, s, keep, origin):
 
 @functools.partial(jax.jit, static_argnames="curves")
 def _synthesize(offset, slopes, s_offset, s_slopes, origin, min_len, trait_mean, trait_scale, v, curves):
-    # Plain jax.jit on the arrays it needs: one regressed root is dispatch-bound (~0.05 ms), so
-    # no Module flattening, and the affine map is unrolled over the few traits (XLA:CPU's
+    # Plain jax.jit on the arrays it needs: one regressed root is dispatch-bound, so no Module
+    # flattening, and the affine map is unrolled over the few traits (XLA:CPU's
     # dot for a (l,) × (l, p) product costs more than the whole root).
     def one(v):
         z = (v - trait_mean) / trait_scale
@@ -136,7 +128,7 @@ def _synthesize(offset, slopes, s_offset, s_slopes, origin, min_len, trait_mean,
 
 def _affine_map(pca: TangentPCA, M: np.ndarray):
     """``M`` composed with the PCA basis and un-whitened, in float64: the SRVF tree of
-    ``[z; 1]`` is ``offset + Σ z_i slopes[i]`` (stacked ``(T, K+1, d)``) and its positions
+    ``[z; 1]`` is ``offset + Σ z_i slopes[i]`` (stacked ``(d, T, K+1)``) and its positions
     ``s_offset + Σ z_i s_slopes[i]`` (before clipping to [0, 1])."""
     f64 = lambda x: np.asarray(x, dtype=np.float64)  # noqa: E731
     m = M.shape[0]
@@ -272,12 +264,20 @@ class TraitRegression(eqx.Module):
         if not names:
             raise ValueError("fit needs at least one trait or covariate.")
         p = np.concatenate(columns, axis=1)
-        mu, sd, ignored = _standardise(p, names)
-        z = np.where(np.isin(names, ignored), 0.0, (p - mu) / sd)
+        mu, sd, constant = _standardise(p)
+        ignored = tuple(k for k, c in zip(names, constant) if c)
+        if ignored:
+            warnings.warn(
+                f"trait(s) {ignored} do not vary across the training roots (e.g. main-root "
+                "length after scale normalisation), so they cannot be regressed: synthesize "
+                "ignores their values. Drop them from `traits` to silence this warning.",
+                stacklevel=2,
+            )
+        z = np.where(constant, 0.0, (p - mu) / sd)
         Z = np.concatenate([z, np.ones((n, 1))], axis=1).T  # (l+1, n)
         B = np.asarray(pca.scores[:, :m], dtype=np.float64).T  # (m, n)
         M = B @ np.linalg.pinv(Z)
-        M[:, np.flatnonzero(np.isin(names, ignored))] = 0.0  # exactly, not 1e-17
+        M[:, np.flatnonzero(constant)] = 0.0  # exactly, not 1e-17
         dtype = pca.mean.q0.dtype
         offset, slopes, s_offset, s_slopes = _affine_map(pca, M)
         return cls(
