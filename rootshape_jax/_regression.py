@@ -101,6 +101,9 @@ def _stacked_to_curves(qa, s, keep, origin):
     return main, laterals
 
 
+_SWEEP_CHUNK = 64
+
+
 @functools.partial(jax.jit, static_argnames="curves")
 def _synthesize(offset, slopes, s_offset, s_slopes, origin, min_len, trait_mean, trait_scale, v, curves):
     # Plain jax.jit on the arrays it needs: one regressed root is dispatch-bound, so no Module
@@ -120,10 +123,13 @@ def _synthesize(offset, slopes, s_offset, s_slopes, origin, min_len, trait_mean,
         q = jnp.transpose(qa[:, :, 1:], (2, 1, 0)) * real[:, None, None]
         return SRVFTree(q0=qa[:, :, 0].T, q=q, s=s, mask=real, origin=origin)
 
-    fn = one
-    for _ in v.shape[:-1]:
-        fn = jax.vmap(fn)
-    return fn(v)
+    if v.ndim == 1:
+        return one(v)
+    # A large sweep in one vmap streams every intermediate (~50 kB per root) through memory;
+    # chunks of _SWEEP_CHUNK roots stay in cache (1,000 roots: 0.105 -> 0.065 ms each here).
+    flat = v.reshape(-1, v.shape[-1])
+    out = jax.lax.map(one, flat, batch_size=_SWEEP_CHUNK) if len(flat) > _SWEEP_CHUNK else jax.vmap(one)(flat)
+    return jax.tree.map(lambda x: x.reshape(v.shape[:-1] + x.shape[1:]), out)
 
 
 def _affine_map(pca: TangentPCA, M: np.ndarray):

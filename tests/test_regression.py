@@ -85,6 +85,25 @@ def test_synthesis_equals_the_pca_reconstruction(population, request):
     assert tree_allclose(reg.synthesize(new[1]), jax.tree.map(lambda x: x[1], got), rtol=1e-12, atol=1e-14)
 
 
+def test_large_sweeps_are_chunked_and_keep_their_batch_shape(linear):
+    # Above _SWEEP_CHUNK roots the synthesis runs in chunks (lax.map, with a remainder): every
+    # root must equal its own single-root synthesis, for a flat and a (3, 50) batch shape.
+    from rootshape_jax._regression import _SWEEP_CHUNK
+
+    _, coef, pc = linear
+    reg = TraitRegression.fit(pc, traits=(), covariates=coef)
+    n = 2 * _SWEEP_CHUNK + 22  # not a multiple of the chunk
+    new = np.random.default_rng(8).normal(0, 0.6, size=(n, 2))
+    got = reg.synthesize(new)
+    assert got.main.shape[0] == n
+    for i in (0, _SWEEP_CHUNK - 1, _SWEEP_CHUNK, n - 1):
+        assert tree_allclose(jax.tree.map(lambda x: x[i], got), reg.synthesize(new[i]), rtol=1e-12, atol=1e-14)
+    grid = reg.synthesize(new[:150].reshape(3, 50, 2), srvf=True)
+    flat = reg.synthesize(new[:150], srvf=True)
+    assert grid.q.shape[:2] == (3, 50)
+    assert tree_allclose(jax.tree.map(lambda x: x.reshape((150,) + x.shape[2:]), grid), flat, rtol=1e-12, atol=1e-14)
+
+
 def test_constant_trait_is_ignored_and_float32_keeps_its_digits(linear):
     # A trait constant up to rounding (main-root length after scale normalisation) is collinear
     # with the intercept: P⁺ gives it huge cancelling coefficients, which used to make a float32
