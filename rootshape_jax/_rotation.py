@@ -35,12 +35,28 @@ def optimal_rotation(
         w = jnp.asarray(weights, A.dtype)[..., None] * tw
     # K = Σ w B Aᵀ (d×d); maximise tr(O K).
     K = jnp.einsum("...t,...ti,...tj->ij", w, B, A)
+    if A.shape[-1] == 2:
+        return _rotation_2d(K)
     U, _, Vt = jnp.linalg.svd(K)
     V = Vt.T
     det = jnp.linalg.det(V @ U.T)
     d = A.shape[-1]
     D = jnp.ones((d,), A.dtype).at[-1].set(jnp.sign(det) + (det == 0))
     return (V * D) @ U.T
+
+
+def _rotation_2d(K: Array) -> Array:
+    # In 2-D, tr(O K) = c (K00 + K11) + s (K01 − K10) for O = [[c, −s], [s, c]]: the maximiser
+    # is (c, s) ∝ (K00 + K11, K01 − K10), no SVD needed (LAPACK's batched SVD costs more than
+    # the rest of a rotation step). K = 0 (nothing to align) gives the identity.
+    x = K[0, 0] + K[1, 1]
+    y = K[0, 1] - K[1, 0]
+    r2 = x * x + y * y
+    ok = r2 > 0
+    r = jnp.sqrt(jnp.where(ok, r2, 1))
+    c = jnp.where(ok, x / r, 1)
+    s = jnp.where(ok, y / r, 0)
+    return jnp.stack([jnp.stack([c, -s]), jnp.stack([s, c])])
 
 
 def rotate(x: Float[ArrayLike, "*batch d"], O: Float[ArrayLike, "d d"]) -> Float[Array, "*batch d"]:

@@ -275,8 +275,10 @@ def _forward(q1: Array, q2: Array, n: int):
                 return jax.lax.switch(j, branches, bst, win, hist, r1_k)
 
             best = jax.lax.fori_loop(0, len(groups), one_group, best)
-        new = jnp.concatenate([jnp.full((n, batch), inf), best])
-        return jax.lax.dynamic_update_slice_in_dim(table, new[None], k + n, axis=0), None
+        # Written from column n on: the n padding columns stay inf from the initial table (a
+        # concatenated inf block here made the fused row loop ~8 % slower).
+        start = (k + n, jnp.asarray(n, k.dtype), jnp.asarray(0, k.dtype))
+        return jax.lax.dynamic_update_slice(table, best[None], start), None
 
     table = jnp.full((size + n, size + n, batch), inf, dtype).at[n, n].set(0)
     table, _ = jax.lax.scan(row, table, (jnp.arange(1, size), r1_rows[1:]))

@@ -161,6 +161,34 @@ def test_optimal_rotation_never_reflects_and_is_optimal():
         assert np.sum(A * (B @ R.T)) <= best + 1e-9
 
 
+@pytest.mark.parametrize("case", ["random", "mirror", "zero"])
+def test_optimal_rotation_2d_closed_form_equals_svd_kabsch(case):
+    # d = 2 uses a closed form; the reference is plain-numpy Kabsch (SVD + determinant
+    # correction) and a brute-force search over angles.
+    rng = np.random.default_rng(17)
+    A = rng.normal(size=(3, 25, 2))
+    B = rng.normal(size=(3, 25, 2))
+    if case == "mirror":
+        B = A * np.array([-1.0, 1.0])
+    if case == "zero":
+        B = np.zeros_like(A)
+    w = rng.uniform(0.5, 2.0, size=3)
+    O = np.asarray(optimal_rotation(A, B, w))
+    if case == "zero":
+        np.testing.assert_array_equal(O, np.eye(2))
+        return
+    tw = np.full(25, 1 / 24)
+    tw[[0, -1]] /= 2
+    K = np.einsum("k,t,kti,ktj->ij", w, tw, B, A)
+    U, _, Vt = np.linalg.svd(K)
+    D = np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    np.testing.assert_allclose(O, Vt.T @ D @ U.T, atol=1e-12)
+    assert abs(np.linalg.det(O) - 1) < 1e-12
+    score = lambda R: np.sum(w[:, None, None] * tw[:, None] * A * (B @ R.T))  # noqa: E731
+    angles = np.linspace(0, 2 * np.pi, 3601)
+    assert max(score(np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])) for t in angles) <= score(O) + 1e-12
+
+
 def test_bad_shapes_raise_clear_errors():
     with pytest.raises(ValueError, match="T >= 2"):
         srvf(np.zeros((1, 2)))
