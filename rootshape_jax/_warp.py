@@ -244,7 +244,9 @@ def _forward(q1: Array, q2: Array, n: int):
     gram = jnp.einsum("ibd,jbd->ijb", q1t, q2t)
     gpad = jnp.pad(gram, ((n, 0), (n, 0), (0, 0)))
     r1_rows = jnp.moveaxis(r1, 1, 0)  # (T, M, B), scanned over
-    kern = st.kern.astype(np.dtype(dtype))
+    # −2·kern: the cross term's factor folded into the coefficients (exact: a power of two),
+    # one multiply less per move and cell (~3 % of the row loop).
+    kern = (-2 * st.kern).astype(np.dtype(dtype))
     terms = [[(u, kern[m, u]) for u in np.flatnonzero(kern[m])] for m in range(len(a))]
 
     def group_min(best, win, hist, r1_k, members):
@@ -256,7 +258,7 @@ def _forward(q1: Array, q2: Array, n: int):
                 for u, c in terms[m]
             )
             prev = hist[n - a[m], n - b[m] : n - b[m] + size]
-            best = jnp.minimum(best, prev + (r1_k[m] + r2[m] - 2 * cross))
+            best = jnp.minimum(best, prev + (r1_k[m] + r2[m] + cross))
         return best
 
     groups = _move_groups(terms)
