@@ -186,7 +186,8 @@ def test_optimal_rotation_2d_closed_form_equals_svd_kabsch(case):
     assert abs(np.linalg.det(O) - 1) < 1e-12
     score = lambda R: np.sum(w[:, None, None] * tw[:, None] * A * (B @ R.T))  # noqa: E731
     angles = np.linspace(0, 2 * np.pi, 3601)
-    assert max(score(np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])) for t in angles) <= score(O) + 1e-12
+    rotations = [np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]) for t in angles]
+    assert max(score(R) for R in rotations) <= score(O) + 1e-12
 
 
 def test_bad_shapes_raise_clear_errors():
