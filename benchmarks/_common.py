@@ -17,6 +17,17 @@ from pathlib import Path
 RESULTS = Path(__file__).parent / "results"
 
 
+# The paper's Section 6.5 timings (Matlab, i5-4460), quoted by bench_stats and
+# paper_reproduction.
+PAPER_STATS = {
+    "karcher_mean_s": 9 * 3600 + 4 * 60,
+    "pca_s": 1.1,
+    "random_root_s": 0.22,
+    "regression_fit_s": 0.01,
+    "regressed_root_s": 0.001,
+}
+
+
 def setup_jax(n_devices: int | None = None, *, x64: bool = False):
     """Import JAX with `n_devices` CPU devices (default: every core) and optional float64."""
     import jax

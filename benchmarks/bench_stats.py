@@ -20,15 +20,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
+from _common import PAPER_STATS as PAPER  # noqa: E402
 from _common import machine, setup_jax, write_json  # noqa: E402
-
-PAPER = {
-    "karcher_mean_s": 9 * 3600 + 4 * 60,
-    "pca_s": 1.1,
-    "random_root_s": 0.22,
-    "regression_fit_s": 0.01,
-    "regressed_root_s": 0.001,
-}
 
 
 def _median(fn, repeats=15):

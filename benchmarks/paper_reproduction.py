@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import RESULTS, machine, setup_jax, timed, write_json  # noqa: E402
+from _common import PAPER_STATS, RESULTS, machine, setup_jax, timed, write_json  # noqa: E402
 
 NAME = "paper_reproduction"
 CACHE_VERSION = 1  # bump when this script changes what a cached result means
@@ -56,14 +56,6 @@ PAPER_TIMING = (
     ("Example 2", 14, "Feragen et al.", 137.0, None, 10.60, 147.60),
     ("Example 2", 14, "Wang et al.", 137.0, 0.0028, 11.31, 148.31),
 )
-# The paper's Section 6.5 text (same machine).
-PAPER_STATS = {
-    "karcher_mean_s": 9 * 3600 + 4 * 60,
-    "pca_s": 1.1,
-    "random_root_s": 0.22,
-    "regression_fit_s": 0.01,
-    "regressed_root_s": 0.001,
-}
 
 
 @dataclasses.dataclass(frozen=True)
