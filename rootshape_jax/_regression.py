@@ -138,7 +138,9 @@ def _affine_map(pca: TangentPCA, M: np.ndarray):
     ``s_offset + Σ z_i s_slopes[i]`` (before clipping to [0, 1])."""
     f64 = lambda x: np.asarray(x, dtype=np.float64)  # noqa: E731
     m = M.shape[0]
-    G = (M.T * np.sqrt(f64(pca.eigenvalues[:m]))) @ f64(pca.components[:m])  # (l+1, p) whitened
+    # Rows sliced before the float64 copy: the basis is (components × p), p = (K+1)·T·d + K.
+    components = np.asarray(pca.components)[:m].astype(np.float64)
+    G = (M.T * np.sqrt(f64(pca.eigenvalues)[:m])) @ components  # (l+1, p) whitened
     mean, c = pca.mean, pca.scales
     T, d = mean.q0.shape
     K = mean.q.shape[0]
@@ -281,20 +283,25 @@ class TraitRegression(eqx.Module):
             )
         z = np.where(constant, 0.0, (p - mu) / sd)
         Z = np.concatenate([z, np.ones((n, 1))], axis=1).T  # (l+1, n)
-        B = np.asarray(pca.scores[:, :m], dtype=np.float64).T  # (m, n)
+        # Host arrays are sliced after the copy: an eager slice of a device array is a
+        # dispatched JAX op (~50 µs each here), several times the arithmetic of this fit.
+        B = np.asarray(pca.scores, dtype=np.float64)[:, :m].T  # (m, n)
         M = B @ np.linalg.pinv(Z)
         M[:, np.flatnonzero(constant)] = 0.0  # exactly, not 1e-17
-        dtype = pca.mean.q0.dtype
-        offset, slopes, s_offset, s_slopes = _affine_map(pca, M)
+        dtype = np.dtype(pca.mean.q0.dtype)
+        fields = (M, mu, sd, *_affine_map(pca, M))
+        matrix, trait_mean, trait_scale, offset, slopes, s_offset, s_slopes = jax.device_put(
+            tuple(np.asarray(x, dtype) for x in fields)
+        )
         return cls(
             pca=pca,
-            matrix=jnp.asarray(M, dtype),
-            trait_mean=jnp.asarray(mu, dtype),
-            trait_scale=jnp.asarray(sd, dtype),
-            offset=jnp.asarray(offset, dtype),
-            slopes=jnp.asarray(slopes, dtype),
-            s_offset=jnp.asarray(s_offset, dtype),
-            s_slopes=jnp.asarray(s_slopes, dtype),
+            matrix=matrix,
+            trait_mean=trait_mean,
+            trait_scale=trait_scale,
+            offset=offset,
+            slopes=slopes,
+            s_offset=s_offset,
+            s_slopes=s_slopes,
             names=tuple(names),
             trait_names=traits,
             ignored=ignored,
