@@ -821,54 +821,39 @@ def _version() -> str:
 # Subcommands
 
 
-def cmd_distances(args) -> None:
+def _pipeline(args, steps, *, min_roots: int = 2) -> None:
+    """Load and prepare the roots, run `steps` (each ``step(ctx, out, args)``) in order."""
     out = Output(args.out, args)
-    ctx = Context(prepare(load_roots(args), args, min_roots=2, samples=args.samples))
-    run_distances(ctx, out, args)
+    ctx = Context(prepare(load_roots(args), args, min_roots=min_roots, samples=args.samples))
+    for step in steps:
+        step(ctx, out, args)
     out.print_summary()
+
+
+def cmd_distances(args) -> None:
+    _pipeline(args, [run_distances])
 
 
 def cmd_mean(args) -> None:
-    out = Output(args.out, args)
-    ctx = Context(prepare(load_roots(args), args, min_roots=1, samples=args.samples))
-    run_mean(ctx, out, args)
-    out.print_summary()
+    _pipeline(args, [run_mean], min_roots=1)
 
 
 def cmd_pca(args) -> None:
-    out = Output(args.out, args)
-    ctx = Context(prepare(load_roots(args), args, min_roots=2, samples=args.samples))
-    run_mean(ctx, out, args)
-    run_pca(ctx, out, args)
-    out.print_summary()
+    _pipeline(args, [run_mean, run_pca])
 
 
 def cmd_sample(args) -> None:
-    out = Output(args.out, args)
-    ctx = Context(prepare(load_roots(args), args, min_roots=2, samples=args.samples))
-    run_mean(ctx, out, args)
-    run_pca(ctx, out, args)
-    run_sample(ctx, out, args)
-    out.print_summary()
+    _pipeline(args, [run_mean, run_pca, run_sample])
 
 
 def cmd_regress(args) -> None:
     # Check the requested traits before the long computation.
     args.requested_values = _read_requested(args.requested) if args.requested else None
-    out = Output(args.out, args)
-    ctx = Context(prepare(load_roots(args), args, min_roots=len(PAPER_TRAITS) + 2, samples=args.samples))
-    run_mean(ctx, out, args)
-    run_pca(ctx, out, args)
-    run_regress(ctx, out, args)
-    out.print_summary()
+    _pipeline(args, [run_mean, run_pca, run_regress], min_roots=len(PAPER_TRAITS) + 2)
 
 
 def cmd_cluster(args) -> None:
-    out = Output(args.out, args)
-    ctx = Context(prepare(load_roots(args), args, min_roots=2, samples=args.samples))
-    run_distances(ctx, out, args)
-    run_cluster(ctx, out, args)
-    out.print_summary()
+    _pipeline(args, [run_distances, run_cluster])
 
 
 def cmd_traits(args) -> None:
