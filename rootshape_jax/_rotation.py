@@ -51,9 +51,9 @@ def _rotation_2d(K: Array) -> Array:
     # the rest of a rotation step). K = 0 (nothing to align) gives the identity.
     x = K[0, 0] + K[1, 1]
     y = K[0, 1] - K[1, 0]
-    r2 = x * x + y * y
-    ok = r2 > 0
-    r = jnp.sqrt(jnp.where(ok, r2, 1))
+    ok = (x != 0) | (y != 0)
+    x, y = jnp.where(ok, x, 1), jnp.where(ok, y, 0)  # safe values, and safe gradients
+    r = jnp.hypot(x, y)  # no underflow for tiny K (float32 x² underflows below ~1e-19)
     c = jnp.where(ok, x / r, 1)
     s = jnp.where(ok, y / r, 0)
     return jnp.stack([jnp.stack([c, -s]), jnp.stack([s, c])])

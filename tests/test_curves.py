@@ -176,6 +176,11 @@ def test_optimal_rotation_2d_closed_form_equals_svd_kabsch(case):
     O = np.asarray(optimal_rotation(A, B, w))
     if case == "zero":
         np.testing.assert_array_equal(O, np.eye(2))
+        # Tiny but non-zero inputs still give the rotation, also in float32 (no underflow).
+        R = rotation_matrix(rng, 2)
+        A32 = (1e-12 * A).astype(np.float32)
+        O32 = np.asarray(optimal_rotation(A32, (A32 @ R).astype(np.float32)))
+        np.testing.assert_allclose(O32, R, atol=1e-5)
         return
     tw = np.full(25, 1 / 24)
     tw[[0, -1]] /= 2
