@@ -15,7 +15,6 @@ Writes benchmarks/results/dask.json (dask_quick.json with --quick) and prints a 
 from __future__ import annotations
 
 import argparse
-import pickle
 import sys
 import time
 from pathlib import Path
@@ -61,7 +60,7 @@ def main(argv=None):
 
     import rootshape_jax as rs
     from rootshape_jax import _dask
-    from rootshape_jax._registration import _options
+    from rootshape_jax import _pairwise
 
     T, chunk = 100, 32
     pairs = n * (n - 1) // 2
@@ -95,8 +94,8 @@ def main(argv=None):
           f"compile {compile_s:.1f} s", flush=True)
 
     # Warm-up block: the first chunk-sized block of the real pairs.
-    dynamic, static = _options(True, 4, 1e-4, 7, True, 32, "callback")
-    payload = pickle.dumps((w, (dynamic, static)))
+    opts = jax.tree.map(np.asarray, rs.RegistrationOptions())
+    w_np = jax.tree.map(np.asarray, w)
     I, J = np.triu_indices(n, 1)
     s_np = jax.tree.map(np.asarray, rs.to_srvf(trees))
     x64 = bool(jax.config.read("jax_enable_x64"))
@@ -110,8 +109,9 @@ def main(argv=None):
             addrs = sorted(client.scheduler_info()["workers"])
             [s_fut] = client.scatter([s_np], broadcast=True, hash=False)
             t0 = time.perf_counter()
-            warm = [client.submit(_dask._pair_block, I[:chunk], J[:chunk], s_fut, s_fut, payload, chunk,
-                                  x64, workers=[a], allow_other_workers=False, pure=False) for a in addrs]
+            block = (I[:chunk], J[:chunk])
+            warm = [client.submit(_dask._task, _pairwise.pair_block, x64, block, (s_fut, s_fut, w_np, opts, chunk),
+                                  workers=[a], allow_other_workers=False, pure=False) for a in addrs]
             client.gather(warm)
             warm_s = time.perf_counter() - t0
             del warm, s_fut

@@ -2,11 +2,14 @@
 
 A root is a main root plus first-order laterals; each branch is an SRVF and the tree is padded
 with null laterals to fixed capacities, so the elastic metric, registration, distance matrices
-and Karcher means are jit/vmap-compiled. See README.md and DESIGN.md.
+and Karcher means are jit/vmap-compiled. See README.md and docs/architecture.md.
 """
 
 from ._errors import (
     CapacityError as CapacityError,
+    ConvergenceError as ConvergenceError,
+    InvalidCostError as InvalidCostError,
+    StoreMismatchError as StoreMismatchError,
     ImageError as ImageError,
     InvalidRootError as InvalidRootError,
     MissingDependencyError as MissingDependencyError,
@@ -34,15 +37,17 @@ from ._tree import (
     unstack as unstack,
 )
 from ._metric import (
+    TERMS as TERMS,
     MetricTerms as MetricTerms,
     Weights as Weights,
     preshape_distance_squared as preshape_distance_squared,
 )
-from ._registration import (
+from ._engine import (
+    MEAN_REGISTRATION as MEAN_REGISTRATION,
     Registration as Registration,
-    distance as distance,
-    register as register,
+    RegistrationOptions as RegistrationOptions,
 )
+from ._registration import distance as distance, register as register
 from ._pairwise import (
     cross_distances as cross_distances,
     pairwise_distances as pairwise_distances,
@@ -59,7 +64,6 @@ from ._elastic import (
     elastic_curve_distance as elastic_curve_distance,
 )
 from ._assignment import (
-    InvalidCostError as InvalidCostError,
     assignment_cost as assignment_cost,
     linear_assignment as linear_assignment,
 )
@@ -88,4 +92,5 @@ from ._traits import traits as traits, traits_to_csv as traits_to_csv
 __version__ = "0.1.0"
 from . import baselines as baselines
 from .baselines import Shrinkage as Shrinkage, geodesic_shrinkage as geodesic_shrinkage
-from ._dask import StoreMismatchError as StoreMismatchError
+from ._executor import LocalExecutor as LocalExecutor
+from . import _dask  # noqa: F401  (registers the Dask executor for client=; imports no Dask)

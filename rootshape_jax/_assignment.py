@@ -27,11 +27,7 @@ import numpy as np
 import scipy.optimize
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._errors import RootShapeError
-
-
-class InvalidCostError(RootShapeError, ValueError):
-    """A cost matrix handed to the assignment solver has the wrong shape or dtype."""
+from ._errors import InvalidCostError
 
 
 _METHODS = ("callback", "jax")

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 
-def _tiny(dtype) -> float:
+def tiny(dtype) -> float:
     # Squared norms below this are treated as zero; sqrt's derivative stays finite above it.
     return float(jnp.finfo(dtype).tiny) ** 0.5
 
@@ -28,7 +28,7 @@ def _float_dtype(x):
 def safe_norm(x: Array, axis: int = -1) -> Array:
     """Euclidean norm along ``axis`` that is 0 with zero gradient at (near-)zero vectors."""
     sq = jnp.sum(x * x, axis=axis)
-    ok = sq > _tiny(x.dtype)
+    ok = sq > tiny(x.dtype)
     return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
 
 
@@ -39,8 +39,8 @@ def safe_normalise(x: Array, axis: int = -1) -> Array:
     return jnp.where(ok, x / jnp.where(ok, jnp.expand_dims(n, axis), 1.0), 0.0)
 
 
-def _safe_sqrt(x: Array) -> Array:
-    ok = x > _tiny(x.dtype)
+def safe_sqrt(x: Array) -> Array:
+    ok = x > tiny(x.dtype)
     return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
 
 
@@ -87,7 +87,7 @@ def srvf(beta: Float[ArrayLike, "T d"]) -> Float[Array, "T d"]:
     t_prev = jnp.pad(tangent, pad + [(1, 0), (0, 0)], mode="edge")
     t_next = jnp.pad(tangent, pad + [(0, 1), (0, 0)], mode="edge")
     direction = safe_normalise(t_prev + t_next)
-    return _safe_sqrt(node_speed)[..., None] * direction
+    return safe_sqrt(node_speed)[..., None] * direction
 
 
 def cumulative_sum(x: Array, *, axis: int) -> Array:

@@ -20,7 +20,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from ._curves import l2_norm_squared, resample_curve, srvf
 from ._errors import InvalidRootError
 from ._rotation import optimal_rotation
-from ._warp import _check_neighbourhood, _dp_warp_if, _warp_samples, warp_samples
+from ._warp import check_neighbourhood, dp_warp_if, warp_samples_unchecked, warp_samples
 
 
 class CurveRegistration(eqx.Module):
@@ -79,7 +79,7 @@ def _register(q1, q2, *, rotation: bool, neighbourhood: int, max_iterations, rto
         # The energy is Σ w·(|A − O·B|² at both interval ends)/2, a weighted Procrustes
         # problem in O: its Kabsch solution is exact for this γ. Also returns the energy at
         # the rotation the DP used, to measure what the rotation step gained.
-        A, B, w = _warp_samples(q1, q2, gamma)  # γ comes from the DP: no checks needed
+        A, B, w = warp_samples_unchecked(q1, q2, gamma)  # γ comes from the DP: no checks needed
         O = optimal_rotation(A, B, w) if rotation else eye
 
         def energy(R):
@@ -104,7 +104,7 @@ def _register(q1, q2, *, rotation: bool, neighbourhood: int, max_iterations, rto
     def body(state):
         i, O_next, O, gamma, energy, gain = state
         # Under vmap, lanes that have stopped are skipped by the DP's batching rule.
-        gamma_new = _dp_warp_if(q1, q2 @ O_next.T, cond(state), neighbourhood=neighbourhood)[0]
+        gamma_new = dp_warp_if(q1, q2 @ O_next.T, cond(state), neighbourhood=neighbourhood)[0]
         O_new, energy_new, energy_at_dp = rotation_step(gamma_new, O_next)
         # Monotone in exact arithmetic after the starts; keep the best in any case.
         better = energy_new <= energy
@@ -162,7 +162,7 @@ def elastic_curve_distance(
         raise ValueError(f"max_iterations must be a Python int >= 1, got {max_iterations!r}.")
     if not isinstance(rtol, (int, float)) or not rtol >= 0:
         raise ValueError(f"rtol must be a float >= 0, got {rtol!r}.")
-    _check_neighbourhood(neighbourhood)
+    check_neighbourhood(neighbourhood)
     return _elastic_curve_distance(
         beta1,
         beta2,

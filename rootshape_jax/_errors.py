@@ -29,5 +29,18 @@ class MissingDependencyError(RootShapeError, ImportError):
     """An optional extra (``pip install 'rootshape_jax[EXTRA]'``) is needed for this feature."""
 
 
+class InvalidCostError(RootShapeError, ValueError):
+    """A cost matrix handed to the assignment solver has the wrong shape or dtype."""
+
+
+class StoreMismatchError(RootShapeError, ValueError):
+    """A `store=` directory holds blocks of another run (other inputs, options or block size)."""
+
+
+class ConvergenceError(RootShapeError, RuntimeError):
+    """An iterative solver stopped at its step limit with ``throw=True``; raise `max_steps`,
+    loosen the tolerance, or pass ``throw=False`` and check the result's status."""
+
+
 class RSMLWarning(UserWarning):
     """Part of an RSML file was skipped (non-strict reading): the message names file and root."""

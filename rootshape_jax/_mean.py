@@ -14,28 +14,31 @@ fixed, ``F`` is a weighted sum of squares in μ, minimised exactly by
 
 Two solvers, both optimistix:
 
-- ``method="fixed_point"`` (`optx.fixed_point`): block-coordinate descent on the joint energy
+- ``method="fixed_point"`` (an `optx.AbstractFixedPointSolver`, by default
+  `optx.FixedPointIteration`): block-coordinate descent on the joint energy
   ``J(μ, g_1..g_n)``. The iterate is μ with every sample's rotation and current registration.
   A step solves every sample's warps and lateral correspondence afresh for its rotation (one
-  batched DP pass, the core of `register`) and keeps them where they beat the carried ones,
-  moves μ to the exact minimiser above, and refits each rotation by weighted Kabsch. No
-  sub-step can raise J, so the recorded energy never increases. The first registrations
-  come from a full `register` (rotation search included) of every sample onto the start.
+  batched engine call, in blocks of samples through the executor) and keeps them where they
+  beat the carried ones, moves μ to the exact minimiser above, and refits each rotation by
+  weighted Kabsch. No sub-step can raise J, so the recorded energy never increases. The first
+  registrations come from a full registration (rotation search included) onto the start.
+  The step loop is written once, on the host: the solver's `step`/`terminate` run there, so
+  the per-sample work can run here or on a Dask cluster alike (DESIGN.md §13).
 - ``method="gradient"`` (`optx.minimise`, gradient descent by default, any optimistix
   minimiser accepted): minimises ``F`` itself, every evaluation registering all samples
   afresh under `stop_gradient` (envelope theorem), in whitened coordinates
-  ``z = W^{1/2} μ`` (√λ and the trapezoid weights per block) so that a unit gradient step is
-  the metric's own Karcher step; the default learning rate 1/2 moves q0 and q exactly to the
-  mean of the registered samples.
+  ``z = W^{1/2} μ`` (`_tangent.whitening`) so that a unit gradient step is the metric's own
+  Karcher step; the default learning rate 1/2 moves q0 and q exactly to the mean of the
+  registered samples.
 
 Both stop when ``F`` changes by less than ``rtol`` (relative) between two steps, or when the
 given optimistix solver's own criterion fires. Finally every sample is registered onto the
-mean with a full `register` (for the fixed point also its carried registration; the better
+mean with a full registration (for the fixed point also its carried registration; the better
 of the two is kept), mean laterals shorter than a threshold are dropped and reported.
 
 The start is the medoid — under `distances` when given (e.g. from `pairwise_distances`),
 otherwise under the exact lower bound of the elastic distance that needs no DP (lateral
-lengths and positions, see `_lower_bound_distances`) — so the result does not depend on the
+lengths and positions, see `lower_bound_distances`) — so the result does not depend on the
 order of the input. The mean's origin (SRVFs forget translation) is the mean of the samples'
 origins.
 """
@@ -50,12 +53,22 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
+from tqdm.auto import tqdm
 
 from ._assignment import linear_assignment
-from ._curves import l2_norm_squared, trapezoid_weights
-from ._metric import Weights, preshape_terms
-from ._registration import _apply, _options, _search
+from ._curves import l2_norm_squared
+from ._engine import (
+    MEAN_REGISTRATION,
+    RegistrationOptions,
+    register_pairs,
+    registration_options,
+    rotate_batch,
+)
+from ._errors import ConvergenceError
+from ._executor import executor_for
+from ._metric import Weights, level_weight, pair_costs, preshape_terms
 from ._rotation import optimal_rotation
+from ._tangent import TreeParams, params_of, params_to_tree, unwhiten, whiten, whitening
 from ._tree import RootTree, SRVFTree, batch_size, check_compatible, to_curves, to_srvf
 
 
@@ -83,7 +96,8 @@ class KarcherMean(eqx.Module):
     - `init_index`: index of the sample the solver started from (the medoid).
     - `lateral_lengths`: ``[K]`` length of each lateral of the fitted mean (before dropping).
     - `dropped`: ``[K]`` True where a fitted lateral was shorter than the threshold and dropped.
-    - `weights`: the metric weights used (for `tangent_pca`).
+    - `weights`: the metric weights used (for `tangent_pca`); `registration`: the
+      registration options used (for `project`).
     """
 
     mean: RootTree
@@ -99,35 +113,28 @@ class KarcherMean(eqx.Module):
     lateral_lengths: Float[Array, " K"]
     dropped: Bool[Array, " K"]
     weights: Weights
+    registration: RegistrationOptions
 
 
 # --------------------------------------------------------------------------------------------
 # The objective (public, differentiable in mu)
 
 
-def _broadcast(tree, n: int):
+def broadcast_tree(tree, n: int):
+    """`tree` repeated along a new leading axis of size n."""
     return jax.tree.map(lambda x: jnp.broadcast_to(x, (n,) + x.shape), tree)
 
 
-def _registered_energies(mu: SRVFTree, samples: SRVFTree, weights: Weights, opts: "_RegOptions"):
-    """Every sample registered onto mu (single tree): (registered batch, energies, rotations)."""
-    return _register_onto(_broadcast(mu, samples.q0.shape[0]), samples, weights, opts)
-
-
-def _register_onto(a: SRVFTree, x: SRVFTree, weights: Weights, opts: "_RegOptions"):
-    """Register the batch x onto the batch a (element-wise) with `register`'s search (exact
-    lazy assignment, any masks). Returns (registered, energies, rotations)."""
-    n = x.q0.shape[0]
-    active = jnp.ones((n,), bool)
-    O, perm, g0, gam, *_ = _search(a, x, weights, active, opts.dynamic, **dict(opts.static))
-    registered = jax.vmap(_apply)(a, x, O, perm, g0, gam)
-    energies = preshape_terms(a, registered, weights).total
-    return registered, energies, O
+def register_onto(mu: SRVFTree, samples: SRVFTree, weights: Weights, opts: RegistrationOptions):
+    """Every sample registered onto the single tree mu: (registered batch, energies, rotations).
+    Runs inside the caller's jit, on one device."""
+    reg = register_pairs(broadcast_tree(mu, samples.q0.shape[0]), samples, weights, opts, split=False)
+    return reg.registered, reg.energy, reg.rotation
 
 
 @eqx.filter_jit
-def _objective(mu: SRVFTree, samples: SRVFTree, weights: Weights, opts: "_RegOptions"):
-    _, energies, _ = _registered_energies(mu, samples, weights, opts)
+def _objective(mu: SRVFTree, samples: SRVFTree, weights: Weights, opts: RegistrationOptions):
+    _, energies, _ = register_onto(mu, samples, weights, opts)
     return jnp.mean(energies)
 
 
@@ -136,168 +143,26 @@ def karcher_objective(
     samples: SRVFTree | RootTree,
     *,
     weights: Weights | None = None,
-    registration: dict | None = None,
+    registration: RegistrationOptions | dict | None = None,
 ) -> Float[Array, ""]:
     """The Karcher objective ``F(μ) = (1/n) Σ_i min_g d²(μ, g·x_i)``.
 
     `mu` is one tree, `samples` a batch with the same capacities. Every sample is registered
-    onto `mu` (options of `register` in the `registration` dict); the registrations are held
-    under `stop_gradient`, so ``jax.grad`` with respect to `mu` (or the weights) is the
-    envelope-theorem gradient of F. Slots of `mu` count as real laterals where ``mu.mask`` is
-    True (`karcher_mean` fits a mean with every slot real).
+    onto `mu` (`registration`: a `RegistrationOptions` or a dict of its fields; default
+    `MEAN_REGISTRATION`); the registrations are held under `stop_gradient`, so ``jax.grad``
+    with respect to `mu` (or the weights) is the envelope-theorem gradient of F. Slots of `mu`
+    count as real laterals where ``mu.mask`` is True (`karcher_mean` fits a mean with every
+    slot real).
     """
     weights = Weights() if weights is None else weights
-    mu = to_srvf(mu)
-    samples = to_srvf(samples)
+    mu = to_srvf(mu, weights=weights)
+    samples = to_srvf(samples, weights=weights)
     _check_samples(samples, "karcher_objective: samples")
     if mu.batch_shape != ():
-        raise ValueError(
-            f"karcher_objective: mu must be a single tree, got batch shape {mu.batch_shape}."
-        )
+        raise ValueError(f"karcher_objective: mu must be a single tree, got batch shape {mu.batch_shape}.")
     check_compatible(mu, samples, "karcher_objective: mu and samples")
-    opts = _registration_options(registration)
+    opts = registration_options(registration, base=MEAN_REGISTRATION)
     return _objective(mu, samples, weights, opts)
-
-
-# --------------------------------------------------------------------------------------------
-# Energy monitoring around any optimistix solver
-
-
-class _MonitorState(eqx.Module):
-    inner: Any
-    trace: Float[Array, " S"]
-    count: Int[Array, ""]
-
-
-def _monitor_init(solver, fn, y, args, options, f_struct, aux_struct, tags):
-    inner = solver.inner.init(fn, y, args, options, f_struct, aux_struct, tags)
-    dtype = aux_struct.dtype
-    return _MonitorState(inner, jnp.full((solver.size,), jnp.nan, dtype), jnp.array(0))
-
-
-def _monitor_terminate(solver, fn, y, args, options, state, tags):
-    done, result = solver.inner.terminate(fn, y, args, options, state.inner, tags)
-    k = state.count
-    last = state.trace[jnp.maximum(k - 1, 0)]
-    prev = state.trace[jnp.maximum(k - 2, 0)]
-    flat = (k >= 2) & (jnp.abs(prev - last) <= solver.atol + solver.rtol * jnp.abs(last))
-    return done | flat, optx.RESULTS.where(flat, optx.RESULTS.successful, result)
-
-
-def _record(state: _MonitorState, inner_state, energy, record) -> _MonitorState:
-    trace = jnp.where(record, state.trace.at[state.count].set(energy, mode="drop"), state.trace)
-    return _MonitorState(inner_state, trace, state.count + record.astype(state.count.dtype))
-
-
-class _MonitoredFixedPoint(optx.AbstractFixedPointSolver):
-    """Wraps an optimistix fixed-point solver: records F (the aux of each step, evaluated at
-    the step's input) and also stops when F changes by less than ``atol + rtol|F|``."""
-
-    inner: optx.AbstractFixedPointSolver
-    rtol: float
-    atol: float
-    size: int = eqx.field(static=True)
-    norm: Any = optx.max_norm  # unused; optimistix solvers declare one
-
-    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        return _monitor_init(self, fn, y, args, options, f_struct, aux_struct, tags)
-
-    def step(self, fn, y, args, options, state, tags):
-        y_new, inner, aux = self.inner.step(fn, y, args, options, state.inner, tags)
-        return y_new, _record(state, inner, aux, jnp.array(True)), aux
-
-    def terminate(self, fn, y, args, options, state, tags):
-        return _monitor_terminate(self, fn, y, args, options, state, tags)
-
-    def postprocess(self, fn, y, aux, args, options, state, tags, result):
-        return self.inner.postprocess(fn, y, aux, args, options, state.inner, tags, result)
-
-
-class _MonitoredMinimiser(optx.AbstractMinimiser):
-    """Wraps an optimistix minimiser: records F at every accepted iterate (a rejected line
-    search step leaves the iterate unchanged and is not recorded) and also stops when F
-    changes by less than ``atol + rtol|F|`` between two accepted iterates."""
-
-    inner: optx.AbstractMinimiser
-    rtol: float
-    atol: float
-    size: int = eqx.field(static=True)
-    norm: Any = optx.max_norm  # unused; optimistix solvers declare one
-
-    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        return _monitor_init(self, fn, y, args, options, f_struct, aux_struct, tags)
-
-    def step(self, fn, y, args, options, state, tags):
-        y_new, inner, aux = self.inner.step(fn, y, args, options, state.inner, tags)
-        # The energy of the returned iterate: optimistix's gradient / quasi-Newton solvers keep
-        # it in `f_info`; their returned aux may belong to the previous iterate.
-        f_info = getattr(inner, "f_info", None)
-        energy = f_info.f if f_info is not None and hasattr(f_info, "f") else aux
-        moved = jnp.any(
-            jnp.stack([jnp.any(a != b) for a, b in zip(jax.tree.leaves(y_new), jax.tree.leaves(y))])
-        )
-        return y_new, _record(state, inner, energy, (state.count == 0) | moved), aux
-
-    def terminate(self, fn, y, args, options, state, tags):
-        return _monitor_terminate(self, fn, y, args, options, state, tags)
-
-    def postprocess(self, fn, y, aux, args, options, state, tags, result):
-        return self.inner.postprocess(fn, y, aux, args, options, state.inner, tags, result)
-
-
-# --------------------------------------------------------------------------------------------
-# Shared pieces
-
-
-class _Params(eqx.Module):
-    """The free parts of the mean: main SRVF, lateral SRVFs, attachment fractions."""
-
-    q0: Float[Array, "T d"]
-    q: Float[Array, "K T d"]
-    s: Float[Array, " K"]
-
-
-def _to_tree(p: _Params, origin) -> SRVFTree:
-    return SRVFTree(q0=p.q0, q=p.q, s=p.s, mask=jnp.ones(p.s.shape, bool), origin=origin)
-
-
-def _exact_update(registered: SRVFTree, mu_s) -> _Params:
-    """The minimiser of F over mu for fixed registrations (module docstring)."""
-    m = registered.mask.astype(registered.s.dtype)
-    count = jnp.sum(m, axis=0)
-    s_sum = jnp.sum(m * registered.s, axis=0)
-    s = jnp.where(count > 0, s_sum / jnp.maximum(count, 1), mu_s)
-    return _Params(jnp.mean(registered.q0, axis=0), jnp.mean(registered.q, axis=0), s)
-
-
-def _rotate_tree(t: SRVFTree, O) -> SRVFTree:
-    """Rotate SRVFs (about each tree's origin) by per-tree rotations O [n, d, d]."""
-    q0 = jnp.einsum("ntd,ned->nte", t.q0, O)
-    q = jnp.einsum("nktd,ned->nkte", t.q, O)
-    return eqx.tree_at(lambda x: (x.q0, x.q), t, (q0, q))
-
-
-def _project_rotation(O):
-    """Nearest proper rotation (polar factor, determinant corrected); a no-op on rotations.
-    Guards against solvers that average iterates (e.g. a damped fixed point)."""
-    U, _, Vt = jnp.linalg.svd(O)
-    d = O.shape[-1]
-    det = jnp.linalg.det(U @ Vt)
-    D = jnp.ones(O.shape[:-1], O.dtype).at[..., -1].set(jnp.where(det < 0, -1.0, 1.0))
-    return (U * D[..., None, :]) @ Vt
-
-
-def _lower_bound(a: SRVFTree, b: SRVFTree, weights: Weights):
-    """Per-pair Cauchy–Schwarz lower bound of the lateral costs ``λs(√La − √Lb)² + λp Δs²``."""
-    dtype = a.q0.dtype
-    lam_s = jnp.asarray(weights.lateral, dtype)
-    lam_p = jnp.asarray(weights.position, dtype)
-    La = l2_norm_squared(a.q) * a.mask
-    Lb = l2_norm_squared(b.q) * b.mask
-    pos = lam_p * (a.s[..., :, None] - b.s[..., None, :]) ** 2
-    lower = lam_s * (jnp.sqrt(La)[..., :, None] - jnp.sqrt(Lb)[..., None, :]) ** 2 + pos
-    both = a.mask[..., :, None] & b.mask[..., None, :]
-    return La, Lb, lower, both
 
 
 def _check_samples(samples: SRVFTree, what: str) -> int:
@@ -307,51 +172,21 @@ def _check_samples(samples: SRVFTree, what: str) -> int:
     return n
 
 
-class _RegOptions(eqx.Module):
-    """`register`'s options split as `_registration._options` does: `dynamic` arrays (rotation
-    on/off, max_iterations, rtol; traced, no recompilation) and `static` items."""
-
-    dynamic: tuple
-    static: tuple = eqx.field(static=True)
-
-    def option(self, name: str):
-        return dict(self.static)[name]
-
-    def without_rotation(self) -> "_RegOptions":
-        rotation, max_iterations, rtol = self.dynamic
-        return _RegOptions((jnp.zeros_like(rotation), max_iterations, rtol), self.static)
-
-
-def _registration_options(registration: dict | None) -> _RegOptions:
-    reg = dict(registration or {})
-    allowed = {"rotation", "max_iterations", "rtol", "neighbourhood", "prune", "dp_batch_size", "assignment"}
-    unknown = set(reg) - allowed
-    if unknown:
-        raise ValueError(
-            f"registration options {sorted(unknown)} are unknown; use some of {sorted(allowed)} "
-            "(the keyword options of rootshape_jax.register)."
-        )
-    defaults = dict(
-        rotation=True, max_iterations=5, rtol=1e-6, neighbourhood=7, prune=True,
-        dp_batch_size=256, assignment="callback",
-    )
-    defaults.update(reg)
-    dynamic, static = _options(**defaults)
-    return _RegOptions(dynamic, tuple(sorted(static.items())))
-
-
 # --------------------------------------------------------------------------------------------
 # Start: the medoid
 
 
 def _lower_bound_energy(a: SRVFTree, b: SRVFTree, weights: Weights, assignment: str):
     """A lower bound of ``min_g d²(a, g·b)`` needing no DP: ``λm(||q0a|| − ||q0b||)²`` plus the
-    optimal assignment of the laterals' lower bounds (exact null costs). Cauchy–Schwarz bounds
-    every term from below for any rotation and reparameterisation."""
-    La, Lb, lower, both = _lower_bound(a, b, weights)
+    optimal assignment of the laterals' lower bounds (exact null and DP-free pair costs).
+    Cauchy–Schwarz bounds every DP term from below for any rotation and reparameterisation."""
     dtype = a.q0.dtype
-    lam_s = jnp.asarray(weights.lateral, dtype)
-    lam_m = jnp.asarray(weights.main, dtype)
+    lam_m = level_weight(weights, "main", dtype)
+    lam_s = level_weight(weights, "lateral", dtype)
+    La = l2_norm_squared(a.q) * a.mask
+    Lb = l2_norm_squared(b.q) * b.mask
+    both = a.mask[:, None] & b.mask[None, :]
+    lower = lam_s * (jnp.sqrt(La)[:, None] - jnp.sqrt(Lb)[None, :]) ** 2 + pair_costs(weights, a, b)
     C = jnp.where(
         both,
         lower,
@@ -365,7 +200,8 @@ def _lower_bound_energy(a: SRVFTree, b: SRVFTree, weights: Weights, assignment: 
 
 
 @eqx.filter_jit
-def _lower_bound_distances(samples: SRVFTree, weights: Weights, assignment: str):
+def lower_bound_distances(samples: SRVFTree, weights: Weights, assignment: str = "callback"):
+    """(n, n) DP-free lower bounds of the elastic distances (symmetrised)."""
     row = jax.vmap(_lower_bound_energy, in_axes=(None, 0, None, None))
     e = jax.lax.map(lambda a: row(a, samples, weights, assignment), samples)
     e = 0.5 * (e + e.T)
@@ -376,8 +212,8 @@ def _lower_bound_distances(samples: SRVFTree, weights: Weights, assignment: str)
 def _zero_tree_energy(samples: SRVFTree, weights: Weights):
     """Mean squared distance of the samples from the zero tree (no registration): F's scale."""
     dtype = samples.q0.dtype
-    lam_m = jnp.asarray(weights.main, dtype)
-    lam_s = jnp.asarray(weights.lateral, dtype)
+    lam_m = level_weight(weights, "main", dtype)
+    lam_s = level_weight(weights, "lateral", dtype)
     e = lam_m * l2_norm_squared(samples.q0) + lam_s * jnp.sum(l2_norm_squared(samples.q), axis=-1)
     return jnp.mean(e)
 
@@ -392,36 +228,44 @@ def _medoid(distances, n: int) -> int:
 
 
 # --------------------------------------------------------------------------------------------
-# Fixed point
+# Fixed point: the iterate and its two halves
 
 
-class _FPIterate(eqx.Module):
+class FPIterate(eqx.Module):
     """The fixed point's iterate: the mean, each sample's rotation, and each sample's current
     registration without its rotation (warped main root, warped laterals permuted into the
-    mean's slots, their attachments, and 1.0 where the slot holds a real lateral)."""
+    mean's slots, their attachments, 1.0 where the slot holds a real lateral, and — with a
+    thickness channel — the registered starting radii)."""
 
-    mu: _Params
+    mu: TreeParams
     rotations: Float[Array, "n d d"]
-    warped_q0: Float[Array, "n T d"]
-    warped_q: Float[Array, "n K T d"]
+    warped_q0: Float[Array, "n T C"]
+    warped_q: Float[Array, "n K T C"]
     reg_s: Float[Array, "n K"]
     reg_real: Float[Array, "n K"]
+    reg_base: Float[Array, "n K1"] | None
 
 
-def _carried(y: _FPIterate, mu: SRVFTree, O, origin) -> SRVFTree:
+def _start_iterate(mu: TreeParams, registered: SRVFTree, O) -> FPIterate:
+    q0, q = rotate_batch(registered.q0, _transpose(O)), rotate_batch(registered.q, _transpose(O))
+    real = registered.mask.astype(mu.q0.dtype)
+    return FPIterate(mu, O, q0, q, registered.s, real, registered.base_radius)
+
+
+def _transpose(O):
+    return jnp.swapaxes(O, -1, -2)
+
+
+def _carried(y: FPIterate, mu: SRVFTree, O, samples: SRVFTree) -> SRVFTree:
     """The carried registrations, rotated, as registered trees in mu's slot order."""
     real = y.reg_real > 0.5
-    q0 = jnp.einsum("ntd,ned->nte", y.warped_q0, O)
-    q = jnp.einsum("nktd,ned->nkte", y.warped_q, O) * real[..., None, None]
+    q0 = rotate_batch(y.warped_q0, O)
+    q = rotate_batch(y.warped_q, O) * real[..., None, None]
     s = jnp.where(real, y.reg_s, mu.s[None])
-    return SRVFTree(q0=q0, q=q, s=s, mask=real, origin=origin)
-
-
-def _unrotated(registered: SRVFTree, O):
-    # registered = O·warped(x), so the unrotated warped branches are registered·O.
-    q0 = jnp.einsum("nte,ned->ntd", registered.q0, O)
-    q = jnp.einsum("nkte,ned->nktd", registered.q, O)
-    return q0, q
+    return SRVFTree(
+        q0=q0, q=q, s=s, mask=real, origin=samples.origin, base_radius=y.reg_base,
+        thickness_scale=samples.thickness_scale,
+    )
 
 
 def _pick(better, new, old):
@@ -429,83 +273,182 @@ def _pick(better, new, old):
     return jax.tree.map(lambda u, v: jnp.where(better.reshape((n,) + (1,) * (u.ndim - 1)), u, v), new, old)
 
 
-def _fixed_point_fn(y: _FPIterate, args):
-    samples, weights, origin, opts = args
-    registered, energies = _fp_register(y, samples, weights, origin, opts)
-    return _fp_update(y, registered, energies, weights, origin)
+def _project_rotation(O):
+    """Nearest proper rotation (polar factor, determinant corrected); a no-op on rotations.
+    Guards against solvers that average iterates (e.g. a damped fixed point)."""
+    U, _, Vt = jnp.linalg.svd(O)
+    det = jnp.linalg.det(U @ Vt)
+    D = jnp.ones(O.shape[:-1], O.dtype).at[..., -1].set(jnp.where(det < 0, -1.0, 1.0))
+    return (U * D[..., None, :]) @ Vt
 
 
-def _fp_register(y: _FPIterate, samples, weights, origin, opts):
-    """Per-sample half of a fixed-point step (run in blocks by `karcher_mean(client=...)`):
-    each sample's registration onto the current mean, and its energy."""
+def _exact_update(registered: SRVFTree, mu_s) -> TreeParams:
+    """The minimiser of F over mu for fixed registrations (module docstring)."""
+    m = registered.mask.astype(registered.s.dtype)
+    count = jnp.sum(m, axis=0)
+    s_sum = jnp.sum(m * registered.s, axis=0)
+    s = jnp.where(count > 0, s_sum / jnp.maximum(count, 1), mu_s)
+    return TreeParams(jnp.mean(registered.q0, axis=0), jnp.mean(registered.q, axis=0), s)
+
+
+@eqx.filter_jit
+def fp_register(y: FPIterate, samples: SRVFTree, mu_like: SRVFTree, weights: Weights, opts):
+    """Per-sample half of a fixed-point step (a block of samples, with their rows of y): each
+    sample's registration onto the current mean, and its energy."""
     n = samples.q0.shape[0]
-    mu = _to_tree(y.mu, origin)
-    a = _broadcast(mu, n)
+    mu = params_to_tree(y.mu, mu_like)
+    a = broadcast_tree(mu, n)
     O = _project_rotation(y.rotations)
     # The carried registration at the current mean and rotation ...
-    old = _carried(y, mu, O, samples.origin)
+    old = _carried(y, mu, O, samples)
     e_old = preshape_terms(a, old, weights).total
     # ... against warps and correspondence solved afresh for the current rotation. The DP is
     # exact for its own discretisation of the warp energy, not for the grid energy used here,
     # so the fresh solution is kept only where it is better: the energy never increases.
-    xb = _rotate_tree(samples, O)
-    new, e_new, _ = _register_onto(a, xb, weights, opts.without_rotation())
+    xb = eqx.tree_at(lambda t: (t.q0, t.q), samples, (rotate_batch(samples.q0, O), rotate_batch(samples.q, O)))
+    new, e_new, _ = register_onto(mu, xb, weights, opts.without_rotation())
     better = e_new < e_old
     return _pick(better, new, old), jnp.where(better, e_new, e_old)
 
 
-def _fp_update(y: _FPIterate, registered: SRVFTree, energies, weights, origin):
+@eqx.filter_jit
+def fp_update(y: FPIterate, registered: SRVFTree, energies, weights: Weights):
     """Global half of a fixed-point step: the exact mean update and each rotation's refit."""
-    mu = _to_tree(y.mu, origin)
     O = _project_rotation(y.rotations)
     energy = jnp.mean(energies)
-    mu_new = _exact_update(registered, mu.s)
-    # Refit each rotation (weighted Kabsch) against the new mean with these correspondences.
-    w0, wq = _unrotated(registered, O)
-    A = jnp.concatenate([mu_new.q0[None], mu_new.q], axis=0)
+    mu_new = _exact_update(registered, y.mu.s)
+    d = O.shape[-1]
+    # Refit each rotation (weighted Kabsch, spatial channels) against the new mean.
+    w0, wq = rotate_batch(registered.q0, _transpose(O)), rotate_batch(registered.q, _transpose(O))
+    A = jnp.concatenate([mu_new.q0[None], mu_new.q], axis=0)[..., :d]
     dtype = mu_new.q0.dtype
-    lam_m = jnp.asarray(weights.main, dtype)
-    lam_s = jnp.asarray(weights.lateral, dtype)
+    lam_m = level_weight(weights, "main", dtype)
+    lam_s = level_weight(weights, "lateral", dtype)
 
     def refit(b0, bq, mask, O_old):
-        Bm = jnp.concatenate([b0[None], bq], axis=0)
+        Bm = jnp.concatenate([b0[None], bq], axis=0)[..., :d]
         w = jnp.concatenate([lam_m[None], lam_s * mask.astype(dtype)])
         O_new = optimal_rotation(A, Bm, w)
         # Degenerate data (all weights zero) gives no information: keep the old rotation.
         return jnp.where(jnp.sum(w) > 0, O_new, O_old)
 
     O_new = jax.vmap(refit)(w0, wq, registered.mask, O)
-    y_new = _FPIterate(mu_new, O_new, w0, wq, registered.s, registered.mask.astype(dtype))
-    return y_new, energy
+    real = registered.mask.astype(dtype)
+    return FPIterate(mu_new, O_new, w0, wq, registered.s, real, registered.base_radius), energy
 
 
 # --------------------------------------------------------------------------------------------
-# Gradient
+# Blocks of samples through the executor (DESIGN.md §13)
 
 
-def _whitening(weights: Weights, T: int, dtype) -> _Params:
-    """Per-coordinate scales c with z = c·mu (√λ times √trapezoid weight; 1 where λ = 0)."""
-    tw = trapezoid_weights(T, dtype)
-
-    def scale(lam):
-        lam = jnp.asarray(lam, dtype)
-        return jnp.where(lam > 0, jnp.sqrt(jnp.where(lam > 0, lam, 1.0)), 1.0)
-
-    c0 = scale(weights.main) * jnp.sqrt(tw)
-    cs = scale(weights.lateral) * jnp.sqrt(tw)
-    return _Params(c0[:, None], cs[None, :, None], scale(weights.position))
+def _tree_to_dict(prefix: str, tree) -> dict:
+    leaves = jax.tree.leaves(tree)
+    return {f"{prefix}{i}": np.asarray(x) for i, x in enumerate(leaves)}
 
 
-def _gradient_fn(z: _Params, args):
-    samples, weights, origin, opts, c = args
-    mu = _Params(z.q0 / c.q0, z.q / c.q, z.s / c.s)
-    _, energies, _ = _registered_energies(_to_tree(mu, origin), samples, weights, opts)
-    f = jnp.mean(energies)
-    return f, jax.lax.stop_gradient(f)
+def _dict_to_tree(prefix: str, d: dict, like):
+    leaves, treedef = jax.tree.flatten(like)
+    return jax.tree.unflatten(treedef, [d[f"{prefix}{i}"] for i in range(len(leaves))])
+
+
+def _take(tree, idx):
+    return jax.tree.map(lambda x: x[idx], tree)
+
+
+def mean_step_block(idx, n_valid, y_rows, samples, mu, mu_like, weights, opts) -> dict:
+    """Block function: one fixed-point registration step for the samples `idx` (padded)."""
+    y = FPIterate(mu, *y_rows)
+    registered, energies = fp_register(y, _take(samples, idx), mu_like, weights, opts)
+    out = _tree_to_dict("reg_", _take(registered, slice(0, n_valid)))
+    out["energies"] = np.asarray(energies)[:n_valid]
+    return out
+
+
+def mean_full_block(idx, n_valid, samples, mu, mu_like, weights, opts) -> dict:
+    """Block function: full registration (rotation search) of the samples `idx` onto mu."""
+    registered, energies, O = _full_registration(mu, _take(samples, idx), mu_like, weights, opts)
+    out = _tree_to_dict("reg_", _take(registered, slice(0, n_valid)))
+    out["energies"] = np.asarray(energies)[:n_valid]
+    out["rotations"] = np.asarray(O)[:n_valid]
+    return out
+
+
+@eqx.filter_jit
+def _full_registration(mu: TreeParams, samples, mu_like, weights, opts):
+    return register_onto(params_to_tree(mu, mu_like), samples, weights, opts)
+
+
+class _SampleBlocks:
+    """The samples cut into blocks of `block_size` (padded with the block's first sample, so
+    every block has one shape and one compiled program), mapped by an executor."""
+
+    def __init__(self, executor, samples: SRVFTree, block_size: int | None):
+        n = samples.q0.shape[0]
+        size = n if block_size is None else min(block_size, n)
+        self.executor = executor
+        self.samples = samples
+        self.spans = [(a, min(a + size, n)) for a in range(0, n, size)]
+        self.size = size
+
+    def _index(self, a, z):
+        return np.concatenate([np.arange(a, z), np.full(self.size - (z - a), a)]).astype(np.int32)
+
+    def map(self, fn, per_block, shared, like):
+        blocks = [(self._index(a, z), z - a, *per_block(a, z)) for a, z in self.spans]
+        results, _ = self.executor.map_blocks(fn, blocks, shared=(self.samples, *shared), progress=False)
+        merged = {k: np.concatenate([r[k] for r in results]) for k in results[0]}
+        registered = jax.tree.map(jnp.asarray, _dict_to_tree("reg_", merged, like))
+        rest = {k: jnp.asarray(v) for k, v in merged.items() if not k.startswith("reg_")}
+        return registered, rest
+
+    def full_registration(self, mu, mu_like, weights, opts):
+        registered, rest = self.map(mean_full_block, lambda a, z: (), (mu, mu_like, weights, opts), self.samples)
+        return registered, rest["energies"], rest["rotations"]
+
+    def step(self, y: FPIterate, mu_like, weights, opts):
+        rows = (y.rotations, y.warped_q0, y.warped_q, y.reg_s, y.reg_real, y.reg_base)
+
+        def per_block(a, z):
+            return (_take(rows, self._index(a, z)),)
+
+        return self.map(mean_step_block, per_block, (y.mu, mu_like, weights, opts), self.samples)
 
 
 # --------------------------------------------------------------------------------------------
-# Driver
+# The fixed-point loop (once, on the host)
+
+
+def _flat(trace, atol, rtol) -> bool:
+    return len(trace) >= 2 and abs(trace[-2] - trace[-1]) <= atol + rtol * abs(trace[-1])
+
+
+def _solve_fixed_point(y, blocks: _SampleBlocks, mu_like, weights, opts, solver, *, rtol, atol, max_steps, bar):
+    """Run an optimistix fixed-point solver's init/step/terminate with our step function,
+    stopping also when F changes by at most ``atol + rtol|F|``. Returns (y, F trace, steps,
+    result)."""
+
+    def fn(y, args):
+        registered, rest = blocks.step(y, mu_like, weights, opts)
+        return fp_update(y, registered, rest["energies"], weights)
+
+    f_struct, aux_struct = jax.eval_shape(lambda: (y, jnp.zeros((), y.mu.q0.dtype)))
+    tags = frozenset()
+    state = solver.init(fn, y, None, {}, f_struct, aux_struct, tags)
+    trace: list[float] = []
+    result = optx.RESULTS.nonlinear_max_steps_reached
+    for _ in range(max_steps):
+        y, state, energy = solver.step(fn, y, None, {}, state, tags)
+        trace.append(float(energy))
+        bar.set_postfix_str(f"F = {trace[-1]:.6g}")
+        bar.update(1)
+        done, res = solver.terminate(fn, y, None, {}, state, tags)
+        if _flat(trace, atol, rtol):
+            result = optx.RESULTS.successful
+            break
+        if bool(done):
+            result = res
+            break
+    return y, trace, len(trace), result
 
 
 # Rounds of the fixed point: after a solve, a full registration (rotation search included) at
@@ -513,42 +456,15 @@ def _gradient_fn(z: _Params, args):
 _MAX_ROUNDS = 4
 
 
-def _start(mu: _Params, registered: SRVFTree, O) -> _FPIterate:
-    w0, wq = _unrotated(registered, O)
-    dtype = mu.q0.dtype
-    return _FPIterate(mu, O, w0, wq, registered.s, registered.mask.astype(dtype))
-
-
 @eqx.filter_jit
-def _full_registration(mu: _Params, samples, weights, origin, opts):
-    return _registered_energies(_to_tree(mu, origin), samples, weights, opts)
-
-
-@eqx.filter_jit
-def _solve_fixed_point(y0: _FPIterate, samples, weights, origin, opts, solver, max_steps, throw):
-    sol = optx.fixed_point(
-        _fixed_point_fn, solver, y0, (samples, weights, origin, opts),
-        has_aux=True, max_steps=max_steps, throw=throw,
-    )
-    return sol.value, sol.state.trace, sol.state.count, sol.stats["num_steps"], sol.result
-
-
-def _best_registration(y: _FPIterate, samples, weights, origin, opts, full_registration=None):
-    """The carried registrations at the solve's result against a full `register` of every
-    sample: the better of the two for each sample, with its rotation."""
-    full_registration = _full_registration if full_registration is None else full_registration
-    full = full_registration(y.mu, samples, weights, origin, opts)
-    return _combine(y, full, samples, weights, origin)
-
-
-@eqx.filter_jit
-def _combine(y: _FPIterate, full, samples, weights, origin):
+def _combine(y: FPIterate, full, samples: SRVFTree, mu_like, weights):
+    """The better of the carried registration and a full registration, per sample."""
     registered, energies, O = full
     n = samples.q0.shape[0]
-    mu = _to_tree(y.mu, origin)
+    mu = params_to_tree(y.mu, mu_like)
     O_c = _project_rotation(y.rotations)
-    carried = _carried(y, mu, O_c, samples.origin)
-    e_c = preshape_terms(_broadcast(mu, n), carried, weights).total
+    carried = _carried(y, mu, O_c, samples)
+    e_c = preshape_terms(broadcast_tree(mu, n), carried, weights).total
     better = energies < e_c
     return (
         _pick(better, registered, carried),
@@ -558,17 +474,118 @@ def _combine(y: _FPIterate, full, samples, weights, origin):
     )
 
 
+def _fixed_point(mu0, samples, mu_like, weights, opts, solver, *, rtol, atol, max_steps, throw, blocks, progress):
+    with tqdm(desc="mean (fixed point)", unit="step", disable=not progress) as bar:
+        registered, energies, O = blocks.full_registration(mu0, mu_like, weights, opts)
+        y = _start_iterate(mu0, registered, O)
+        traces, steps = [], 0
+        for _ in range(_MAX_ROUNDS):
+            y, trace, n_steps, result = _solve_fixed_point(
+                y, blocks, mu_like, weights, opts, solver, rtol=rtol, atol=atol, max_steps=max_steps, bar=bar
+            )
+            traces += trace
+            steps += n_steps
+            full = blocks.full_registration(y.mu, mu_like, weights, opts)
+            registered, energies, O, e_carried = _combine(y, full, samples, mu_like, weights)
+            F, F_carried = float(jnp.mean(energies)), float(e_carried)
+            if result != optx.RESULTS.successful or F >= F_carried - (atol + rtol * abs(F_carried)):
+                break
+            y = _start_iterate(y.mu, registered, O)
+    if throw and result != optx.RESULTS.successful:
+        raise ConvergenceError(
+            f"karcher_mean: the fixed point reached the maximum number of steps ({max_steps}) "
+            f"without converging ({result}); raise max_steps or rtol, or pass throw=False."
+        )
+    return y.mu, np.asarray(traces), steps, result, registered, energies
+
+
+# --------------------------------------------------------------------------------------------
+# Gradient
+
+
+class _MonitorState(eqx.Module):
+    inner: Any
+    trace: Float[Array, " S"]
+    count: Int[Array, ""]
+
+
+class _MonitoredMinimiser(optx.AbstractMinimiser):
+    """Wraps an optimistix minimiser: records F at every accepted iterate (a rejected line
+    search step leaves the iterate unchanged and is not recorded) and also stops when F
+    changes by less than ``atol + rtol|F|`` between two accepted iterates."""
+
+    inner: optx.AbstractMinimiser
+    rtol: float
+    atol: float
+    size: int = eqx.field(static=True)
+    norm: Any = optx.max_norm  # unused; optimistix solvers declare one
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        inner = self.inner.init(fn, y, args, options, f_struct, aux_struct, tags)
+        return _MonitorState(inner, jnp.full((self.size,), jnp.nan, aux_struct.dtype), jnp.array(0))
+
+    def step(self, fn, y, args, options, state, tags):
+        y_new, inner, aux = self.inner.step(fn, y, args, options, state.inner, tags)
+        # The energy of the returned iterate: optimistix's gradient / quasi-Newton solvers keep
+        # it in `f_info`; their returned aux may belong to the previous iterate.
+        f_info = getattr(inner, "f_info", None)
+        energy = f_info.f if f_info is not None and hasattr(f_info, "f") else aux
+        moved = jnp.any(jnp.stack([jnp.any(a != b) for a, b in zip(jax.tree.leaves(y_new), jax.tree.leaves(y))]))
+        record = (state.count == 0) | moved
+        trace = jnp.where(record, state.trace.at[state.count].set(energy, mode="drop"), state.trace)
+        return y_new, _MonitorState(inner, trace, state.count + record.astype(state.count.dtype)), aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        done, result = self.inner.terminate(fn, y, args, options, state.inner, tags)
+        k = state.count
+        last = state.trace[jnp.maximum(k - 1, 0)]
+        prev = state.trace[jnp.maximum(k - 2, 0)]
+        flat = (k >= 2) & (jnp.abs(prev - last) <= self.atol + self.rtol * jnp.abs(last))
+        return done | flat, optx.RESULTS.where(flat, optx.RESULTS.successful, result)
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return self.inner.postprocess(fn, y, aux, args, options, state.inner, tags, result)
+
+
+def _gradient_fn(z: TreeParams, args):
+    samples, mu_like, weights, opts, c = args
+    _, energies, _ = register_onto(params_to_tree(unwhiten(z, c), mu_like), samples, weights, opts)
+    f = jnp.mean(energies)
+    return f, jax.lax.stop_gradient(f)
+
+
 @eqx.filter_jit
-def _solve_gradient(mu0: _Params, samples, weights, origin, opts, solver, max_steps, throw):
-    c = _whitening(weights, mu0.q0.shape[0], mu0.q0.dtype)
-    z0 = _Params(mu0.q0 * c.q0, mu0.q * c.q, mu0.s * c.s)
+def _solve_gradient(mu0: TreeParams, samples, mu_like, weights, opts, solver, max_steps, throw):
+    c = whitening(weights, mu0.q0.shape[0], mu0.q0.dtype)
     sol = optx.minimise(
-        _gradient_fn, solver, z0, (samples, weights, origin, opts, c),
+        _gradient_fn, solver, whiten(mu0, c), (samples, mu_like, weights, opts, c),
         has_aux=True, max_steps=max_steps, throw=throw,
     )
-    z = sol.value
-    mu = _Params(z.q0 / c.q0, z.q / c.q, z.s / c.s)
-    return mu, sol.state.trace, sol.state.count, sol.stats["num_steps"], sol.result
+    return unwhiten(sol.value, c), sol.state.trace, sol.state.count, sol.stats["num_steps"], sol.result
+
+
+# --------------------------------------------------------------------------------------------
+# Driver
+
+
+def _start_index(init, distances, samples, weights, opts, n) -> int:
+    if isinstance(init, (int, np.integer)) and not isinstance(init, bool):
+        if not 0 <= init < n:
+            raise ValueError(f"init index {init} is out of range for {n} samples.")
+        return int(init)
+    if init == "medoid":
+        if distances is None:
+            distances = lower_bound_distances(samples, weights, opts.assignment)
+        return _medoid(distances, n)
+    raise ValueError(f"init must be 'medoid' or a sample index, got {init!r}.")
+
+
+def _base_radius_mean(registered: SRVFTree):
+    if registered.base_radius is None:
+        return None
+    m = jnp.concatenate([jnp.ones_like(registered.mask[:, :1]), registered.mask], axis=1).astype(registered.s.dtype)
+    count = jnp.sum(m, axis=0)
+    return jnp.where(count > 0, jnp.sum(m * registered.base_radius, axis=0) / jnp.maximum(count, 1), 0.0)
 
 
 def karcher_mean(
@@ -584,9 +601,10 @@ def karcher_mean(
     init: Literal["medoid"] | int = "medoid",
     distances: Array | np.ndarray | None = None,
     min_lateral_length: float | None = None,
-    registration: dict | None = None,
+    registration: RegistrationOptions | dict | None = None,
     client=None,
     block_size: int = 64,
+    progress: bool = False,
 ) -> KarcherMean:
     """Karcher mean of a batch of roots: ``argmin_μ (1/n) Σ_i min_g d²(μ, g·x_i)``.
 
@@ -594,9 +612,9 @@ def karcher_mean(
 
     - `trees`: a batched `RootTree` or `SRVFTree` (`rootshape_jax.batch(roots)`); the mean
       has the same capacities (T, K, d) and dtype.
-    - `weights`: metric weights λ = (main, lateral, position).
-    - `method`: ``"fixed_point"`` (default; `optx.fixed_point`, carried registrations, one DP
-      pass per step, energy never increases) or ``"gradient"`` (`optx.minimise` on F, a full
+    - `weights`: metric weights λ (`Weights`).
+    - `method`: ``"fixed_point"`` (default; carried registrations, one registration pass per
+      step, energy never increases) or ``"gradient"`` (`optx.minimise` on F, a full
       registration per evaluation).
     - `solver`: an optimistix fixed-point solver (fixed point; default
       ``optx.FixedPointIteration`` with tolerances 0, so F's relative change decides) or
@@ -605,22 +623,24 @@ def karcher_mean(
       criterion or the relative change of F fires.
     - `rtol`, `atol`: stop when ``|ΔF| <= atol + rtol·|F|`` between two steps (plus 10 ε times
       the samples' mean squared norm, below which a change is rounding).
-    - `max_steps`, `throw`: as in optimistix, per solve; with ``throw=False`` check `result`.
-      The fixed point ends each solve with a full `register` of every sample onto its
-      result; where that finds better registrations the solve restarts from them (at most
-      4 solves). `steps` counts them all.
+    - `max_steps`, `throw`: step limit per solve; at the limit, ``throw=True`` raises
+      `ConvergenceError` and ``throw=False`` returns with `result` =
+      ``optx.RESULTS.nonlinear_max_steps_reached``. The fixed point ends each solve with a
+      full registration of every sample onto its result; where that finds better
+      registrations the solve restarts from them (at most 4 solves). `steps` counts them all.
     - `init`: ``"medoid"`` or the index of the sample to start from.
     - `distances`: an ``(n, n)`` distance matrix (e.g. `pairwise_distances(trees)`) for the
       medoid; without it the medoid of the DP-free lower bound of the elastic distance is used.
     - `min_lateral_length`: mean laterals shorter than this are dropped at the end; default
       2 % of the mean's main-root length.
-    - `registration`: options of `register` as a dict (``max_iterations``, ``neighbourhood``,
-      ``prune``, ...), used for every registration.
+    - `registration`: a `RegistrationOptions` (or a dict of its fields, on top of
+      `MEAN_REGISTRATION`, the default), used for every registration.
     - `client`: a ``dask.distributed.Client`` (extra ``rootshape_jax[dask]``): the fixed
       point's registrations of every sample onto the current mean run on the cluster, in
-      blocks of `block_size` samples, through the same functions as the local path (the step
-      loop runs on the host). Fixed point with the default solver only. The default medoid
-      start is computed locally (O(n²) assignments): for large n pass `distances` or `init`.
+      blocks of `block_size` samples, through the same functions as the local path. Fixed
+      point only. The default medoid start is computed locally (O(n²) assignments): for large
+      n pass `distances` or `init`.
+    - `progress`: show a progress bar of the fixed point's steps with the current F.
     """
     weights = Weights() if weights is None else weights
     if method not in ("fixed_point", "gradient"):
@@ -634,42 +654,26 @@ def karcher_mean(
             f"karcher_mean: trees must be a batched RootTree or SRVFTree (rootshape_jax.batch), "
             f"got {type(trees).__name__}."
         )
-    samples = to_srvf(trees)
+    samples = to_srvf(trees, weights=weights)
     n = _check_samples(samples, "karcher_mean: trees")
-    opts = _registration_options(registration)
-    full_registration, solve_fixed_point = _full_registration, _solve_fixed_point
+    opts = registration_options(registration, base=MEAN_REGISTRATION)
     if client is not None:
-        if method != "fixed_point" or solver is not None:
-            raise ValueError(
-                "karcher_mean: client= runs method='fixed_point' with the default solver only "
-                f"(got method={method!r}, solver={type(solver).__name__ if solver else None})."
-            )
-        from ._dask import MeanOnCluster
-
-        cluster = MeanOnCluster(client, samples, block_size=block_size)
-        full_registration, solve_fixed_point = cluster.full_registration, cluster.solve_fixed_point
-
-    if isinstance(init, (int, np.integer)) and not isinstance(init, bool):
-        if not 0 <= init < n:
-            raise ValueError(f"init index {init} is out of range for {n} samples.")
-        start = int(init)
-    elif init == "medoid":
-        if distances is None:
-            distances = _lower_bound_distances(samples, weights, opts.option("assignment"))
-        start = _medoid(distances, n)
-    else:
-        raise ValueError(f"init must be 'medoid' or a sample index, got {init!r}.")
+        if method != "fixed_point":
+            raise ValueError(f"karcher_mean: client= runs method='fixed_point' only (got method={method!r}).")
+        if isinstance(block_size, bool) or not isinstance(block_size, int) or block_size < 1:
+            raise ValueError(f"block_size must be an integer >= 1, got {block_size!r}.")
+    executor = executor_for(client)
+    start = _start_index(init, distances, samples, weights, opts, n)
 
     first = jax.tree.map(lambda x: x[start], samples)
-    mu0 = _Params(first.q0, first.q, first.s)
+    mu0 = params_of(first)
     origin = jnp.mean(samples.origin, axis=0)
-    size = max_steps + 1
-    # Tolerances are arrays (traced, so new values do not recompile). Below ~10 ε times the
-    # problem's scale (the energy of the zero tree) a change of F is rounding.
+    mu_like = eqx.tree_at(lambda t: t.origin, first, origin)
+    # Tolerances: below ~10 ε times the problem's scale (the energy of the zero tree) a change
+    # of F is rounding.
     dtype = samples.q0.dtype
-    scale = _zero_tree_energy(samples, weights)
-    tol_r = jnp.asarray(rtol, dtype)
-    tol_a = jnp.asarray(atol, dtype) + 10 * jnp.finfo(dtype).eps * scale
+    scale = float(_zero_tree_energy(samples, weights))
+    tol_a = float(atol) + 10 * float(jnp.finfo(dtype).eps) * scale
     if method == "fixed_point":
         inner = solver if solver is not None else optx.FixedPointIteration(rtol=0.0, atol=0.0)
         if not isinstance(inner, optx.AbstractFixedPointSolver):
@@ -677,25 +681,11 @@ def karcher_mean(
                 "method='fixed_point' needs an optimistix fixed-point solver (e.g. "
                 f"optx.FixedPointIteration), got {type(inner).__name__}."
             )
-        wrapped = _MonitoredFixedPoint(inner, tol_r, tol_a, size)
-        registered, _, O = full_registration(mu0, samples, weights, origin, opts)
-        y = _start(mu0, registered, O)
-        traces, steps = [], 0
-        for _ in range(_MAX_ROUNDS):
-            y, trace, count, n_steps, result = solve_fixed_point(
-                y, samples, weights, origin, opts, wrapped, max_steps, throw
-            )
-            traces.append(np.asarray(trace)[: int(count)])
-            steps += int(n_steps)
-            registered, energies, O, e_carried = _best_registration(
-                y, samples, weights, origin, opts, full_registration
-            )
-            F, F_carried = float(jnp.mean(energies)), float(e_carried)
-            if result != optx.RESULTS.successful or F >= F_carried - float(tol_a + tol_r * abs(F_carried)):
-                break
-            y = _start(y.mu, registered, O)
-        mu = y.mu
-        trace = np.concatenate(traces)
+        blocks = _SampleBlocks(executor, samples, block_size if client is not None else None)
+        mu, trace, steps, result, registered, energies = _fixed_point(
+            mu0, samples, mu_like, weights, opts, inner, rtol=float(rtol), atol=tol_a,
+            max_steps=max_steps, throw=throw, blocks=blocks, progress=progress,
+        )
     else:
         inner = solver if solver is not None else optx.GradientDescent(learning_rate=0.5, rtol=0.0, atol=0.0)
         if not isinstance(inner, optx.AbstractMinimiser):
@@ -703,24 +693,21 @@ def karcher_mean(
                 "method='gradient' needs an optimistix minimiser (e.g. optx.GradientDescent, "
                 f"optx.BFGS), got {type(inner).__name__}."
             )
-        wrapped = _MonitoredMinimiser(inner, tol_r, tol_a, size)
+        wrapped = _MonitoredMinimiser(inner, jnp.asarray(rtol, dtype), jnp.asarray(tol_a, dtype), max_steps + 1)
         mu, trace, count, steps, result = _solve_gradient(
-            mu0, samples, weights, origin, opts, wrapped, max_steps, throw
+            mu0, samples, mu_like, weights, opts, wrapped, max_steps, throw
         )
         trace = np.asarray(trace)[: int(count)]
-        registered, energies, _ = _full_registration(mu, samples, weights, origin, opts)
+        registered, energies, _ = _full_registration(mu, samples, mu_like, weights, opts)
 
     energy = jnp.mean(energies)
     trace = jnp.concatenate([jnp.asarray(trace, energy.dtype), energy[None]])
-
-    fitted = _to_tree(mu, origin)
+    fitted = params_to_tree(mu, mu_like, base_radius=_base_radius_mean(registered))
     lengths = l2_norm_squared(fitted.q)
     main_length = l2_norm_squared(fitted.q0)
     threshold = 0.02 * main_length if min_lateral_length is None else jnp.asarray(min_lateral_length)
     keep = lengths >= threshold
-    mean_srvf = SRVFTree(
-        q0=fitted.q0, q=fitted.q * keep[:, None, None], s=fitted.s, mask=keep, origin=origin
-    )
+    mean_srvf = eqx.tree_at(lambda t: (t.q, t.mask), fitted, (fitted.q * keep[:, None, None], keep))
     return KarcherMean(
         mean=to_curves(mean_srvf),
         mean_srvf=mean_srvf,
@@ -735,4 +722,5 @@ def karcher_mean(
         lateral_lengths=lengths,
         dropped=~keep,
         weights=weights,
+        registration=opts,
     )

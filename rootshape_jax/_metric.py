@@ -1,4 +1,8 @@
-"""The elastic pre-shape metric on SRVF trees and its weights (DESIGN.md §4)."""
+"""The elastic pre-shape metric on SRVF trees: its terms, their weights and energies (DESIGN.md §4).
+
+The metric is the sum of the terms listed in `TERMS` (each defined in `_terms` or its own
+module); `Weights` and `MetricTerms` have one field per term, in that order.
+"""
 
 from __future__ import annotations
 
@@ -8,65 +12,118 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._curves import l2_norm_squared
+from ._terms import LateralTerm, MainTerm, MetricTerm, PositionTerm
+from ._thickness import ThicknessTerm
 from ._tree import SRVFTree
 
 
-def _as_weight(x) -> Array:
-    return jnp.asarray(x)
+TERMS: tuple[MetricTerm, ...] = (MainTerm(), LateralTerm(), PositionTerm(), ThicknessTerm())
+TERM_NAMES: tuple[str, ...] = tuple(t.name for t in TERMS)
 
 
-class Weights(eqx.Module):
-    """Weights ``λ = (λm, λs, λp)`` of the three terms of the pre-shape metric.
+def _by_name(cls: str, args, kwargs, *, defaults: bool) -> dict:
+    if len(args) > len(TERM_NAMES):
+        raise TypeError(f"{cls} takes at most {len(TERM_NAMES)} values {TERM_NAMES}, got {len(args)}.")
+    values = dict(zip(TERM_NAMES, args))
+    for k, v in kwargs.items():
+        if k not in TERM_NAMES:
+            raise TypeError(f"{cls}: unknown term {k!r}; the terms are {TERM_NAMES}.")
+        if k in values:
+            raise TypeError(f"{cls}: {k!r} given twice (positionally and by name).")
+        values[k] = v
+    if defaults:
+        return {t.name: values.get(t.name, t.default_weight) for t in TERMS}
+    missing = [n for n in TERM_NAMES if n not in values]
+    if missing:
+        raise TypeError(f"{cls}: missing {missing}.")
+    return {n: values[n] for n in TERM_NAMES}
 
-    - `main` (λm): main-root bending and stretching, ``||q0a − q0b||²``.
-    - `lateral` (λs): lateral bending/stretching and growth, ``Σ ||qa_k − qb_k||²``.
-    - `position` (λp): movement of attachment points, ``Σ (sa_k − sb_k)²``.
 
-    The paper's figures use ``(0.02, 1, 1)`` — the default. The fields are JAX arrays, so
-    weights can be learned by differentiating through `distance`.
+class _ByTerm(eqx.Module):
+    """One value per metric term, read as attributes (``w.main``) or by name (``w["main"]``)."""
+
+    values: dict[str, Array]
+
+    def __getattr__(self, name):
+        # Only called for names that are not fields; "values" itself is never looked up here
+        # except while the instance is half-built (copy, unpickling).
+        if name != "values":
+            values = self.__dict__.get("values")
+            if values is not None and name in values:
+                return values[name]
+        raise AttributeError(f"{type(self).__name__} has no attribute {name!r}")
+
+    def __getitem__(self, name: str) -> Array:
+        return self.values[name]
+
+    def items(self):
+        return ((n, self.values[n]) for n in TERM_NAMES)
+
+
+class Weights(_ByTerm):
+    """Weights ``λ`` of the terms of the pre-shape metric, one per entry of `TERMS`:
+
+    - `main` (λm, default 0.02): main-root bending and stretching, ``||q0a − q0b||²``.
+    - `lateral` (λs, default 1): lateral bending/stretching and growth, ``Σ ||qa_k − qb_k||²``.
+    - `position` (λp, default 1): movement of attachment points, ``Σ (sa_k − sb_k)²``.
+    - `thickness` (λr, default 0): radius along each branch, through the extended SRVF of
+      ``(x, √λr·r)`` (DESIGN.md §11); used where trees carry radii. 0 is the paper's metric.
+
+    ``Weights(0.02, 1, 1)`` gives values in that order; names are clearer. The paper's figures
+    use ``(0.02, 1, 1)``. The values are JAX arrays, so weights can be learned by
+    differentiating through `distance`.
     """
 
-    main: Float[Array, ""] = eqx.field(converter=_as_weight, default=0.02)
-    lateral: Float[Array, ""] = eqx.field(converter=_as_weight, default=1.0)
-    position: Float[Array, ""] = eqx.field(converter=_as_weight, default=1.0)
+    def __init__(self, *args, **kwargs):
+        values = _by_name("Weights", args, kwargs, defaults=True)
+        self.values = {k: jnp.asarray(v) for k, v in values.items()}
 
     def __check_init__(self):
-        for name in ("main", "lateral", "position"):
-            v = getattr(self, name)
+        for name, v in self.values.items():
             if isinstance(v, jax.core.Tracer) or not isinstance(v, (jax.Array, np.ndarray)):
                 continue
             if v.shape != () or not np.isfinite(v) or v < 0:
-                raise ValueError(
-                    f"Weights.{name} must be a finite non-negative scalar, got {v!r}."
-                )
+                raise ValueError(f"Weights.{name} must be a finite non-negative scalar, got {v!r}.")
 
 
-class MetricTerms(eqx.Module):
-    """The weighted terms of the squared pre-shape distance (each already multiplied by λ)."""
+class MetricTerms(_ByTerm):
+    """The weighted terms of the squared pre-shape distance (each already multiplied by λ),
+    one per entry of `TERMS` (``terms.main``, ``terms.lateral``, ...)."""
 
-    main: Float[Array, "*B"]
-    lateral: Float[Array, "*B"]
-    position: Float[Array, "*B"]
+    def __init__(self, *args, **kwargs):
+        self.values = _by_name("MetricTerms", args, kwargs, defaults=False)
 
     @property
     def total(self) -> Float[Array, "*B"]:
-        return self.main + self.lateral + self.position
+        out = None
+        for name in TERM_NAMES:
+            out = self.values[name] if out is None else out + self.values[name]
+        return out
+
+
+def level_weight(weights: Weights, level: str, dtype) -> Array:
+    """Weight of the branch DPs at `level` ("main" or "lateral"): the sum over the terms there."""
+    lams = [jnp.asarray(weights[t.name], dtype) for t in TERMS if t.dp_level == level]
+    return sum(lams[1:], lams[0])
+
+
+def pair_costs(weights: Weights, a: SRVFTree, b: SRVFTree) -> Float[Array, "*B K K"]:
+    """The DP-free part of every lateral pair's cost (exact), summed over the terms."""
+    parts = [c for t in TERMS if (c := t.pair_cost(weights, a, b)) is not None]
+    if not parts:
+        return jnp.zeros(a.s.shape + a.s.shape[-1:], a.q0.dtype)
+    return sum(parts[1:], parts[0])
 
 
 def preshape_terms(a: SRVFTree, b: SRVFTree, weights: Weights | None = None) -> MetricTerms:
-    """Weighted terms of ``d2 = λm||Δq0||² + λs Σ||Δq_k||² + λp Σ(Δs_k)²`` slot by slot.
+    """Weighted terms of the squared pre-shape distance, slot by slot (no registration).
 
-    No registration: slot k of `a` is compared with slot k of `b`. A position difference counts
-    only where both slots are real laterals: a null lateral has no length, so it sits at its
-    partner's attachment point (DESIGN.md §4: real vs null costs ``λs||q||²`` only).
+    Slot k of `a` is compared with slot k of `b`. A position difference counts only where both
+    slots are real laterals: a null lateral has no length, so it sits at its partner's
+    attachment point (DESIGN.md §4: real vs null costs ``λs||q||²`` only).
     """
     weights = Weights() if weights is None else weights
-    main = weights.main * l2_norm_squared(a.q0 - b.q0)
-    lateral = weights.lateral * jnp.sum(l2_norm_squared(a.q - b.q), axis=-1)
-    both = jnp.logical_and(a.mask, b.mask)
-    position = weights.position * jnp.sum(jnp.where(both, (a.s - b.s) ** 2, 0.0), axis=-1)
-    return MetricTerms(main=main, lateral=lateral, position=position)
+    return MetricTerms(**{t.name: t.energy(weights, a, b) for t in TERMS})
 
 
 def preshape_distance_squared(a: SRVFTree, b: SRVFTree, weights: Weights | None = None) -> Float[Array, "*B"]:

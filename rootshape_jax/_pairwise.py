@@ -1,7 +1,16 @@
-"""Distance matrices: every pair through one compiled, batched registration, in chunks."""
+"""Distance matrices: every pair through the registration engine, in chunks and blocks.
+
+The pairs (the upper triangle for `pairwise_distances`, every (i, j) for `cross_distances`)
+are cut into blocks of `block_size` pairs, a multiple of `chunk_size`; `pair_block` computes
+one block with one compiled program per chunk shape (`chunk_energies`), and an executor
+(`_executor`: here by default, on Dask with `client=`) maps it over the blocks. Since a block
+starts on a chunk boundary, every chunk holds the same pairs and padding wherever it runs, so
+the matrix does not depend on the executor or the block size.
+"""
 
 from __future__ import annotations
 
+import math
 import os
 
 import equinox as eqx
@@ -9,124 +18,150 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
-from tqdm.auto import tqdm
 
+from ._engine import RegistrationOptions, register_pairs, registration_options
+from ._executor import BlockStore, LocalExecutor, executor_for, fingerprint
 from ._metric import Weights
-import functools
-
-from ._registration import _apply, _device_safe, _options, _search_split_args, split_over_devices
-from ._metric import preshape_terms
 from ._tree import RootTree, SRVFTree, batch_size, check_compatible, to_srvf
 
 
 @eqx.filter_jit
-def _chunk_energies(a: SRVFTree, b: SRVFTree, active, weights: Weights, dynamic, **options):
+def chunk_energies(a: SRVFTree, b: SRVFTree, active, weights: Weights, options: RegistrationOptions):
     """Squared distances of the pairs (a[k], b[k]); inactive pairs do no DP work. The shapes
     depend on the chunk size only, so one compiled program serves every chunk and every N."""
-    search = functools.partial(_search_split_args, **_device_safe(options))
-    O, perm, g0, gam, _, n_dp, n_skipped = split_over_devices(search, (a, b, active), (weights, dynamic))
-    registered = jax.vmap(_apply)(a, b, O, perm, g0, gam)
-    energy = preshape_terms(a, registered, weights).total
-    return energy, n_dp, n_skipped
+    reg = register_pairs(a, b, weights, options, active)
+    return reg.energy, reg.n_lateral_dp, reg.n_lateral_skipped
 
 
-def _as_batch(trees, name) -> SRVFTree:
+def run_pair_chunks(s, t, I, J, weights, options, chunk_size: int) -> dict:
+    """Squared distances of the pairs (s[I[k]], t[J[k]]), `chunk_size` pairs per call."""
+    n = len(I)
+    energies = np.zeros(n, dtype=np.asarray(s.q0).dtype)
+    n_dp = n_skipped = 0
+    for start in range(0, n, chunk_size):
+        stop = min(start + chunk_size, n)
+        m = stop - start
+        ii = np.zeros(chunk_size, np.int32)
+        jj = np.zeros(chunk_size, np.int32)
+        ii[:m] = I[start:stop]
+        jj[:m] = J[start:stop]
+        active = np.arange(chunk_size) < m
+        a = jax.tree.map(lambda x: x[ii], s)
+        b = jax.tree.map(lambda x: x[jj], t)
+        e, dp, sk = chunk_energies(a, b, jnp.asarray(active), weights, options)
+        energies[start:stop] = np.asarray(e)[:m]
+        n_dp += int(np.sum(np.asarray(dp)[:m]))
+        n_skipped += int(np.sum(np.asarray(sk)[:m]))
+    return {"energies": energies, "lateral_dp": np.int64(n_dp), "lateral_skipped": np.int64(n_skipped)}
+
+
+def pair_block(I, J, s, t, weights, options, chunk_size: int) -> dict:
+    """The block function: one block of pairs (looked up by name, so a worker can patch it)."""
+    return run_pair_chunks(s, t, I, J, weights, options, chunk_size)
+
+
+def _positive_int(value, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"{name} must be an integer >= 1, got {value!r}.")
+    return int(value)
+
+
+def run_pairs(
+    s, t, I, J, kind: str, *, weights, options, chunk_size, client, block_size, store, resume, progress, desc
+):
+    """Squared distances of the listed pairs, and stats: local or on a cluster, with a store."""
+    chunk_size = _positive_int(chunk_size, "chunk_size")
+    executor = executor_for(client)
+    local = isinstance(executor, LocalExecutor)
+    if block_size is None:
+        # Locally a block is a chunk (progress and the store advance chunk by chunk).
+        block_size = chunk_size if local else 8 * chunk_size
+    block_size = _positive_int(block_size, "block_size")
+    if block_size % chunk_size:
+        raise ValueError(
+            f"block_size ({block_size}) must be a multiple of chunk_size ({chunk_size}), so that "
+            "every chunk holds the same pairs wherever it runs (equal results)."
+        )
+    if not isinstance(resume, bool):
+        raise TypeError(f"resume must be True or False, got {resume!r}.")
+    n_pairs = len(I)
+    spans = [(a, min(a + block_size, n_pairs)) for a in range(0, n_pairs, block_size)]
+    st = None
+    if store is not None:
+        dtype = np.asarray(s.q0).dtype
+        st = BlockStore(store, {
+            "kind": kind, "n": int(s.q0.shape[0]), "m": int(t.q0.shape[0]), "n_pairs": n_pairs,
+            "block_size": block_size, "chunk_size": chunk_size, "dtype": str(dtype),
+            "fingerprint": fingerprint(kind, s, t, weights, options, repr(options)),
+        })
+    results, counts = executor.map_blocks(
+        pair_block, [(I[a:z], J[a:z]) for a, z in spans], shared=(s, t, weights, options, chunk_size),
+        sizes=[z - a for a, z in spans], store=st, resume=resume, progress=progress, desc=desc, unit="pair",
+    )
+    energies = np.concatenate([r["energies"] for r in results]) if results else np.zeros(0)
+    stats = {
+        "pairs": n_pairs,
+        "lateral_dp": int(sum(int(r["lateral_dp"]) for r in results)),
+        "lateral_skipped": int(sum(int(r["lateral_skipped"]) for r in results)),
+        **counts,
+    }
+    return energies, stats
+
+
+def _as_batch(trees, name, weights) -> SRVFTree:
     if not isinstance(trees, (RootTree, SRVFTree)):
         raise TypeError(
             f"{name} must be a batched RootTree or SRVFTree (rootshape_jax.batch(roots)), "
             f"got {type(trees).__name__}."
         )
-    s = to_srvf(trees)
+    s = to_srvf(trees, weights=weights)
     n = batch_size(s)
     if n == 0:
         raise ValueError(f"{name} is an empty batch; give at least one root.")
     return s
 
 
-def _run_pairs(s, t, I, J, *, weights, chunk_size, progress, desc, options):
-    dynamic, opts = options
-    n = len(I)
-    energies = np.zeros(n, dtype=np.asarray(s.q0).dtype)
-    stats = {"pairs": n, "lateral_dp": 0, "lateral_skipped": 0}
-    with tqdm(total=n, desc=desc, unit="pair", disable=not progress) as bar:
-        for start in range(0, n, chunk_size):
-            stop = min(start + chunk_size, n)
-            m = stop - start
-            ii = np.zeros(chunk_size, np.int32)
-            jj = np.zeros(chunk_size, np.int32)
-            ii[:m] = I[start:stop]
-            jj[:m] = J[start:stop]
-            active = np.arange(chunk_size) < m
-            a = jax.tree.map(lambda x: x[ii], s)
-            b = jax.tree.map(lambda x: x[jj], t)
-            e, n_dp, n_skipped = _chunk_energies(a, b, jnp.asarray(active), weights, dynamic, **opts)
-            energies[start:stop] = np.asarray(e)[:m]
-            stats["lateral_dp"] += int(np.sum(np.asarray(n_dp)[:m]))
-            stats["lateral_skipped"] += int(np.sum(np.asarray(n_skipped)[:m]))
-            bar.update(m)
-    return energies, stats
-
-
-def _dispatch(s, t, I, J, kind, *, client, block_size, store, resume, **kwargs):
-    """The local loop, or the same loop in blocks on a Dask client (`_dask.run_pairs`)."""
-    chunk_size = kwargs["chunk_size"]
-    if not isinstance(chunk_size, int) or isinstance(chunk_size, bool) or chunk_size < 1:
-        raise ValueError(f"chunk_size must be an integer >= 1, got {chunk_size!r}.")
-    if client is None:
-        if block_size is not None or store is not None:
-            raise ValueError("block_size and store apply to a Dask run only; pass client= too.")
-        return _run_pairs(s, t, I, J, **kwargs)
-    from ._dask import run_pairs
-
-    return run_pairs(client, s, t, I, J, kind=kind, block_size=block_size, store=store,
-                     resume=resume, **kwargs)
-
-
 def pairwise_distances(
     trees: RootTree | SRVFTree,
     *,
     weights: Weights | None = None,
+    registration: RegistrationOptions | None = None,
     chunk_size: int = 32,
     progress: bool = True,
     return_stats: bool = False,
-    rotation: bool = True,
-    max_iterations: int = 4,
-    rtol: float = 1e-4,
-    neighbourhood: int = 7,
-    prune: bool = True,
-    dp_batch_size: int = 32,
-    assignment: str = "callback",
     client=None,
     block_size: int | None = None,
     store: str | os.PathLike | None = None,
     resume: bool = True,
+    **options,
 ) -> Float[Array, "N N"]:
     """Symmetric (N, N) matrix of elastic distances between the roots of a batch.
 
     Every pair i < j is registered (b = root j onto a = root i) by one compiled program, in
     chunks of `chunk_size` pairs so memory stays bounded; a tqdm bar shows progress and Ctrl-C
     stops between chunks. The diagonal is 0. With `return_stats=True` also returns a dict with
-    the number of lateral DPs run and skipped by the exact pruning bound. Registration options
-    as in `register`.
+    the number of pairs, of lateral DPs run and skipped by the exact pruning bound, and of
+    blocks computed and read from a store. Registration options: `registration` (a
+    `RegistrationOptions`) or its fields as keywords, as in `register`.
+
+    **Store** (`store=DIR`): every finished block of `block_size` pairs (default: one chunk
+    here, ``8 × chunk_size`` on a cluster) is saved; a rerun with ``resume=True`` computes only
+    the missing blocks, and a store of another run is refused (`StoreMismatchError`).
 
     **On a Dask cluster** (extra ``rootshape_jax[dask]``): with `client` (a
-    ``dask.distributed.Client``) the pairs are sent in blocks of `block_size` pairs (a multiple
-    of `chunk_size`; default ``8 × chunk_size``) through the same compiled kernel, so the matrix
-    equals the local one bit for bit. With `store` (a directory) every finished block is saved;
-    a rerun with ``resume=True`` computes only the missing blocks, and a store of another run is
-    refused. The stats then also count ``blocks``, ``blocks_computed`` and ``blocks_from_store``.
+    ``dask.distributed.Client``) the blocks run on the cluster through the same compiled
+    kernel, so the matrix equals the local one bit for bit.
     """
     weights = Weights() if weights is None else weights
-    opts = _options(rotation, max_iterations, rtol, neighbourhood, prune, dp_batch_size, assignment)
-    s = _as_batch(trees, "pairwise_distances: trees")
+    opts = registration_options(registration, **options)
+    s = _as_batch(trees, "pairwise_distances: trees", weights)
     n = batch_size(s)
     I, J = np.triu_indices(n, 1)
-    e, stats = _dispatch(
-        s, s, I, J, "pairwise", weights=weights, chunk_size=chunk_size, progress=progress,
-        desc="distances", options=opts, client=client, block_size=block_size, store=store,
-        resume=resume,
+    e, stats = run_pairs(
+        s, s, I, J, "pairwise", weights=weights, options=opts, chunk_size=chunk_size, client=client,
+        block_size=block_size, store=store, resume=resume, progress=progress, desc="distances",
     )
-    D = np.zeros((n, n), dtype=e.dtype)
+    D = np.zeros((n, n), dtype=np.asarray(s.q0).dtype)
     D[I, J] = np.sqrt(np.maximum(e, 0.0))
     D[J, I] = D[I, J]
     D = jnp.asarray(D)
@@ -138,35 +173,26 @@ def cross_distances(
     B: RootTree | SRVFTree,
     *,
     weights: Weights | None = None,
+    registration: RegistrationOptions | None = None,
     chunk_size: int = 32,
     progress: bool = True,
-    rotation: bool = True,
-    max_iterations: int = 4,
-    rtol: float = 1e-4,
-    neighbourhood: int = 7,
-    prune: bool = True,
-    dp_batch_size: int = 32,
-    assignment: str = "callback",
     client=None,
     block_size: int | None = None,
     store: str | os.PathLike | None = None,
     resume: bool = True,
+    **options,
 ) -> Float[Array, "N M"]:
     """(N, M) matrix of distances between every root of batch `A` and every root of batch `B`
-    (root ``B[j]`` registered onto ``A[i]``). `client`, `block_size`, `store`, `resume`: as in
-    `pairwise_distances`."""
+    (root ``B[j]`` registered onto ``A[i]``). Other arguments as in `pairwise_distances`."""
     weights = Weights() if weights is None else weights
-    opts = _options(rotation, max_iterations, rtol, neighbourhood, prune, dp_batch_size, assignment)
-    s = _as_batch(A, "cross_distances: A")
-    t = _as_batch(B, "cross_distances: B")
+    opts = registration_options(registration, **options)
+    s = _as_batch(A, "cross_distances: A", weights)
+    t = _as_batch(B, "cross_distances: B", weights)
     check_compatible(s, t, "cross_distances: A and B")
     n, m = batch_size(s), batch_size(t)
     I, J = (x.ravel() for x in np.meshgrid(np.arange(n), np.arange(m), indexing="ij"))
-    e, _ = _dispatch(
-        s, t, I, J, "cross", weights=weights, chunk_size=chunk_size, progress=progress,
-        desc="cross distances", options=opts, client=client, block_size=block_size, store=store,
-        resume=resume,
+    e, _ = run_pairs(
+        s, t, I, J, "cross", weights=weights, options=opts, chunk_size=chunk_size, client=client,
+        block_size=block_size, store=store, resume=resume, progress=progress, desc="cross distances",
     )
     return jnp.asarray(np.sqrt(np.maximum(e, 0.0)).reshape(n, m))
-
-

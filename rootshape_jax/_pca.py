@@ -27,8 +27,10 @@ import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from ._curves import l2_norm_squared
-from ._mean import KarcherMean, _broadcast, _Params, _registration_options, _register_onto, _whitening
+from ._engine import RegistrationOptions, registration_options
+from ._mean import KarcherMean, register_onto
 from ._metric import Weights
+from ._tangent import TreeParams, exp_map, flatten, log_map, whiten, whitening
 from ._tree import RootTree, SRVFTree, check_compatible, to_curves, to_srvf
 
 
@@ -57,46 +59,19 @@ class TangentPCA(eqx.Module):
     eigenvalues: Float[Array, " m"]
     explained_variance_ratio: Float[Array, " m"]
     scores: Float[Array, "n m"]
-    scales: _Params
+    scales: TreeParams
     weights: Weights
+    registration: RegistrationOptions
     min_lateral_length: Float[Array, ""]
     n_components: int = eqx.field(static=True)
     variance: float = eqx.field(static=True)
 
 
-def _flatten(v: _Params) -> Array:
-    lead = v.q0.shape[:-2]
-    return jnp.concatenate(
-        [v.q0.reshape(lead + (-1,)), v.q.reshape(lead + (-1,)), v.s.reshape(lead + (-1,))], axis=-1
-    )
-
-
-def _unflatten(x: Array, T: int, K: int, d: int) -> _Params:
-    lead = x.shape[:-1]
-    n0 = T * d
-    n1 = K * T * d
-    return _Params(
-        x[..., :n0].reshape(lead + (T, d)),
-        x[..., n0 : n0 + n1].reshape(lead + (K, T, d)),
-        x[..., n0 + n1 :].reshape(lead + (K,)),
-    )
-
-
-def _tangent(registered: SRVFTree, mean: SRVFTree, c: _Params) -> Array:
-    """Flattened whitened tangent vectors ``W^{1/2}(registered − mean)`` (batched)."""
-    v = _Params(
-        c.q0 * (registered.q0 - mean.q0),
-        c.q * (registered.q - mean.q),
-        c.s * (registered.s - mean.s),
-    )
-    return _flatten(v)
-
-
 @eqx.filter_jit
 def _fit(registered: SRVFTree, mean: SRVFTree, weights: Weights):
     T = mean.q0.shape[0]
-    c = _whitening(weights, T, mean.q0.dtype)
-    V = _tangent(registered, mean, c)
+    c = whitening(weights, T, mean.q0.dtype)
+    V = log_map(registered, mean, c)
     n = V.shape[0]
     # SVD through the n × n Gram matrix: n (roots) is far smaller than p (coordinates), and
     # XLA:CPU's SVD of a wide matrix is slow (seconds at 53 × 12,260; the Gram route takes ms).
@@ -109,7 +84,7 @@ def _fit(registered: SRVFTree, mean: SRVFTree, weights: Weights):
     total = jnp.sum(eig)
     ratio = jnp.where(total > 0, eig / jnp.where(total > 0, total, 1.0), 0.0)
     scores = _scores(V, Vt, eig)
-    mean_norm2 = jnp.sum(_flatten(_Params(c.q0 * mean.q0, c.q * mean.q, c.s * mean.s)) ** 2)
+    mean_norm2 = jnp.sum(flatten(whiten(TreeParams(mean.q0, mean.q, mean.s), c)) ** 2)
     threshold = 0.02 * l2_norm_squared(mean.q0)
     return c, Vt, eig, ratio, scores, mean_norm2, threshold
 
@@ -164,6 +139,7 @@ def tangent_pca(
         scores=scores,
         scales=c,
         weights=mean.weights,
+        registration=mean.registration,
         min_lateral_length=threshold,
         n_components=_count(ratio_np, eig_np, float(mean_norm2), float(jnp.finfo(dtype).eps), variance),
         variance=float(variance),
@@ -176,20 +152,7 @@ def tangent_pca(
 
 def _to_tree(pc: TangentPCA, v: Array) -> SRVFTree:
     """SRVF trees ``μ + W^{-1/2} v`` for flattened whitened tangent vectors v (batched)."""
-    return _tangent_to_tree(pc.mean, pc.scales, pc.min_lateral_length, v)
-
-
-def _tangent_to_tree(mean: SRVFTree, c: _Params, min_lateral_length: Array, v: Array) -> SRVFTree:
-    T, d = mean.q0.shape
-    K = mean.q.shape[0]
-    u = _unflatten(v, T, K, d)
-    q0 = mean.q0 + u.q0 / c.q0
-    q = mean.q + u.q / c.q
-    s = jnp.clip(mean.s + u.s / c.s, 0.0, 1.0)
-    real = l2_norm_squared(q) >= min_lateral_length
-    q = q * real[..., None, None]
-    origin = jnp.broadcast_to(mean.origin, q0.shape[:-2] + mean.origin.shape)
-    return SRVFTree(q0=q0, q=q, s=s, mask=real, origin=origin)
+    return exp_map(pc.mean, pc.scales, pc.min_lateral_length, v)
 
 
 @eqx.filter_jit
@@ -271,9 +234,8 @@ def _sample(pc: TangentPCA, key, n: int, m: int, truncate: float | None):
 
 @eqx.filter_jit
 def _project(pc: TangentPCA, x: SRVFTree, opts):
-    a = _broadcast(pc.mean, x.q0.shape[0])
-    registered, energies, _ = _register_onto(a, x, pc.weights, opts)
-    V = _tangent(registered, pc.mean, pc.scales)
+    registered, energies, _ = register_onto(pc.mean, x, pc.weights, opts)
+    V = log_map(registered, pc.mean, pc.scales)
     return _scores(V, pc.components, pc.eigenvalues), energies
 
 
@@ -282,20 +244,20 @@ def project(
     trees: RootTree | SRVFTree,
     *,
     n_components: int | None = None,
-    registration: dict | None = None,
+    registration: RegistrationOptions | dict | None = None,
 ) -> Float[Array, "n m"]:
     """Standardised coefficients ``b`` of roots: each is registered onto the mean (options of
     `register` in `registration`) and its tangent vector projected on the first
     `n_components` (default `pc.n_components`) directions, divided by ``√σ_i``. A single tree
-    gives shape ``(m,)``."""
-    x = to_srvf(trees)
+    gives shape ``(m,)``. Registration options default to those the mean used."""
+    x = to_srvf(trees, weights=pc.weights)
     single = x.batch_shape == ()
     if single:
         x = jax.tree.map(lambda a: a[None], x)
     if len(x.batch_shape) != 1:
         raise ValueError(f"project: expected one tree or a batch, got batch shape {x.batch_shape}.")
     check_compatible(pc.mean, x, "project: the PCA's mean and trees")
-    opts = _registration_options(registration)
+    opts = registration_options(registration, base=pc.registration)
     b, _ = _project(pc, x, opts)
     m = pc.n_components if n_components is None else int(n_components)
     b = b[:, :m]

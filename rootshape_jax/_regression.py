@@ -28,9 +28,10 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._curves import cumulative_sum, safe_norm, trapezoid_weights
-from ._pca import TangentPCA, _unflatten
+from ._pca import TangentPCA
+from ._tangent import unflatten
 from ._traits import traits as measure_traits
-from ._tree import RootTree, SRVFTree, to_roots
+from ._tree import RootTree, SRVFTree, to_curves, to_roots
 
 PAPER_TRAITS: tuple[str, ...] = ("main_length", "mean_lateral_length", "std_lateral_length")
 
@@ -105,7 +106,7 @@ _SWEEP_CHUNK = 64
 
 
 @functools.partial(jax.jit, static_argnames="curves")
-def _synthesize(offset, slopes, s_offset, s_slopes, origin, min_len, trait_mean, trait_scale, v, curves):
+def _synthesize(offset, slopes, s_offset, s_slopes, origin, min_len, trait_mean, trait_scale, v, curves, thick=None):
     # Plain jax.jit on the arrays it needs: one regressed root is dispatch-bound, so no Module
     # flattening, and the affine map is unrolled over the few traits (XLA:CPU's
     # dot for a (l,) × (l, p) product costs more than the whole root).
@@ -117,11 +118,14 @@ def _synthesize(offset, slopes, s_offset, s_slopes, origin, min_len, trait_mean,
         length = jnp.sum(jnp.sum(qa * qa, axis=0) * w[:, None], axis=0)
         keep = (length >= min_len).at[0].set(True)  # slot 0 is the main root
         real = keep[1:]
-        if curves:
+        if curves and thick is None:
             main, laterals = _stacked_to_curves(qa, s, keep, origin)
             return RootTree(main=main, laterals=laterals, attach=s, mask=real)
         q = jnp.transpose(qa[:, :, 1:], (2, 1, 0)) * real[:, None, None]
-        return SRVFTree(q0=qa[:, :, 0].T, q=q, s=s, mask=real, origin=origin)
+        base, scale = (None, None) if thick is None else thick
+        tree = SRVFTree(q0=qa[:, :, 0].T, q=q, s=s, mask=real, origin=origin, base_radius=base, thickness_scale=scale)
+        # With a thickness channel the curves come with radii: the general path.
+        return to_curves(tree) if curves else tree
 
     if v.ndim == 1:
         return one(v)
@@ -142,9 +146,9 @@ def _affine_map(pca: TangentPCA, M: np.ndarray):
     components = np.asarray(pca.components)[:m].astype(np.float64)
     G = (M.T * np.sqrt(f64(pca.eigenvalues)[:m])) @ components  # (l+1, p) whitened
     mean, c = pca.mean, pca.scales
-    T, d = mean.q0.shape
+    T, C = mean.q0.shape  # C = d, or d + 1 with a thickness channel
     K = mean.q.shape[0]
-    u = _unflatten(G, T, K, d)
+    u = unflatten(G, T, K, C)
     q0 = f64(u.q0) / f64(c.q0)  # (l+1, T, d)
     q = f64(u.q) / f64(c.q)  # (l+1, K, T, d)
     stacked = np.concatenate([q0[:, None], q], axis=1).transpose(0, 3, 2, 1)  # (l+1, d, T, K+1)
@@ -176,7 +180,7 @@ def _synthesize_method(reg: "TraitRegression", values, *, srvf: bool = False) ->
     return _synthesize(
         reg.offset, reg.slopes, reg.s_offset, reg.s_slopes, pc.mean.origin,
         pc.min_lateral_length, reg.trait_mean, reg.trait_scale, _check_values(reg, values),
-        curves=not srvf,
+        curves=not srvf, thick=None if pc.mean.thickness_scale is None else (pc.mean.base_radius, pc.mean.thickness_scale),
     )
 
 

@@ -22,6 +22,7 @@ from jaxtyping import Array, Bool, Float
 from ._curves import interpolate_at_fraction, srvf, srvf_to_curve
 from ._errors import CapacityError, InvalidRootError
 from ._root import Root, check_polyline, polyline_length
+from ._thickness import extended_srvf, integrate_branch, wants_thickness
 
 
 def _is_array(x) -> bool:
@@ -38,17 +39,34 @@ class RootTree(eqx.Module):
       Null slots (``mask = False``) are collapsed to a single repeated point.
     - `attach`: ``[K]`` arc-length fraction in [0, 1] of each lateral's attachment point.
     - `mask`: ``[K]`` True for real laterals, False for padding (null laterals).
+    - `main_radius`, `lateral_radius`: ``[T]`` and ``[K, T]`` radius along each branch, in the
+      coordinates' unit, or None when the batch has no radius data. Null slots have radius 0.
     """
 
     main: Float[Array, "*B T d"]
     laterals: Float[Array, "*B K T d"]
     attach: Float[Array, "*B K"]
     mask: Bool[Array, "*B K"]
+    main_radius: Float[Array, "*B T"] | None = None
+    lateral_radius: Float[Array, "*B K T"] | None = None
 
     def __check_init__(self):
         _check_shapes(
             "RootTree", self.main, self.laterals, self.attach, self.mask, names=("main", "laterals")
         )
+        if (self.main_radius is None) != (self.lateral_radius is None):
+            raise ValueError("RootTree: give both main_radius and lateral_radius, or neither.")
+        if self.main_radius is not None and _is_array(self.main_radius) and _is_array(self.main):
+            if self.main_radius.shape != self.main.shape[:-1]:
+                raise ValueError(
+                    f"RootTree: main_radius has shape {self.main_radius.shape}, expected "
+                    f"{self.main.shape[:-1]}."
+                )
+            if self.lateral_radius.shape != self.laterals.shape[:-1]:
+                raise ValueError(
+                    f"RootTree: lateral_radius has shape {self.lateral_radius.shape}, expected "
+                    f"{self.laterals.shape[:-1]}."
+                )
 
     @property
     def n_points(self) -> int:
@@ -77,21 +95,31 @@ class SRVFTree(eqx.Module):
     - `s`: ``[K]`` attachment arc-length fractions along the main root.
     - `mask`: ``[K]`` True for real laterals.
     - `origin`: ``[d]`` start of the main root (SRVFs forget translation; kept to rebuild curves).
+    - `base_radius`, `thickness_scale`: present only with a thickness channel (DESIGN.md §11,
+      `Weights.thickness` > 0 and radii in the data): then `q0` and `q` have ``d + 1``
+      channels, the last being the SRVF channel of ``c·r`` with ``c = thickness_scale``
+      (``√λr``), and `base_radius` ``[K + 1]`` holds the starting radius of the main root
+      (slot 0) and of each lateral, which the SRVF forgets. Otherwise both are None.
     """
 
-    q0: Float[Array, "*B T d"]
-    q: Float[Array, "*B K T d"]
+    q0: Float[Array, "*B T C"]
+    q: Float[Array, "*B K T C"]
     s: Float[Array, "*B K"]
     mask: Bool[Array, "*B K"]
     origin: Float[Array, "*B d"]
+    base_radius: Float[Array, "*B K1"] | None = None
+    thickness_scale: Float[Array, "*B"] | None = None
 
     def __check_init__(self):
         _check_shapes("SRVFTree", self.q0, self.q, self.s, self.mask, names=("q0", "q"))
+        if (self.base_radius is None) != (self.thickness_scale is None):
+            raise ValueError("SRVFTree: give both base_radius and thickness_scale, or neither.")
         if _is_array(self.origin) and _is_array(self.q0):
-            if self.origin.shape != self.q0.shape[:-2] + self.q0.shape[-1:]:
+            extra = 0 if self.thickness_scale is None else 1
+            if self.origin.shape != self.q0.shape[:-2] + (self.q0.shape[-1] - extra,):
                 raise ValueError(
                     f"SRVFTree: origin has shape {self.origin.shape}, expected "
-                    f"{self.q0.shape[:-2] + self.q0.shape[-1:]} (batch + (d,))."
+                    f"{self.q0.shape[:-2] + (self.q0.shape[-1] - extra,)} (batch + (d,))."
                 )
 
     @property
@@ -104,7 +132,12 @@ class SRVFTree(eqx.Module):
 
     @property
     def dim(self) -> int:
-        return self.q0.shape[-1]
+        """Spatial dimension d (a thickness channel, when present, comes on top)."""
+        return self.origin.shape[-1]
+
+    @property
+    def has_thickness(self) -> bool:
+        return self.thickness_scale is not None
 
     @property
     def batch_shape(self) -> tuple[int, ...]:
@@ -114,7 +147,7 @@ class SRVFTree(eqx.Module):
 def _check_shapes(cls, main, lats, attach, mask, *, names):
     if not all(_is_array(x) for x in (main, lats, attach, mask)):
         return  # leaves replaced by placeholders (e.g. inside jax transformations)
-    if main.ndim < 2 or main.shape[-1] not in (2, 3):
+    if main.ndim < 2 or main.shape[-1] not in (2, 3, 4):
         raise ValueError(f"{cls}: {names[0]} must be (..., T, d) with d in (2, 3), got {main.shape}.")
     batch = main.shape[:-2]
     T, d = main.shape[-2:]
@@ -318,31 +351,69 @@ def batch_size(tree: RootTree | SRVFTree) -> int:
 # RootTree <-> SRVFTree
 
 
-def to_srvf(tree: RootTree | SRVFTree) -> SRVFTree:
-    """SRVF tree of a (batched) `RootTree`; an `SRVFTree` is returned unchanged."""
+def to_srvf(tree: RootTree | SRVFTree, *, weights=None) -> SRVFTree:
+    """SRVF tree of a (batched) `RootTree`; an `SRVFTree` is returned unchanged.
+
+    With `weights` whose `thickness` (λr) is positive and a tree with radii, each branch's SRVF
+    is that of the extended curve ``(x, √λr·r)`` (DESIGN.md §11; see `SRVFTree`). Otherwise
+    radii are not used.
+    """
     if isinstance(tree, SRVFTree):
+        if weights is not None:
+            check_thickness(tree, weights)
         return tree
     if not isinstance(tree, RootTree):
         raise TypeError(
             f"expected a RootTree or SRVFTree, got {type(tree).__name__}; "
             "use rootshape_jax.batch(roots) to build one from Root objects."
         )
+    origin = tree.main[..., 0, :]
+    if wants_thickness(tree, weights):
+        q0, q, base, c = extended_srvf(
+            tree.main, tree.laterals, tree.main_radius, tree.lateral_radius, tree.mask, weights.thickness
+        )
+        return SRVFTree(q0=q0, q=q, s=tree.attach, mask=tree.mask, origin=origin, base_radius=base, thickness_scale=c)
     q0 = srvf(tree.main)
     q = srvf(tree.laterals) * tree.mask[..., None, None]
-    return SRVFTree(q0=q0, q=q, s=tree.attach, mask=tree.mask, origin=tree.main[..., 0, :])
+    return SRVFTree(q0=q0, q=q, s=tree.attach, mask=tree.mask, origin=origin)
+
+
+def check_thickness(tree: SRVFTree, weights) -> None:
+    """Refuse an `SRVFTree` built for another thickness weight than `weights.thickness`."""
+    lam = weights.thickness
+    if isinstance(lam, jax.core.Tracer) or isinstance(tree.thickness_scale, jax.core.Tracer):
+        return
+    lam = float(np.asarray(lam))
+    if tree.thickness_scale is None:
+        return  # no radii in the data, or built with λr = 0: the thickness term is 0
+    c = np.asarray(tree.thickness_scale)
+    if not np.allclose(c**2, lam, rtol=1e-6, atol=0.0):
+        raise ValueError(
+            f"this SRVFTree was built with thickness weight {float(np.ravel(c)[0]) ** 2:g} but "
+            f"weights.thickness = {lam:g}; rebuild it with to_srvf(tree, weights=weights)."
+        )
 
 
 def _to_curves_single(t: SRVFTree) -> RootTree:
-    main = srvf_to_curve(t.q0, t.origin)
-    bases = interpolate_at_fraction(main, t.s)  # (K, d)
+    if not t.has_thickness:
+        main = srvf_to_curve(t.q0, t.origin)
+        bases = interpolate_at_fraction(main, t.s)  # (K, d)
+        q = t.q * t.mask[:, None, None]
+        lats = jax.vmap(srvf_to_curve)(q, bases)
+        return RootTree(main=main, laterals=lats, attach=t.s, mask=t.mask)
+    c = t.thickness_scale
+    main, r0 = integrate_branch(t.q0, t.origin, t.base_radius[0], c)
+    bases = interpolate_at_fraction(main, t.s)
     q = t.q * t.mask[:, None, None]
-    lats = jax.vmap(srvf_to_curve)(q, bases)
-    return RootTree(main=main, laterals=lats, attach=t.s, mask=t.mask)
+    lats, r = jax.vmap(integrate_branch, in_axes=(0, 0, 0, None))(q, bases, t.base_radius[1:], c)
+    r = r * t.mask[:, None]
+    return RootTree(main=main, laterals=lats, attach=t.s, mask=t.mask, main_radius=r0, lateral_radius=r)
 
 
 def to_curves(tree: SRVFTree | RootTree) -> RootTree:
     """Curves of a (batched) `SRVFTree`: integrate the main root from `origin`, then each
-    lateral from the main-root point at arc-length fraction `s` (DESIGN.md §5)."""
+    lateral from the main-root point at arc-length fraction `s` (DESIGN.md §5). With a
+    thickness channel the radii come back too (from `base_radius`)."""
     if isinstance(tree, RootTree):
         return tree
     if not isinstance(tree, SRVFTree):
@@ -355,6 +426,11 @@ def to_curves(tree: SRVFTree | RootTree) -> RootTree:
 
 def check_compatible(a: RootTree | SRVFTree, b: RootTree | SRVFTree, what: str = "trees") -> None:
     """Raise a clear ValueError when two trees cannot be compared (capacities, d, dtype)."""
+    if isinstance(a, SRVFTree) and isinstance(b, SRVFTree) and a.has_thickness != b.has_thickness:
+        raise ValueError(
+            f"{what}: one has a thickness channel and the other not; build both with "
+            "to_srvf(tree, weights=weights) from trees that both carry radii."
+        )
     if (a.n_points, a.capacity, a.dim) != (b.n_points, b.capacity, b.dim):
         raise ValueError(
             f"{what} have different capacities: (T, K, d) = {(a.n_points, a.capacity, a.dim)} vs "

@@ -43,6 +43,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._devices import device_vmap
+from ._curves import safe_sqrt
 from ._errors import InvalidRootError
 
 
@@ -53,14 +54,14 @@ from ._errors import InvalidRootError
 
 def dp_moves(neighbourhood: int) -> np.ndarray:
     """The DP's moves ``(a, b)``: ``1 <= a, b <= neighbourhood`` with ``gcd(a, b) = 1``."""
-    n = _check_neighbourhood(neighbourhood)
+    n = check_neighbourhood(neighbourhood)
     return np.array(
         [(a, b) for a in range(1, n + 1) for b in range(1, n + 1) if math.gcd(a, b) == 1],
         dtype=np.int64,
     ).reshape(-1, 2)
 
 
-def _check_neighbourhood(neighbourhood) -> int:
+def check_neighbourhood(neighbourhood) -> int:
     if isinstance(neighbourhood, bool) or not isinstance(neighbourhood, (int, np.integer)):
         raise ValueError(
             f"neighbourhood must be a Python int >= 1 (the largest step of a DP move), got "
@@ -445,7 +446,7 @@ def _broadcast_unbatched(axis_size, in_batched, args):
 
 def _prepare(q1, q2, neighbourhood, what, *, check=True):
     q1, q2 = _check_srvf_pair(q1, q2, what)
-    n = _check_neighbourhood(neighbourhood)
+    n = check_neighbourhood(neighbourhood)
     # Moves longer than the grid can never be used; dropping them changes nothing.
     n = min(n, q1.shape[0] - 1)
     q1, q2 = jax.lax.stop_gradient((q1, q2))
@@ -481,7 +482,7 @@ def dp_warp_and_energy(
     return _dp_kernel(n)(q1, q2, jnp.asarray(True))
 
 
-def _dp_warp_if(
+def dp_warp_if(
     q1: Array, q2: Array, active: Array, *, neighbourhood: int
 ) -> tuple[Array, Array]:
     """`dp_warp_and_energy` for loops under `vmap`: lanes with ``active`` False are skipped
@@ -528,11 +529,6 @@ def _lerp(values: Array, x: Array) -> Array:
     return values[i0] * (1 - f) + values[i0 + 1] * f
 
 
-def _safe_sqrt(x: Array) -> Array:
-    ok = x > 0
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1)), 0)
-
-
 def _check_monotone(gamma: Array, what: str) -> Array:
     tol = 16 * jnp.finfo(gamma.dtype).eps
     ends_bad = (jnp.abs(gamma[0]) > tol) | (jnp.abs(gamma[-1] - 1) > tol)
@@ -559,10 +555,10 @@ def warp_samples(
     size = q1.shape[0]
     gamma = _check_gamma(gamma, size, q1.dtype, "warp_energy")
     gamma = _check_monotone(gamma, "warp_energy")
-    return _warp_samples(q1, q2, gamma)
+    return warp_samples_unchecked(q1, q2, gamma)
 
 
-def _warp_samples(q1: Array, q2: Array, gamma: Array):
+def warp_samples_unchecked(q1: Array, q2: Array, gamma: Array):
     size = q1.shape[0]
     dtype = q1.dtype
     last = size - 1
@@ -585,7 +581,7 @@ def _warp_samples(q1: Array, q2: Array, gamma: Array):
     # The t-interval holding each merged interval fixes its slope (γ is linear inside).
     seg = jnp.clip(jnp.floor(0.5 * (x0 + x1)).astype(jnp.int32), 0, last - 1)
     slope = g[seg + 1] - g[seg]
-    rs = _safe_sqrt(slope)[:, None, None]
+    rs = safe_sqrt(slope)[:, None, None]
     ends = jnp.stack([x0, x1], axis=1)  # (N, 2)
     y = g[seg][:, None] + slope[:, None] * (ends - seg[:, None].astype(dtype))
     A = _lerp(q1, ends)
@@ -612,7 +608,7 @@ def warp_energy(
 def _sqrt_speed(gamma: Array) -> Array:
     """√γ' at the grid nodes: the mean of the one-sided √(finite differences)."""
     last = gamma.shape[0] - 1
-    rs = _safe_sqrt(jnp.diff(gamma) * last)
+    rs = safe_sqrt(jnp.diff(gamma) * last)
     left = jnp.concatenate([rs[:1], rs])
     right = jnp.concatenate([rs, rs[-1:]])
     return 0.5 * (left + right)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import rootshape_jax as rs
-from rootshape_jax._dask import StoreMismatchError
+from rootshape_jax import StoreMismatchError
 
 from helpers import random_root
 
@@ -76,8 +76,8 @@ def _install_crash(store, marker, after, mode):
 
     from rootshape_jax import _pairwise
 
-    original = getattr(_pairwise, "_original_run_pairs", _pairwise._run_pairs)
-    _pairwise._original_run_pairs = original
+    original = getattr(_pairwise, "_original_run_pair_chunks", _pairwise.run_pair_chunks)
+    _pairwise._original_run_pair_chunks = original
     calls = [0]
 
     def blocks():
@@ -102,14 +102,14 @@ def _install_crash(store, marker, after, mode):
                 os._exit(1)
         return original(*args, **kwargs)
 
-    _pairwise._run_pairs = run_pairs
+    _pairwise.run_pair_chunks = run_pairs
 
 
 def _remove_crash():
     from rootshape_jax import _pairwise
 
-    if hasattr(_pairwise, "_original_run_pairs"):
-        _pairwise._run_pairs = _pairwise._original_run_pairs
+    if hasattr(_pairwise, "_original_run_pair_chunks"):
+        _pairwise.run_pair_chunks = _pairwise._original_run_pair_chunks
 
 
 def test_bitwise_equal_to_local_and_resume_from_store(client, trees, local, tmp_path):
@@ -203,8 +203,8 @@ def test_bad_inputs_fail_before_any_task(client, trees, tmp_path, monkeypatch):
         _run(trees, client, block_size=3)
     with pytest.raises(TypeError, match="dask.distributed.Client"):
         _run(trees, "tcp://127.0.0.1:8786")
-    with pytest.raises(ValueError, match="apply to a Dask run only"):
-        _run(trees, None, store=tmp_path / "x")
+    with pytest.raises(ValueError, match="multiple of chunk_size"):
+        _run(trees, None, block_size=3)  # the local path checks the same
     with pytest.raises(StoreMismatchError, match="holds another run .different input arrays"):
         _run(trees, client, block_size=BLOCK, store=other_store)
     small = jax.tree.map(lambda x: x[:3], trees)

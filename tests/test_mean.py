@@ -12,7 +12,7 @@ import rootshape_jax as rs
 from rootshape_jax._mean import (
     KarcherMean,
     _exact_update,
-    _lower_bound_distances,
+    lower_bound_distances,
     karcher_mean,
     karcher_objective,
 )
@@ -194,7 +194,7 @@ def test_objective_gradient_matches_finite_differences(population, fp_population
     an = float(jnp.sum(g.q * h_q) + jnp.sum(g.s * h_s))
     import rootshape_jax._mean as M
 
-    reg, _, _ = M._registered_energies(mu, rs.to_srvf(population), W, M._registration_options(None))
+    reg, _, _ = M.register_onto(mu, rs.to_srvf(population), W, rs.MEAN_REGISTRATION)
 
     def E(t):
         m = jax.tree.map(lambda x: jnp.broadcast_to(x, (5,) + x.shape), moved(t))
@@ -236,7 +236,7 @@ def test_exact_update_minimises_with_registrations_fixed(fp_population):
 
 def test_lower_bound_distance_is_a_lower_bound(population):
     s = rs.to_srvf(population)
-    D_lb = np.asarray(_lower_bound_distances(s, W, "callback"))
+    D_lb = np.asarray(lower_bound_distances(s, W, "callback"))
     D = np.asarray(rs.pairwise_distances(population, progress=False))
     assert np.all(D_lb <= D + 1e-9)
     np.testing.assert_allclose(D_lb, D_lb.T)

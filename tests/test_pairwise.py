@@ -45,8 +45,8 @@ def test_cross_distances_and_stats(trees):
 
 
 def test_no_retrace_across_chunks(trees, monkeypatch):
-    counted = eqx.filter_jit(eqx.debug.assert_max_traces(_pairwise._chunk_energies.__wrapped__, max_traces=1))
-    monkeypatch.setattr(_pairwise, "_chunk_energies", counted)
+    counted = eqx.filter_jit(eqx.debug.assert_max_traces(_pairwise.chunk_energies.__wrapped__, max_traces=1))
+    monkeypatch.setattr(_pairwise, "chunk_energies", counted)
     # 10 pairs in chunks of 4: three chunks, one compiled program (the last chunk is padded).
     rs.pairwise_distances(trees, weights=W, chunk_size=4, progress=False)
 

@@ -11,7 +11,7 @@ import pytest
 import scipy.optimize
 
 import rootshape_jax as rs
-from rootshape_jax._registration import _warp_preserving_norm
+from rootshape_jax._engine import warp_preserving_norm
 from rootshape_jax._rotation import optimal_rotation
 from rootshape_jax._warp import dp_warp
 
@@ -52,7 +52,7 @@ def reference_energy(a, b, weights, *, neighbourhood=7, iterations=5):
     lm, ls, lp = float(weights.main), float(weights.lateral), float(weights.position)
     l2 = lambda x: float(rs.l2_norm_squared(jnp.asarray(x)))  # noqa: E731
     # One branch pair at a time (jitted only so that the loop does not dispatch op by op).
-    one = jax.jit(lambda q1, q2: _warp_preserving_norm(q2, dp_warp(q1, q2, neighbourhood=neighbourhood)))
+    one = jax.jit(lambda q1, q2: warp_preserving_norm(q2, dp_warp(q1, q2, neighbourhood=neighbourhood)))
     warp = lambda q1, q2: np.asarray(one(jnp.asarray(q1), jnp.asarray(q2)))  # noqa: E731
     O = np.asarray(optimal_rotation(qa0, qb0))
     best = np.inf
@@ -124,7 +124,7 @@ def test_assignment_is_exact_by_brute_force():
         for i, j in enumerate(perm):
             ma, mb = bool(sa.mask[i]), bool(sb.mask[j])
             if ma and mb:
-                w = _warp_preserving_norm(sb.q[j], dp_warp(sa.q[i], sb.q[j]))
+                w = warp_preserving_norm(sb.q[j], dp_warp(sa.q[i], sb.q[j]))
                 total += float(W.lateral * rs.l2_norm_squared(sa.q[i] - w)) + float(W.position * (sa.s[i] - sb.s[j]) ** 2)
             elif ma:
                 total += float(W.lateral * rs.l2_norm_squared(sa.q[i]))
@@ -235,17 +235,16 @@ def test_batched_register_equals_loop_and_does_not_retrace():
     for k in range(2):
         single = rs.register(rs.unstack(a)[k], rs.unstack(b)[k], weights=W)
         assert float(single.energy) == pytest.approx(float(batched.energy[k]), rel=1e-12)
-    from rootshape_jax._registration import _register_batch
+    from rootshape_jax._engine import register_pairs
 
     # Same shapes, different values: the compiled program is reused.
-    counted = eqx.debug.assert_max_traces(_register_batch.__wrapped__, max_traces=1)
+    counted = eqx.debug.assert_max_traces(register_pairs, max_traces=1)
     f = eqx.filter_jit(counted)
-    from rootshape_jax._registration import _options
 
     active = jnp.ones((2,), bool)
     for (x, y), (rot, its, rtol) in zip(((a, b), (b, a), (a, a)), ((True, 3, 1e-6), (False, 2, 1e-3), (True, 5, 0.0))):
-        dynamic, opts = _options(rot, its, rtol, 7, True, 32, "callback")
-        f(rs.to_srvf(x), rs.to_srvf(y), W, active, dynamic, **opts)
+        opts = rs.RegistrationOptions(rotation=rot, max_iterations=its, rtol=rtol)
+        f(rs.to_srvf(x), rs.to_srvf(y), W, opts, active)
 
 
 def test_distance_gradient_matches_finite_differences():
@@ -253,7 +252,7 @@ def test_distance_gradient_matches_finite_differences():
     reg = rs.register(a, b, weights=W)
 
     # Envelope theorem: hold the registration fixed, differentiate the energy.
-    from rootshape_jax._registration import _apply
+    from rootshape_jax._engine import apply_registration as _apply
     from rootshape_jax._metric import preshape_terms
 
     def energy(main_a):

@@ -240,7 +240,7 @@ def test_blocked_and_masked_batches_equal_a_python_loop(monkeypatch):
     q1s, q2s = _batch(30, 8, 13)
     active = np.array([True, False, True, True, False, True, True, False])
     loop = [dp_warp_and_energy(a, b) for a, b in zip(q1s, q2s)]
-    fn = jax.jit(jax.vmap(lambda a, b, m: _warp._dp_warp_if(a, b, m, neighbourhood=7)))
+    fn = jax.jit(jax.vmap(lambda a, b, m: _warp.dp_warp_if(a, b, m, neighbourhood=7)))
     gammas, costs = fn(q1s, q2s, active)
     for i, (g, c) in enumerate(loop):
         if active[i]:

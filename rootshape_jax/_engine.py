@@ -1,0 +1,570 @@
+"""The registration engine: one entry point, `register_pairs`, for a batch of pairs of trees.
+
+Registering b onto a follows the Duncan et al. formulation the paper uses (DESIGN.md §4). With
+the rotation fixed the problem splits exactly: one DP warp for the main roots, one DP warp per
+real–real lateral pair giving the K×K cost matrix (the lateral DP energy weighted by the
+lateral terms, plus the DP-free pair costs of the other terms, e.g. ``λp (sa_i − sb_j)²``),
+real–null ``λs||q||²``, null–null 0, then one exact linear assignment. The rotation is then
+refitted (weighted Kabsch over all matched branches) and the two steps alternate until the
+energy stops falling. The parts, each a top-level function:
+
+- `prepare`: per-pair quantities that no rotation changes (lengths, cones, fixed costs);
+- `lower_bounds`: a DP-free lower bound of every lateral pair's cost (why pruning is exact);
+- `run_dp_slabs`: the DPs of a list of branch pairs, in fixed-size slabs;
+- `lazy_assignment`: the assignment solved with bounds, running only the DPs it picks;
+- `evaluate`: energy, correspondence and warps at one rotation;
+- `refit_rotation`: the rotation's update for a correspondence;
+- `search`: the alternation;
+- `apply_registration`: b moved into a's slot order (differentiable).
+
+`register`, `distance`, `pairwise_distances`, `cross_distances`, the Karcher mean, PCA
+projection and the Dask blocks all call `register_pairs`.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import equinox as eqx
+import jax
+import jax.lax as lax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+from ._assignment import linear_assignment
+from ._curves import l2_norm_squared, safe_norm, safe_normalise, safe_sqrt, tiny
+from ._devices import split_over_devices
+from ._metric import MetricTerms, Weights, level_weight, pair_costs, preshape_terms
+from ._rotation import optimal_rotation
+from ._tree import SRVFTree
+from ._warp import apply_warp_srvf, dp_warp
+
+
+# --------------------------------------------------------------------------------------------
+# Options and result
+
+
+def _as_int(value, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name} must be an integer >= 1, got {value!r}.")
+    return value
+
+
+class RegistrationOptions(eqx.Module):
+    """How registration searches; one value serves every function that registers.
+
+    - `rotation`: optimise over SO(d) (alternating with correspondence); False keeps b's pose.
+    - `max_iterations`, `rtol`: the alternation stops after this many rounds or when the
+      energy falls by less than `rtol` (relative).
+    - `neighbourhood`: DP move set (coprime steps up to this size; fdasrsf uses 10).
+    - `prune`: skip lateral DPs that provably cannot change the result (exact; False runs the
+      DP of every real–real pair, for reference).
+    - `dp_batch_size`: lateral DPs solved per slab (memory vs. padding trade-off).
+    - `assignment`: "callback" (scipy through a host callback) or "jax" (pure-JAX, exact).
+
+    `rotation`, `max_iterations` and `rtol` are stored as arrays (traced: changing them does not
+    recompile); the others shape the compiled program and are static.
+    """
+
+    rotation: Bool[Array, ""]
+    max_iterations: Int[Array, ""]
+    rtol: Float[Array, ""]
+    neighbourhood: int = eqx.field(static=True)
+    prune: bool = eqx.field(static=True)
+    dp_batch_size: int = eqx.field(static=True)
+    assignment: str = eqx.field(static=True)
+
+    def __init__(
+        self,
+        *,
+        rotation: bool = True,
+        max_iterations: int = 4,
+        rtol: float = 1e-4,
+        neighbourhood: int = 7,
+        prune: bool = True,
+        dp_batch_size: int = 32,
+        assignment: str = "callback",
+    ):
+        _as_int(max_iterations, "max_iterations")
+        _as_int(neighbourhood, "neighbourhood")
+        _as_int(dp_batch_size, "dp_batch_size")
+        if assignment not in ("callback", "jax"):
+            raise ValueError(f"assignment must be 'callback' or 'jax', got {assignment!r}.")
+        if not rtol >= 0:
+            raise ValueError(f"rtol must be a non-negative number, got {rtol!r}.")
+        self.rotation = jnp.asarray(bool(rotation))
+        self.max_iterations = jnp.asarray(max_iterations, jnp.int32)
+        self.rtol = jnp.asarray(float(rtol))
+        self.neighbourhood = neighbourhood
+        self.prune = bool(prune)
+        self.dp_batch_size = dp_batch_size
+        self.assignment = assignment
+
+    def without_rotation(self) -> "RegistrationOptions":
+        """The same options with b's pose kept (rotation search off)."""
+        return eqx.tree_at(lambda o: o.rotation, self, jnp.zeros_like(self.rotation))
+
+    def device_safe(self) -> "RegistrationOptions":
+        """With several devices the assignment must run in JAX: a host callback inside a
+        multi-device program whose loops run different trip counts per device deadlocks
+        XLA:CPU's collectives."""
+        if len(jax.devices()) > 1 and self.assignment == "callback":
+            return _with_static(self, assignment="jax")
+        return self
+
+
+def _with_static(o: RegistrationOptions, **static) -> RegistrationOptions:
+    new = object.__new__(RegistrationOptions)
+    for f in ("rotation", "max_iterations", "rtol", "neighbourhood", "prune", "dp_batch_size", "assignment"):
+        object.__setattr__(new, f, static.get(f, getattr(o, f)))
+    return new
+
+
+OPTION_NAMES = ("rotation", "max_iterations", "rtol", "neighbourhood", "prune", "dp_batch_size", "assignment")
+
+#: The Karcher mean's registration settings: more alternation rounds and a tighter tolerance than
+#: `register`'s defaults (the mean compares energies across steps, so each must be converged),
+#: and larger DP slabs (a step registers every sample at once).
+MEAN_REGISTRATION = RegistrationOptions(max_iterations=5, rtol=1e-6, dp_batch_size=256)
+
+
+def registration_options(
+    options: RegistrationOptions | dict | None = None, *, base: RegistrationOptions | None = None, **shorthand
+) -> RegistrationOptions:
+    """A `RegistrationOptions` from an options value, a dict of its fields, or keyword shorthand
+    (the public functions' keyword options), on top of `base` (default `register`'s)."""
+    if isinstance(options, RegistrationOptions):
+        if shorthand:
+            raise ValueError(f"give registration options either as `registration=` or as keywords, not both ({sorted(shorthand)}).")
+        return options
+    given = dict(options or {})
+    unknown = (set(given) | set(shorthand)) - set(OPTION_NAMES)
+    if unknown:
+        raise ValueError(
+            f"registration options {sorted(unknown)} are unknown; use some of {list(OPTION_NAMES)} "
+            "(the fields of rootshape_jax.RegistrationOptions)."
+        )
+    base = RegistrationOptions() if base is None else base
+    fields = {f: _concrete(getattr(base, f)) for f in OPTION_NAMES}
+    fields.update(given)
+    fields.update(shorthand)
+    return RegistrationOptions(**fields)
+
+
+def _concrete(x):
+    return x.item() if isinstance(x, jax.Array) else x
+
+
+class Registration(eqx.Module):
+    """Result of registering root b onto root a (a batch adds leading axes ``*B``).
+
+    **Fields**
+
+    - `registered`: b rotated, reparameterised and permuted into a's slot order, as an
+      `SRVFTree`. A null lateral of b that is matched with a real lateral of a sits at its
+      partner's attachment fraction.
+    - `permutation`: ``[K]`` — slot k of `registered` is slot ``permutation[k]`` of b.
+    - `rotation`: ``[d, d]`` rotation applied to b (about its origin).
+    - `main_warp`: ``[T]`` reparameterisation γ of b's main root, on the grid.
+    - `lateral_warps`: ``[K, T]`` γ applied to b's lateral ``permutation[k]`` (identity unless
+      both slots are real).
+    - `terms`: the weighted terms of the minimised squared distance (`MetricTerms`).
+    - `n_iterations`: rotation ↔ correspondence alternations performed.
+    - `n_lateral_dp`: lateral DP warps actually run; `n_lateral_skipped`: real–real lateral
+      pairs, summed over rounds, whose DP the exact lower bound made unnecessary.
+    """
+
+    registered: SRVFTree
+    permutation: Int[Array, "*B K"]
+    rotation: Float[Array, "*B d d"]
+    main_warp: Float[Array, "*B T"]
+    lateral_warps: Float[Array, "*B K T"]
+    terms: MetricTerms
+    n_iterations: Int[Array, "*B"]
+    n_lateral_dp: Int[Array, "*B"]
+    n_lateral_skipped: Int[Array, "*B"]
+
+    @property
+    def energy(self) -> Float[Array, "*B"]:
+        """Minimised squared distance ``d²``."""
+        return self.terms.total
+
+    @property
+    def distance(self) -> Float[Array, "*B"]:
+        """Geodesic distance ``sqrt(d²)`` (0 with a zero gradient at coincident roots)."""
+        return safe_sqrt(self.terms.total)
+
+
+# --------------------------------------------------------------------------------------------
+# Small geometric helpers
+
+
+def rotate_srvf(q: Float[Array, "*S C"], O: Float[Array, "d d"]) -> Float[Array, "*S C"]:
+    """Rotate SRVF values by O; a thickness channel (beyond d) is left alone (DESIGN.md §11)."""
+    d = O.shape[-1]
+    if q.shape[-1] == d:
+        return q @ O.T
+    return jnp.concatenate([q[..., :d] @ O.T, q[..., d:]], axis=-1)
+
+
+def rotate_batch(q: Array, O: Float[Array, "B d d"]) -> Array:
+    """Rotate a batch of SRVFs (leading axis B, any middle axes) by per-item rotations."""
+    d = O.shape[-1]
+    if q.shape[-1] == d:
+        return jnp.einsum("b...d,bed->b...e", q, O)
+    return jnp.concatenate([jnp.einsum("b...d,bed->b...e", q[..., :d], O), q[..., d:]], axis=-1)
+
+
+def warp_preserving_norm(q: Float[Array, "T C"], gamma: Float[Array, " T"]) -> Float[Array, "T C"]:
+    """``(q∘γ)√γ'`` rescaled so that its L2 norm equals ``||q||``.
+
+    In the continuum the reparameterisation action is an isometry; on the grid the interpolated
+    warp changes the norm by O(h²). Restoring it keeps the branch length exact (so registered
+    roots keep their lengths) and makes the pruning bound exact.
+    """
+    w = apply_warp_srvf(q, gamma)
+    n2 = l2_norm_squared(q)
+    w2 = l2_norm_squared(w)
+    ok = w2 > tiny(w.dtype)
+    return w * safe_sqrt(jnp.where(ok, n2 / jnp.where(ok, w2, 1.0), 0.0))
+
+
+def direction_cone(q: Float[Array, "*B T C"]) -> tuple[Array, Array]:
+    """Axis (unit chord direction) and half-angle of a cone holding every direction of q.
+
+    Branches with no direction (nulls) get half-angle π: no information.
+    """
+    n = safe_norm(q)
+    u = safe_normalise(q)
+    axis = safe_normalise(jnp.sum(q * n[..., None], axis=-2))
+    cos = jnp.sum(u * axis[..., None, :], axis=-1)
+    angle = jnp.arccos(jnp.clip(cos, -1.0, 1.0))
+    half = jnp.max(jnp.where(n > 0, angle, 0.0), axis=-1)
+    has_axis = safe_norm(axis) > 0
+    return axis, jnp.where(has_axis, half, jnp.pi)
+
+
+def _identity_grid(T: int, dtype) -> Array:
+    return jnp.linspace(0.0, 1.0, T, dtype=dtype)
+
+
+# --------------------------------------------------------------------------------------------
+# The search, in parts
+
+
+class Prepared(eqx.Module):
+    """Per-pair quantities of a batch of B pairs that no rotation changes."""
+
+    a: SRVFTree
+    b: SRVFTree
+    lam_main: Array
+    lam_lateral: Array
+    La: Array  # [B, K] lateral lengths ||q||² of a (0 for nulls)
+    Lb: Array
+    fixed: Array  # [B, K, K] DP-free part of each real–real pair's cost (exact)
+    others: Array  # [B, K, K] cost of pairs that are not both real (null costs)
+    both: Array  # [B, K, K] both slots real
+    cone_a: tuple
+    cone_b: tuple
+
+
+def prepare(a: SRVFTree, b: SRVFTree, weights: Weights) -> Prepared:
+    a, b, weights = lax.stop_gradient((a, b, weights))
+    dtype = a.q0.dtype
+    lam_m = level_weight(weights, "main", dtype)
+    lam_s = level_weight(weights, "lateral", dtype)
+    La = l2_norm_squared(a.q) * a.mask
+    Lb = l2_norm_squared(b.q) * b.mask
+    both = a.mask[:, :, None] & b.mask[:, None, :]
+    # A real lateral matched to a null costs its whole λ-weighted norm; null–null costs 0.
+    others = jnp.where(
+        a.mask[:, :, None],
+        (lam_s * La)[:, :, None],
+        jnp.where(b.mask[:, None, :], (lam_s * Lb)[:, None, :], 0.0),
+    )
+    fixed = pair_costs(weights, a, b).astype(dtype)
+    return Prepared(a, b, lam_m, lam_s, La, Lb, fixed, others, both, direction_cone(a.q), direction_cone(b.q))
+
+
+def lower_bounds(p: Prepared, O: Float[Array, "B d d"]) -> Float[Array, "B K K"]:
+    """A lower bound of every lateral pair's cost at rotations O, without any DP.
+
+    Why pruning with it is exact: ``||qa − w||² = La + Lb − 2<qa, w>`` for the warped,
+    norm-preserved w (`warp_preserving_norm`). Every value of w is a positive multiple of an
+    interpolation of values of qb, so its direction lies in the convex cone (half-angle < 90°)
+    holding b's directions; with qa's cone, the angle between the two cones caps the cosine:
+    ``<qa, w> ≤ max(cos φ, 0) √(La Lb)``, where ``φ = angle(axes) − half_a − half_b``. With
+    φ ≤ 0 this is plain Cauchy–Schwarz. The DP-free pair costs (`Prepared.fixed`) are exact,
+    and null costs are exact. So every entry is at most the true cost, and an assignment that
+    is optimal with bounds in place of unknown costs, and picks only known ones, is optimal for
+    the true costs (`lazy_assignment`).
+    """
+    (ca, half_a), (cb, half_b) = p.cone_a, p.cone_b
+    dtype = p.La.dtype
+    if ca.shape[-1] == O.shape[-1]:
+        cos_axes = jnp.einsum("bie,bjd,bed->bij", ca, cb, O)
+    else:
+        cos_axes = jnp.einsum("bie,bje->bij", ca, rotate_batch(cb, O))
+    phi = jnp.arccos(jnp.clip(cos_axes, -1.0, 1.0)) - half_a[:, :, None] - half_b[:, None, :]
+    # Rounding margin (arccos near ±1 loses half the digits): keep the bound on the safe side.
+    phi = phi - 4 * float(jnp.finfo(dtype).eps) ** 0.5
+    convex = (half_a[:, :, None] < jnp.pi / 2) & (half_b[:, None, :] < jnp.pi / 2)
+    cos_cap = jnp.where(convex, jnp.clip(jnp.cos(jnp.maximum(phi, 0.0)), 0.0, 1.0), 1.0)
+    sqrt_LaLb = jnp.sqrt(p.La)[:, :, None] * jnp.sqrt(p.Lb)[:, None, :]
+    lower = p.lam_lateral * jnp.maximum(p.La[:, :, None] + p.Lb[:, None, :] - 2 * cos_cap * sqrt_LaLb, 0.0)
+    return jnp.where(p.both, lower + p.fixed, p.others)
+
+
+def run_dp_slabs(need, pair_of, E, G=None, *, neighbourhood: int, dp_batch_size: int):
+    """Solve the DPs of the items flagged in `need` in slabs of a fixed size.
+
+    `pair_of(lanes)` gives the (q1, q2) of each item. One DP call site, compiled once, whatever
+    the number of DPs needed (a loop with a data-dependent trip count): padding and skipped
+    pairs cost nothing. Returns the energies ``||q1 − w||²`` (and warps, when G is given)
+    scattered into E (and G).
+    """
+    n_items = need.shape[0]
+    # Small slabs: the DP is as efficient at 32 lanes as at 256, and less padding is solved.
+    S = min(dp_batch_size, max(8, -(-n_items // 16)))
+    n_pad = -(-n_items // S) * S
+    (lanes_all,) = jnp.nonzero(need, size=n_pad, fill_value=n_items)
+    dp = jax.vmap(functools.partial(dp_warp, neighbourhood=neighbourhood))
+
+    def slab(k, carry):
+        E, G = carry
+        lanes = lax.dynamic_slice(lanes_all, (k * S,), (S,))
+        q1, q2 = pair_of(jnp.clip(lanes, 0, n_items - 1))
+        g = dp(q1, q2)
+        w = jax.vmap(warp_preserving_norm)(q2, g)
+        E = E.at[lanes].set(l2_norm_squared(q1 - w), mode="drop")
+        if G is not None:
+            G = G.at[lanes].set(g, mode="drop")
+        return E, G
+
+    return lax.fori_loop(0, (jnp.sum(need) + S - 1) // S, slab, (E, G))
+
+
+def lazy_assignment(p: Prepared, qb: Array, base_cost: Array, rows: Array, options: RegistrationOptions):
+    """Exact optimal lateral correspondence at one rotation, running as few DPs as possible.
+
+    The assignment is solved with lower bounds in place of the lateral costs not computed yet;
+    the DPs of the real–real pairs it picks are run and the assignment solved again, until it
+    picks only computed pairs. It is then optimal for the true costs too, since every
+    uncomputed cost is at least its bound (`lower_bounds`). With ``prune=False`` every
+    real–real DP is run up front (the reference behaviour). Returns (cost matrix, permutation,
+    pairs computed).
+    """
+    B, K = p.La.shape
+    dtype = p.La.dtype
+    solve = jax.vmap(lambda c: linear_assignment(c, method=options.assignment))
+    slabs = functools.partial(run_dp_slabs, neighbourhood=options.neighbourhood, dp_batch_size=options.dp_batch_size)
+
+    def lateral_pair(lanes):
+        bi, rem = jnp.divmod(lanes, K * K)
+        i, j = jnp.divmod(rem, K)
+        return p.a.q[bi, i], qb[bi, j]
+
+    def costs(E, computed):
+        return jnp.where(computed, p.lam_lateral * E.reshape(B, K, K) + p.fixed, base_cost)
+
+    def picks(perm, computed):
+        chosen = jax.nn.one_hot(perm, K, dtype=bool)
+        return chosen & p.both & ~computed & rows[:, None, None]
+
+    computed = p.both & rows[:, None, None] if not options.prune else jnp.zeros_like(p.both)
+    E, _ = slabs(computed.reshape(-1), lateral_pair, jnp.zeros((B * K * K,), dtype))
+
+    def body(state):
+        E, computed, perm, chosen = state
+        E, _ = slabs(chosen.reshape(-1), lateral_pair, E)
+        computed = computed | chosen
+        perm = solve(costs(E, computed))
+        return E, computed, perm, picks(perm, computed)
+
+    perm = solve(costs(E, computed))
+    state = (E, computed, perm, picks(perm, computed))
+    E, computed, perm, _ = lax.while_loop(lambda s: jnp.any(s[-1]), body, state)
+    return costs(E, computed), perm, computed
+
+
+def evaluate(p: Prepared, O: Array, rows: Array, options: RegistrationOptions):
+    """Energy, permutation and warps of every pair at rotations O (rows: pairs to do).
+
+    Only costs are kept while searching; the few warps of the final matching (main roots and
+    matched real–real laterals) are solved again at the end, which is far cheaper than storing
+    a warp for every candidate pair.
+    """
+    a, b = p.a, p.b
+    B, K, T, _ = b.q.shape
+    dtype = a.q0.dtype
+    qb0 = rotate_batch(b.q0, O)
+    qb = rotate_batch(b.q, O)
+    C, perm, computed = lazy_assignment(p, qb, lower_bounds(p, O), rows, options)
+    lap = jnp.sum(jnp.take_along_axis(C, perm[:, :, None], axis=2)[:, :, 0], axis=1)
+
+    # Warps of the final matching: the B main roots, then the matched real-real slots.
+    matched_slots = jnp.any(jax.nn.one_hot(perm, K, dtype=bool) & p.both, axis=2)
+
+    def final_pair(lanes):
+        is_main = lanes < B
+        bm = jnp.clip(lanes, 0, B - 1)
+        bi, k = jnp.divmod(jnp.clip(lanes - B, 0, B * K - 1), K)
+        j = perm[bi, k]
+        q1 = jnp.where(is_main[:, None, None], a.q0[bm], a.q[bi, k])
+        q2 = jnp.where(is_main[:, None, None], qb0[bm], qb[bi, j])
+        return q1, q2
+
+    need = jnp.concatenate([rows, (matched_slots & rows[:, None]).reshape(-1)])
+    n_final = B + B * K
+    identity = jnp.broadcast_to(_identity_grid(T, dtype), (n_final, T))
+    Ef, Gf = run_dp_slabs(
+        need, final_pair, jnp.zeros((n_final,), dtype), identity,
+        neighbourhood=options.neighbourhood, dp_batch_size=options.dp_batch_size,
+    )
+    n_dp = jnp.sum(computed.reshape(B, K * K), axis=1, dtype=jnp.int32)
+    return p.lam_main * Ef[:B] + lap, perm, Gf[:B], Gf[B:].reshape(B, K, T), n_dp
+
+
+def refit_rotation(p: Prepared, perm: Array, g0: Array, gam: Array) -> Array:
+    """Weighted Kabsch over every matched branch (spatial channels), with the metric's weights."""
+    a, b = p.a, p.b
+    B = b.q.shape[0]
+    d = a.dim
+    dtype = a.q0.dtype
+    q0w = jax.vmap(warp_preserving_norm)(b.q0, g0)
+    qbp = jnp.take_along_axis(b.q, perm[:, :, None, None], axis=1)
+    mbp = jnp.take_along_axis(b.mask, perm, axis=1)
+    qw = jax.vmap(jax.vmap(warp_preserving_norm))(qbp, gam)
+    A = jnp.concatenate([a.q0[:, None], a.q], axis=1)[..., :d]
+    Bm = jnp.concatenate([q0w[:, None], qw], axis=1)[..., :d]
+    w = jnp.concatenate(
+        [jnp.broadcast_to(p.lam_main, (B, 1)), p.lam_lateral * (a.mask & mbp).astype(dtype)], axis=1
+    )
+    return jax.vmap(optimal_rotation)(A, Bm, w)
+
+
+class SearchResult(eqx.Module):
+    rotation: Array
+    permutation: Array
+    main_warp: Array
+    lateral_warps: Array
+    n_iterations: Array
+    n_lateral_dp: Array
+    n_lateral_skipped: Array
+
+
+def search(a: SRVFTree, b: SRVFTree, weights: Weights, active: Array, options: RegistrationOptions) -> SearchResult:
+    """Optimal (rotation, permutation, warps) for a batch of B pairs; no gradients.
+
+    Alternates `evaluate` (correspondence and warps at fixed rotation) and `refit_rotation`,
+    starting from the rotation that aligns the main roots; a pair stops when its energy falls
+    by less than `rtol` (relative) or stops falling. Inactive pairs do no work.
+    """
+    p = prepare(a, b, weights)
+    B, K, T, _ = p.b.q.shape
+    d = a.dim
+    dtype = a.q0.dtype
+    identity = _identity_grid(T, dtype)
+    eye = jnp.broadcast_to(jnp.eye(d, dtype=dtype), (B, d, d))
+    rotation = options.rotation
+    start = jax.vmap(optimal_rotation)(p.a.q0[..., :d], p.b.q0[..., :d])
+    O_start = jnp.where(rotation, start, eye)
+    n_rounds = jnp.where(rotation, options.max_iterations, 1)
+
+    def cond(state):
+        it, done = state[0], state[6]
+        return (it < n_rounds) & jnp.any(~done)
+
+    def body(state):
+        it, O, E, perm, g0, gam, done, iters, n_dp = state
+        # Round 0 evaluates the starting rotation; later rounds refit it to the matching.
+        O_new = lax.cond(it == 0, lambda: O_start, lambda: refit_rotation(p, perm, g0, gam))
+        E_new, perm_new, g0_new, gam_new, n_dp_new = evaluate(p, O_new, ~done, options)
+        better = (E_new < E) & ~done
+        rel = jnp.where(jnp.isinf(E), jnp.inf, (E - E_new) / jnp.maximum(E, tiny(dtype)))
+
+        def pick(new, old):
+            return jnp.where(better.reshape((B,) + (1,) * (new.ndim - 1)), new, old)
+
+        iters = iters + (~done).astype(jnp.int32)
+        done = done | ~better | (rel < options.rtol)
+        new = (O_new, E_new, perm_new, g0_new, gam_new)
+        old = (O, E, perm, g0, gam)
+        O, E, perm, g0, gam = (pick(n, o) for n, o in zip(new, old))
+        return it + 1, O, E, perm, g0, gam, done, iters, n_dp + n_dp_new
+
+    state = (
+        jnp.asarray(0),
+        eye,
+        jnp.full((B,), jnp.inf, dtype),
+        jnp.broadcast_to(jnp.arange(K), (B, K)),
+        jnp.broadcast_to(identity, (B, T)),
+        jnp.broadcast_to(identity, (B, K, T)),
+        ~active,
+        jnp.zeros((B,), jnp.int32),
+        jnp.zeros((B,), jnp.int32),
+    )
+    _, O, _, perm, g0, gam, _, iters, n_dp = lax.while_loop(cond, body, state)
+    n_real = jnp.sum(p.both.reshape(B, -1), axis=1, dtype=jnp.int32)
+    # Lateral DPs skipped: real-real pairs of every round that were never solved.
+    n_skipped = jnp.maximum(n_real * iters - n_dp, 0)
+    return SearchResult(O, perm, g0, gam, iters, n_dp, n_skipped)
+
+
+def apply_registration(a: SRVFTree, b: SRVFTree, O, perm, g0, gam) -> SRVFTree:
+    """b registered into a's slot order (single pair); differentiable in a and b."""
+    q0 = warp_preserving_norm(rotate_srvf(b.q0, O), g0)
+    qb = rotate_srvf(b.q, O)[perm]
+    mb = b.mask[perm]
+    qw = jax.vmap(warp_preserving_norm)(qb, gam) * mb[:, None, None]
+    s = jnp.where(mb, b.s[perm], a.s)
+    base = None
+    if b.base_radius is not None:
+        base = jnp.concatenate([b.base_radius[:1], jnp.where(mb, b.base_radius[1:][perm], a.base_radius[1:])])
+    return SRVFTree(q0=q0, q=qw, s=s, mask=mb, origin=b.origin, base_radius=base, thickness_scale=b.thickness_scale)
+
+
+# --------------------------------------------------------------------------------------------
+# The entry point
+
+
+def _search_split(a, b, active, weights, options):
+    return search(a, b, weights, active, options)
+
+
+def register_pairs(
+    a: SRVFTree,
+    b: SRVFTree,
+    weights: Weights,
+    options: RegistrationOptions,
+    active: Bool[Array, " B"] | None = None,
+    *,
+    split: bool = True,
+) -> Registration:
+    """Register b[k] onto a[k] for a batch of pairs (leading axis B): the one engine call.
+
+    Inactive pairs (``active[k] = False``) do no DP work (their result is b as given). With
+    ``split=True`` the pairs are spread over every XLA device. Trace-safe: call it inside
+    `eqx.filter_jit` functions; `register_pairs_jit` is the compiled entry for eager callers.
+    """
+    if active is None:
+        active = jnp.ones(a.q0.shape[:1], bool)
+    if split:
+        res = split_over_devices(_search_split, (a, b, active), (weights, options.device_safe()))
+    else:
+        res = search(a, b, weights, active, options)
+    registered = jax.vmap(apply_registration)(a, b, res.rotation, res.permutation, res.main_warp, res.lateral_warps)
+    return Registration(
+        registered=registered,
+        permutation=res.permutation,
+        rotation=res.rotation,
+        main_warp=res.main_warp,
+        lateral_warps=res.lateral_warps,
+        terms=preshape_terms(a, registered, weights),
+        n_iterations=res.n_iterations,
+        n_lateral_dp=res.n_lateral_dp,
+        n_lateral_skipped=res.n_lateral_skipped,
+    )
+
+
+register_pairs_jit = eqx.filter_jit(register_pairs)
