@@ -97,6 +97,8 @@ class _Node:
     points: np.ndarray | None = None  # (n, 3), z = 0 where absent; None when unreadable
     has_z: bool = False
     problem: str | None = None
+    radius: np.ndarray | None = None  # (n,) radius per point in stored (pixel) units
+    radius_problem: str | None = None
     children: list["_Node"] = field(default_factory=list)
     position: str = ""  # "1", "1.3", ... (1-based position among sibling roots)
 
@@ -200,6 +202,57 @@ def _parse_functions(root_el: ET.Element) -> dict:
     return out
 
 
+_RADIUS_NAMES = (("diameter", 0.5), ("radius", 1.0))
+
+
+def _radius_of(node: _Node) -> tuple[np.ndarray | None, str | None]:
+    """(radius at each polyline point in stored units, problem) from a ``diameter`` or ``radius``
+    function (domains ``polyline``, ``uniform``, ``length``) or, failing that, a numeric
+    ``diameter`` / ``radius`` property (one value for the whole branch, as CPlantBox writes)."""
+    pts = node.points
+    by_name = {str(k).strip().lower(): v for k, v in node.functions.items()}
+    for name, factor in _RADIUS_NAMES:
+        fn = by_name.get(name)
+        if fn is None:
+            continue
+        what = f"<function name={name!r}>"
+        values = fn["values"]
+        domain = fn["domain"]
+        if values.size == 0:
+            return None, f"{what} has no samples; radius dropped"
+        if not np.all(np.isfinite(values)) or np.any(values < 0):
+            return None, f"{what} has a missing, non-numeric or negative sample; radius dropped"
+        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        cum = np.concatenate([[0.0], np.cumsum(seg)])
+        if domain == "polyline":
+            if values.size != pts.shape[0]:
+                return None, (
+                    f"{what} (domain polyline) has {values.size} samples for {pts.shape[0]} "
+                    "points; radius dropped"
+                )
+            r = values
+        elif domain == "uniform":
+            # Samples evenly spaced in arc length from the base to the tip.
+            where = np.linspace(0.0, cum[-1], values.size) if values.size > 1 else np.zeros(1)
+            r = np.interp(cum, where, values)
+        elif domain == "length":
+            pos = fn.get("positions")
+            if pos is None or pos.shape != values.shape or not np.all(np.isfinite(pos)):
+                return None, f"{what} (domain length) needs a numeric position on every sample; radius dropped"
+            order = np.argsort(pos, kind="stable")
+            r = np.interp(cum, pos[order], values[order])
+        else:
+            return None, f"{what} has unknown domain {domain!r}; radius dropped"
+        return np.asarray(r, dtype=np.float64) * factor, None
+    for name, factor in _RADIUS_NAMES:
+        value = node.properties.get(name)
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            if not (math.isfinite(value) and value >= 0):
+                return None, f"property {name}={value!r} is not a finite number >= 0; radius dropped"
+            return np.full(pts.shape[0], float(value) * factor), None
+    return None, None
+
+
 def _parse_properties(elem: ET.Element) -> dict:
     out = {}
     for props in _children(elem, "properties"):
@@ -244,6 +297,8 @@ def _parse_root(el: ET.Element, where_prefix: str, position: str) -> _Node:
             node.points, node.has_z = _parse_points(polyline)
         except ValueError as e:
             node.problem = str(e)
+        else:
+            node.radius, node.radius_problem = _radius_of(node)
     for k, c in enumerate(_children(el, "root")):
         node.children.append(_parse_root(c, where_prefix, f"{position}.{k + 1}"))
     return node
@@ -387,8 +442,18 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
       unit. Files in ``pixel`` (or with no ``<unit>``) are returned as stored. A physical unit
       without a usable resolution keeps pixels (with a warning). ``metadata["unit"]`` always
       names the unit of the returned coordinates; ``metadata["resolution"]`` and
-      ``metadata["file_unit"]`` are the file's values. Function samples (e.g. diameters) are
-      never rescaled.
+      ``metadata["file_unit"]`` are the file's values. Function samples kept in
+      ``metadata["functions"]`` are never rescaled.
+    - Radii: a ``diameter`` (radius = diameter / 2) or ``radius`` function gives
+      `Root.main_radius` / `Root.lateral_radii` (and each child's `main_radius`), converted like
+      the coordinates (``stored / resolution`` in physical units). Domains: ``polyline`` (one
+      sample per point), ``uniform`` (samples evenly spaced in arc length from base to tip) and
+      ``length`` (``position`` = arc length from the base, in stored units), interpolated
+      linearly at the polyline points. Without a function, a numeric ``diameter`` / ``radius``
+      property (CPlantBox) is a constant radius. A root without any has radius ``None``; a
+      lateral without one beside siblings that have one gets radius 0 (with an
+      `RSMLWarning`). An unusable function (wrong sample count, negative or non-numeric
+      samples) drops that radius (reported like other unreadable parts).
     - Dimension: the file is 3D if any polyline point has a non-zero ``z``; otherwise roots are
       returned 2D (``z = 0`` is dropped). In a 3D file a root without ``z`` lies in ``z = 0``.
     - Names: the root's ``label`` when it is set and unique in the file, else
@@ -464,6 +529,10 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
 
     def build(node: _Node, plant_info: dict, order: int, extra: dict) -> Root:
         main = node.points[:, :dim] * scale
+        if node.radius_problem is not None:
+            problems.report(node.where, node.radius_problem)
+        # Radii are stored in pixels like the coordinates, so they take the same scale.
+        main_radius = node.radius * scale if node.radius is not None else None
         lats, attach, kids = [], [], []
         for child in node.children:
             if child.problem is not None:
@@ -474,6 +543,16 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
             kids.append(build(child, plant_info, order + 1, {"attach_method": method}))
             lats.append(kids[-1].main)
             attach.append(frac)
+        lateral_radii = None
+        if any(k.main_radius is not None for k in kids):
+            lateral_radii = []
+            for k in kids:
+                if k.main_radius is None:
+                    no_radius.append(k.metadata.get("root_id") or k.name)
+                    lateral_radii.append(np.zeros(k.main.shape[0]))
+                else:
+                    lateral_radii.append(k.main_radius)
+            lateral_radii = tuple(lateral_radii)
         meta = dict(info)
         meta.update(plant_info)
         meta.update(root_id=node.rid, root_label=node.label, order=order)
@@ -495,6 +574,8 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
             name=name_of(node, plant_info["plant_id"]),
             metadata=meta,
             children=tuple(kids),
+            main_radius=main_radius,
+            lateral_radii=lateral_radii,
         )
 
     top_nodes = [n for _, nodes in plants for n in nodes]
@@ -505,6 +586,7 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
         )
         raise RSMLError(f"{source}: nothing readable: {what}.")
     roots = []
+    no_radius: list[str] = []  # laterals without radius beside siblings that have one
     n_top = 0
     for plant_info, nodes in plants:
         for node in nodes:
@@ -519,6 +601,16 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
             raise RSMLError(f"{source}: nothing readable: {what}.")
         problems.items.insert(0, f"nothing readable: {what}")
     problems.warn(stacklevel=3)
+    if no_radius:
+        shown = ", ".join(repr(n) for n in no_radius[:10])
+        more = f" and {len(no_radius) - 10} more" if len(no_radius) > 10 else ""
+        warnings.warn(
+            RSMLWarning(
+                f"{source}: {len(no_radius)} lateral(s) have no diameter/radius while their "
+                f"siblings have one; their radius is taken as 0: {shown}{more}."
+            ),
+            stacklevel=2,
+        )
     return roots
 
 
@@ -589,7 +681,10 @@ def write_rsml(
     polyline point nearest to the attachment); `Root.children` are written recursively (a
     child's `main` must equal its lateral). 2D roots are written without ``z``; if any root is
     3D, 2D roots get ``z = 0``. Functions kept in ``metadata["functions"]`` are written back
-    (polyline-domain ones only when their sample count still matches the polyline).
+    (polyline-domain ones only when their sample count still matches the polyline). Radii
+    (`Root.main_radius`, `Root.lateral_radii`, or a child's `main_radius`) are written as a
+    ``diameter`` function (domain ``polyline``, in pixels like the coordinates), replacing any
+    ``diameter`` / ``radius`` function kept in the metadata.
 
     The attachment fractions read back equal `Root.attach` when each lateral starts on the main
     root (as from `read_rsml`, `roots_from_image` and `Root(attach=None)`); RSML stores only
@@ -676,7 +771,9 @@ def write_rsml(
             attrs["label"] = str(first.metadata["plant_label"])
         plant_el = ET.SubElement(scene, "plant", attrs)
         for k, r in enumerate(members):
-            _write_root(plant_el, r.main, r, f"{pid}.{k + 1}", None, resolution, dim3, used_ids)
+            _write_root(
+                plant_el, r.main, r, f"{pid}.{k + 1}", None, resolution, dim3, used_ids, r.main_radius
+            )
 
     ET.indent(top, space="  ")
     ET.ElementTree(top).write(path, encoding="UTF-8", xml_declaration=True)
@@ -694,8 +791,11 @@ def _unique_id(wanted: Any, fallback: str, used: set[str]) -> str:
     return rid
 
 
-def _write_root(parent_el, polyline, root, fallback_id, parent_node, resolution, dim3, used_ids):
-    """One ``<root>``: ``polyline`` is its geometry; ``root`` (or None) gives names and laterals."""
+def _write_root(
+    parent_el, polyline, root, fallback_id, parent_node, resolution, dim3, used_ids, radius=None
+):
+    """One ``<root>``: ``polyline`` is its geometry; ``root`` (or None) gives names and laterals;
+    ``radius`` (or None) its radius per point, written as a ``diameter`` function."""
     meta = root.metadata if root is not None else {}
     attrs = {"id": _unique_id(meta.get("root_id"), fallback_id, used_ids)}
     if root is not None and root.name:
@@ -713,7 +813,16 @@ def _write_root(parent_el, polyline, root, fallback_id, parent_node, resolution,
         if dim3:
             a["z"] = _fmt(p[2]) if p.shape[0] == 3 else "0.0"
         ET.SubElement(geom, "point", a)
-    functions = meta.get("functions") or {}
+    functions = dict(meta.get("functions") or {})
+    if radius is not None:
+        # The radii are the truth now: drop stale diameter/radius functions read from a file.
+        functions = {
+            n: f for n, f in functions.items() if str(n).strip().lower() not in ("diameter", "radius")
+        }
+        functions["diameter"] = {
+            "domain": "polyline",
+            "values": 2.0 * np.asarray(radius, dtype=np.float64) * resolution,
+        }
     written = {
         name: f
         for name, f in functions.items()
@@ -743,8 +852,15 @@ def _write_root(parent_el, polyline, root, fallback_id, parent_node, resolution,
                 f"write_rsml: root {root.name!r}: children[{k}].main differs from laterals[{k}]; "
                 "a child Root must describe the same polyline as its lateral."
             )
+        lat_radius = root.lateral_radii[k] if root.lateral_radii is not None else None
         if child is None:
             # Named so that the lateral keeps an identity when read back.
             child = Root(main=lat, name=f"{root.name}/{k + 1}" if root.name else "")
+        else:
+            # The child is the branch's own record: no radius there means none was known
+            # (read_rsml pads such a lateral with 0 in `lateral_radii`).
+            lat_radius = child.main_radius
         node = _nearest_node(root.main, float(root.attach[k]))
-        _write_root(el, lat, child, f"{attrs['id']}.{k + 1}", node, resolution, dim3, used_ids)
+        _write_root(
+            el, lat, child, f"{attrs['id']}.{k + 1}", node, resolution, dim3, used_ids, lat_radius
+        )
