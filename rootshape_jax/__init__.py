@@ -7,6 +7,7 @@ and Karcher means are jit/vmap-compiled. See README.md and DESIGN.md.
 
 from ._errors import (
     CapacityError as CapacityError,
+    CoordinateRangeError as CoordinateRangeError,
     ImageError as ImageError,
     InvalidRootError as InvalidRootError,
     MissingDependencyError as MissingDependencyError,

@@ -8,7 +8,29 @@ from typing import Any
 
 import numpy as np
 
-from ._errors import InvalidRootError
+from ._errors import CoordinateRangeError, InvalidRootError
+
+
+def coordinate_limit(dtype: Any, n_points: int = 1) -> float:
+    """Largest coordinate magnitude that computations in ``dtype`` with ``n_points`` points per
+    branch can square without overflow: SRVFs square derivatives ~ ``n_points × |x|``, and
+    rotations sum ``n_points`` squared coordinates. ``sqrt(max) / (16 n_points)``: about
+    1e16 for float32 and 8e150 for float64 at ``n_points = 100``."""
+    return float(np.sqrt(np.finfo(dtype).max)) / (16.0 * max(int(n_points), 1))
+
+
+# A `Root` is checked in float64 (its numpy arithmetic); `batch` checks its own dtype and T.
+ROOT_COORDINATE_LIMIT = coordinate_limit(np.float64, 1)
+
+
+def check_range(points: np.ndarray, *, limit: float, what: str, fix: str) -> None:
+    """Raise `CoordinateRangeError` naming ``what`` when ``|points|`` exceeds ``limit``."""
+    big = float(np.max(np.abs(points))) if points.size else 0.0
+    if not big <= limit:
+        raise CoordinateRangeError(
+            f"{what}: coordinates reach {big:.3g}, beyond {limit:.3g}, the largest magnitude whose "
+            f"squared lengths stay finite in the working precision. {fix}"
+        )
 
 
 def check_polyline(points: Any, *, what: str, dim: int | None = None) -> np.ndarray:
@@ -42,6 +64,10 @@ def check_polyline(points: Any, *, what: str, dim: int | None = None) -> np.ndar
             f"{what}: coordinates contain NaN or inf (first at point {bad}). "
             "Remove or repair those points."
         )
+    check_range(
+        arr, limit=ROOT_COORDINATE_LIMIT, what=what,
+        fix="Rescale the coordinates (e.g. express them in another unit) before building a Root.",
+    )
     return arr
 
 
@@ -63,6 +89,7 @@ def check_radius(radius: Any, *, n_points: int, what: str) -> np.ndarray:
             f"{what}: radii must be finite and >= 0, got {arr[bad]!r} at point {bad}. "
             "Repair that value, or pass None when the radius is unknown."
         )
+    check_range(arr, limit=ROOT_COORDINATE_LIMIT, what=what, fix="Rescale the radii with the coordinates.")
     return arr
 
 

@@ -22,7 +22,7 @@ from jaxtyping import Array, Bool, Float
 
 from ._curves import interpolate_at_fraction, srvf, srvf_to_curve
 from ._errors import CapacityError, InvalidRootError
-from ._root import Root, check_polyline, polyline_length
+from ._root import Root, check_polyline, check_range, coordinate_limit, polyline_length
 
 
 def _is_array(x) -> bool:
@@ -322,12 +322,22 @@ def batch(
         max_laterals = max(2, 2 * max(r.n_laterals for r in roots_list))
     if dtype is None:
         dtype = jnp.zeros(()).dtype  # JAX's default float: respects jax_enable_x64
+    dtype = _working_dtype(dtype)
     arrays = [
         root_to_arrays_with_radius(
             r, n_points=n_points, capacity=max_laterals, normalise_scale=normalise_scale, dtype=dtype
         )
         for r in roots_list
     ]
+    limit = coordinate_limit(dtype, n_points)
+    for i, (r, a) in enumerate(zip(roots_list, arrays)):
+        for x, what in ((a[0], "main root"), (a[1], "laterals"), (a[4], "main radius"), (a[5], "lateral radii")):
+            check_range(
+                x, limit=limit, what=f"batch(): root {_root_label(r, i)}: {what}",
+                fix=f"With dtype={np.dtype(dtype).name} and n_points={n_points}, rescale the "
+                "coordinates (another unit, or normalise_scale=True), or use dtype=float64 "
+                "(jax.config.update('jax_enable_x64', True)).",
+            )
     main, lats, attach, mask, main_r, lat_r = (np.stack(a) for a in zip(*arrays))
     radii = {}
     if any(r.has_radius for r in roots_list):
@@ -337,6 +347,21 @@ def batch(
         jnp.asarray(main), jnp.asarray(lats), jnp.asarray(attach), jnp.asarray(mask), **radii
     )
     return unstack(tree)[0] if single else tree
+
+
+def _working_dtype(dtype) -> np.dtype:
+    """float32 or float64; anything else is refused (float16 rounds every distance below ~0.1
+    to 0, and integer or complex trees make no sense)."""
+    try:
+        dt = np.dtype(dtype)
+    except TypeError:
+        raise ValueError(f"batch(): dtype={dtype!r} is not a dtype; use float32 or float64.") from None
+    if dt not in (np.dtype(np.float32), np.dtype(np.float64)):
+        raise ValueError(
+            f"batch(): dtype={dt.name} is not supported; use float32 or float64 (float16 and "
+            "bfloat16 are too coarse: distances below ~0.1 come out as exactly 0)."
+        )
+    return dt
 
 
 def _root_label(r: Root, i: int) -> str:

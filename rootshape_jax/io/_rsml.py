@@ -5,8 +5,10 @@ RSML stores a scene of plants; each plant holds roots (``<root>``), each root a
 This module maps every top-level root of every plant to one `Root`: its direct children are the
 laterals, deeper orders go to `Root.children` (one `Root` per lateral, recursively).
 
-Only ``xml.etree`` is used. Tags and attribute names are matched on their local name,
-case-insensitively, so ``point``/``Point``, ``id``/``ID`` and namespaced files all read.
+Files are parsed with ``defusedxml`` (DTDs and entity declarations are refused, nothing is
+fetched), written with ``xml.etree``. Tags and attribute names are matched on their local name,
+case-insensitively, so ``point``/``Point``, ``id``/``ID`` and namespaced files all read. Nested
+``<root>`` elements are walked with explicit stacks, so any nesting depth reads.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 import datetime
 import math
 import os
+import sys
 import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Iterable, Sequence
@@ -22,9 +25,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from defusedxml import DefusedXmlException
+from defusedxml import ElementTree as DET
 
-from .._errors import RSMLError, RSMLWarning
-from .._root import Root
+from .._errors import InvalidRootError, RSMLError, RSMLWarning
+from .._root import ROOT_COORDINATE_LIMIT, Root, check_range
 
 _PO_NS = "http://www.plantontology.org/xml-dtd/po.dtd"
 _PIXEL_UNITS = ("pixel", "pixels", "px")
@@ -103,7 +108,7 @@ class _Node:
     position: str = ""  # "1", "1.3", ... (1-based position among sibling roots)
 
     def n_descendants(self) -> int:
-        return sum(1 + c.n_descendants() for c in self.children)
+        return sum(1 for _ in _walk(self.children))  # iterative: files can nest deeply
 
 
 class _Problems:
@@ -159,6 +164,11 @@ def _parse_points(polyline: ET.Element) -> tuple[np.ndarray, bool]:
                 raise ValueError(f"point {k}: {axis}={raw!r} is not a number") from None
             if not math.isfinite(v):
                 raise ValueError(f"point {k}: {axis}={raw!r} is not finite")
+            if abs(v) > ROOT_COORDINATE_LIMIT:
+                raise ValueError(
+                    f"point {k}: {axis}={raw!r} is too large to compute lengths with (limit "
+                    f"{ROOT_COORDINATE_LIMIT:.3g}); rescale the file's coordinates"
+                )
             values.append(v)
         rows.append(values)
         z_flags.append(coords["z"] is not None)
@@ -266,6 +276,22 @@ def _parse_properties(elem: ET.Element) -> dict:
 
 
 def _parse_root(el: ET.Element, where_prefix: str, position: str) -> _Node:
+    """The `_Node` tree of a ``<root>`` and every ``<root>`` nested in it.
+
+    Iterative (an explicit stack, not recursion), so any nesting depth reads."""
+    top = _parse_one_root(el, where_prefix, position)
+    stack = [(el, top)]
+    while stack:
+        el, node = stack.pop()
+        for k, c in enumerate(_children(el, "root")):
+            child = _parse_one_root(c, where_prefix, f"{node.position}.{k + 1}")
+            node.children.append(child)
+            stack.append((c, child))
+    return top
+
+
+def _parse_one_root(el: ET.Element, where_prefix: str, position: str) -> _Node:
+    """One ``<root>`` element without its nested roots."""
     rid = _attr(el, "id")
     rid = rid.strip() if rid and rid.strip() else None
     label = _attr(el, "label")
@@ -299,8 +325,6 @@ def _parse_root(el: ET.Element, where_prefix: str, position: str) -> _Node:
             node.problem = str(e)
         else:
             node.radius, node.radius_problem = _radius_of(node)
-    for k, c in enumerate(_children(el, "root")):
-        node.children.append(_parse_root(c, where_prefix, f"{position}.{k + 1}"))
     return node
 
 
@@ -466,9 +490,14 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
 
     Unreadable (skipped or raising): malformed XML, no ``<scene>``, a root without geometry
     or with an empty ``<root/>``, a polyline with fewer than 2 points or coinciding points,
-    a non-numeric / NaN / inf coordinate. A bad lateral drops only that lateral (and its own
-    sub-roots). A file with nothing readable raises with ``strict=True`` and warns and returns
-    ``[]`` otherwise. Extra geometry (``<rootnavspline>``, ...) is ignored.
+    a non-numeric / NaN / inf coordinate, or one too large to compute lengths with (above
+    ~8e152, or a top-level root whose converted coordinates are; the other roots are kept). A
+    bad lateral drops only that lateral (and its own sub-roots). A file with nothing readable
+    raises with ``strict=True`` and warns and returns ``[]`` otherwise. Extra geometry
+    (``<rootnavspline>``, ...) is ignored. Any nesting depth of ``<root>`` reads.
+
+    Refused with `RSMLError` whatever `strict` says: a file declaring a DTD (``<!DOCTYPE``)
+    or entities (billion laughs, quadratic blow-up, external entities); nothing is fetched.
     """
     source, stem = _source_name(path)
     problems = _Problems(source, strict)
@@ -476,9 +505,19 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
         raise FileNotFoundError(f"RSML file not found: {source}")
 
     try:
-        doc = ET.parse(path)
+        # defusedxml: no DTD, no entity declarations, nothing fetched. RSML never needs them,
+        # and they are how XML files blow up memory (billion laughs) or leak local files.
+        doc = DET.parse(path, forbid_dtd=True, forbid_entities=True, forbid_external=True)
+    except DefusedXmlException as e:
+        raise RSMLError(
+            f"{source}: refused to read: the file declares a DTD or entities ({type(e).__name__}: "
+            f"{e}). RSML does not use them and they can exhaust memory or read/fetch other "
+            "files; remove the <!DOCTYPE ...> / <!ENTITY ...> declarations if the file is trusted."
+        ) from None
     except ET.ParseError as e:
         return _nothing(problems, f"not well-formed XML ({e})")
+    except (LookupError, UnicodeError) as e:  # e.g. <?xml encoding="UTF-0"?>
+        return _nothing(problems, f"unreadable XML encoding ({e})")
     top = doc.getroot()
     scene = top if _local(top.tag) == "scene" else _child(top, "scene")
     if scene is None:
@@ -527,22 +566,59 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
             return node.label
         return f"{stem}/{pid}/{node.rid or node.position}"
 
-    def build(node: _Node, plant_info: dict, order: int, extra: dict) -> Root:
+    def build(top: _Node, plant_info: dict) -> Root:
+        """The `Root` of a top-level node, children included, without recursion: a pre-order
+        pass checks children and finds attachments, then roots are made leaves first."""
+        pre: list[tuple[_Node, int, dict]] = []
+        usable: dict[int, list[tuple[_Node, float]]] = {}
+        stack = [(top, 1, {})]
+        while stack:
+            node, order, extra = stack.pop()
+            pre.append((node, order, extra))
+            if node.radius_problem is not None:
+                problems.report(node.where, node.radius_problem)
+            main = scaled(node)
+            kids, pushed = [], []
+            for child in node.children:
+                if child.problem is not None:
+                    problems.report(child.where, _problem_text(child))
+                    continue
+                lat = scaled(child)
+                frac, method = attachment_fraction(main, lat, child.parent_node)
+                kids.append((child, frac))
+                pushed.append((child, order + 1, {"attach_method": method}))
+            usable[id(node)] = kids
+            stack.extend(reversed(pushed))  # file order
+        built: dict[int, Root] = {}
+        for node, order, extra in reversed(pre):  # children before their parent
+            kids = [built.pop(id(c)) for c, _ in usable[id(node)]]
+            attach = [f for _, f in usable[id(node)]]
+            built[id(node)] = make_root(node, plant_info, order, extra, kids, attach)
+        return built[id(top)]
+
+    def scaled(node: _Node) -> np.ndarray:
+        """The node's points in the returned unit; out of range -> CoordinateRangeError."""
+        with np.errstate(over="ignore"):
+            pts = node.points[:, :dim] * scale
+        check_range(
+            np.where(np.isfinite(pts), pts, np.inf), limit=ROOT_COORDINATE_LIMIT,
+            what=f"{node.where}: in {info['unit']!r}",
+            fix="The file's <resolution> is too small for its coordinates; fix it, or read "
+            "with physical_units=False.",
+        )
+        return pts
+
+    def make_root(node, plant_info, order, extra, kids, attach) -> Root:
         main = node.points[:, :dim] * scale
-        if node.radius_problem is not None:
-            problems.report(node.where, node.radius_problem)
         # Radii are stored in pixels like the coordinates, so they take the same scale.
-        main_radius = node.radius * scale if node.radius is not None else None
-        lats, attach, kids = [], [], []
-        for child in node.children:
-            if child.problem is not None:
-                problems.report(child.where, _problem_text(child))
-                continue
-            lat = child.points[:, :dim] * scale
-            frac, method = attachment_fraction(main, lat, child.parent_node)
-            kids.append(build(child, plant_info, order + 1, {"attach_method": method}))
-            lats.append(kids[-1].main)
-            attach.append(frac)
+        main_radius = None
+        if node.radius is not None:
+            with np.errstate(over="ignore"):
+                main_radius = node.radius * scale
+            if not np.all(main_radius <= ROOT_COORDINATE_LIMIT):
+                problems.report(node.where, "radius out of range once converted; radius dropped")
+                main_radius = None
+        lats = [k.main for k in kids]
         lateral_radii = None
         if any(k.main_radius is not None for k in kids):
             lateral_radii = []
@@ -594,7 +670,12 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
             if node.problem is not None:
                 problems.report(node.where, _problem_text(node))
                 continue
-            roots.append(build(node, plant_info, 1, {}))
+            try:
+                roots.append(build(node, plant_info))
+            except InvalidRootError as e:  # e.g. coordinates out of range after unit scaling
+                k = node.n_descendants()
+                subs = f" (its {k} sub-root(s) are skipped with it)" if k else ""
+                problems.report(node.where, f"{e}{subs}")
     if not roots:
         what = "no root" if n_top == 0 else f"none of its {n_top} top-level root(s) has usable geometry"
         if strict:
@@ -620,9 +701,12 @@ def _problem_text(node: _Node) -> str:
 
 
 def _walk(nodes: Iterable[_Node]):
-    for n in nodes:
+    """Every node and its descendants, depth first, in file order (iterative)."""
+    stack = list(nodes)[::-1]
+    while stack:
+        n = stack.pop()
         yield n
-        yield from _walk(n.children)
+        stack.extend(n.children[::-1])
 
 
 def _nothing(problems: _Problems, message: str) -> list[Root]:
@@ -763,6 +847,18 @@ def write_rsml(
         groups.setdefault(pid, []).append(r)
         plant_meta.setdefault(pid, r)
 
+    try:
+        _write_scene(scene, top, groups, plant_meta, resolution, dim3, path)
+    except RecursionError:
+        # xml.etree's indenting and serialising recurse once per nesting level.
+        raise RSMLError(
+            "write_rsml: the roots' `children` nest too deeply for xml.etree to write (Python's "
+            f"recursion limit is {sys.getrecursionlimit()}); drop the deep orders "
+            "(dataclasses.replace(root, children=())) to write main roots and laterals only."
+        ) from None
+
+
+def _write_scene(scene, top, groups, plant_meta, resolution, dim3, path) -> None:
     used_ids: set[str] = set()
     for pid, members in groups.items():
         first = plant_meta[pid]
