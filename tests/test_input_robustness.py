@@ -166,12 +166,18 @@ def test_deep_nesting_problems_are_reported_not_recursed():
     assert levels == 698
 
 
-def test_writing_very_deep_children_gives_rsml_error(tmp_path):
+def test_deeply_nested_roots_round_trip(tmp_path):
     (root,) = _read(_nested(3000))
-    with pytest.raises(RSMLError, match="nest too deeply"):
-        write_rsml(root, tmp_path / "deep.rsml")
-    write_rsml(dataclasses.replace(root, children=()), tmp_path / "flat.rsml")
-    assert read_rsml(tmp_path / "flat.rsml")[0].n_laterals == 1
+    write_rsml(root, tmp_path / "deep.rsml")  # xml.etree's writer recursed: now a stack
+    (back,) = read_rsml(tmp_path / "deep.rsml")
+    a, b, levels = root, back, 0
+    while a.children:
+        assert len(b.children) == 1
+        np.testing.assert_array_equal(a.laterals[0], b.laterals[0])
+        assert a.attach[0] == pytest.approx(b.attach[0], abs=1e-12)
+        a, b, levels = a.children[0], b.children[0], levels + 1
+    assert levels == 2999 and not b.children
+    np.testing.assert_array_equal(a.main, b.main)
 
 
 # --------------------------------------------------------------------------------------------

@@ -16,13 +16,13 @@ from __future__ import annotations
 import datetime
 import math
 import os
-import sys
 import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from xml.sax.saxutils import escape, quoteattr
 
 import numpy as np
 from defusedxml import DefusedXmlException
@@ -847,18 +847,6 @@ def write_rsml(
         groups.setdefault(pid, []).append(r)
         plant_meta.setdefault(pid, r)
 
-    try:
-        _write_scene(scene, top, groups, plant_meta, resolution, dim3, path)
-    except RecursionError:
-        # xml.etree's indenting and serialising recurse once per nesting level.
-        raise RSMLError(
-            "write_rsml: the roots' `children` nest too deeply for xml.etree to write (Python's "
-            f"recursion limit is {sys.getrecursionlimit()}); drop the deep orders "
-            "(dataclasses.replace(root, children=())) to write main roots and laterals only."
-        ) from None
-
-
-def _write_scene(scene, top, groups, plant_meta, resolution, dim3, path) -> None:
     used_ids: set[str] = set()
     for pid, members in groups.items():
         first = plant_meta[pid]
@@ -871,8 +859,40 @@ def _write_scene(scene, top, groups, plant_meta, resolution, dim3, path) -> None
                 plant_el, r.main, r, f"{pid}.{k + 1}", None, resolution, dim3, used_ids, r.main_radius
             )
 
-    ET.indent(top, space="  ")
-    ET.ElementTree(top).write(path, encoding="UTF-8", xml_declaration=True)
+    data = _serialise(top)
+    if hasattr(path, "write"):
+        path.write(data)
+    else:
+        with open(path, "wb") as f:
+            f.write(data)
+
+
+_ATTR_ENTITIES = {"\n": "&#10;", "\r": "&#13;", "\t": "&#9;"}
+
+
+def _serialise(top: ET.Element) -> bytes:
+    """UTF-8 XML of ``top``, indented by two spaces, written with an explicit stack:
+    xml.etree's ``indent`` and ``write`` recurse once per level and fail on deep trees.
+    (Elements written here have text or children, never both.)"""
+    out = ["<?xml version='1.0' encoding='UTF-8'?>\n"]
+    stack: list[tuple[ET.Element, int, bool]] = [(top, 0, False)]
+    while stack:
+        el, depth, closing = stack.pop()
+        pad = "  " * depth
+        if closing:
+            out.append(f"{pad}</{el.tag}>\n")
+            continue
+        attrs = "".join(f" {k}={quoteattr(str(v), _ATTR_ENTITIES)}" for k, v in el.attrib.items())
+        kids = list(el)
+        if kids:
+            out.append(f"{pad}<{el.tag}{attrs}>\n")
+            stack.append((el, depth, True))
+            stack.extend((c, depth + 1, False) for c in reversed(kids))
+        elif el.text:
+            out.append(f"{pad}<{el.tag}{attrs}>{escape(el.text)}</{el.tag}>\n")
+        else:
+            out.append(f"{pad}<{el.tag}{attrs} />\n")
+    return "".join(out).encode("utf-8")
 
 
 def _unique_id(wanted: Any, fallback: str, used: set[str]) -> str:
@@ -890,8 +910,21 @@ def _unique_id(wanted: Any, fallback: str, used: set[str]) -> str:
 def _write_root(
     parent_el, polyline, root, fallback_id, parent_node, resolution, dim3, used_ids, radius=None
 ):
+    """A ``<root>`` and all its nested laterals, depth first in order, with an explicit stack
+    (any nesting depth)."""
+    stack = [(parent_el, polyline, root, fallback_id, parent_node, radius)]
+    while stack:
+        el, poly, r, fid, pn, rad = stack.pop()
+        jobs = _write_one_root(el, poly, r, fid, pn, resolution, dim3, used_ids, rad)
+        stack.extend(reversed(jobs))
+
+
+def _write_one_root(
+    parent_el, polyline, root, fallback_id, parent_node, resolution, dim3, used_ids, radius
+) -> list[tuple]:
     """One ``<root>``: ``polyline`` is its geometry; ``root`` (or None) gives names and laterals;
-    ``radius`` (or None) its radius per point, written as a ``diameter`` function."""
+    ``radius`` (or None) its radius per point, written as a ``diameter`` function. Returns the
+    laterals still to write, as `_write_root` stack entries."""
     meta = root.metadata if root is not None else {}
     attrs = {"id": _unique_id(meta.get("root_id"), fallback_id, used_ids)}
     if root is not None and root.name:
@@ -938,7 +971,8 @@ def _write_root(
                     sa["position"] = _fmt(positions[j])
                 ET.SubElement(fn, "sample", sa)
     if root is None:
-        return
+        return []
+    jobs = []
     for k, lat in enumerate(root.laterals):
         child = root.children[k] if root.children else None
         if child is not None and (
@@ -957,6 +991,5 @@ def _write_root(
             # (read_rsml pads such a lateral with 0 in `lateral_radii`).
             lat_radius = child.main_radius
         node = _nearest_node(root.main, float(root.attach[k]))
-        _write_root(
-            el, lat, child, f"{attrs['id']}.{k + 1}", node, resolution, dim3, used_ids, lat_radius
-        )
+        jobs.append((el, lat, child, f"{attrs['id']}.{k + 1}", node, lat_radius))
+    return jobs
