@@ -222,7 +222,8 @@ def root_to_arrays_with_radius(
     """numpy arrays (main, laterals, attach, mask, main_radius, lateral_radius) for one root.
 
     Radii are resampled at the same arc-length positions as the coordinates and scaled with
-    them; unknown radii (and null slots) are 0."""
+    them; unknown radii (and null slots) are 0. Raises `CoordinateRangeError` when the arrays
+    exceed what ``dtype`` can compute with (`coordinate_limit`)."""
     if not isinstance(root, Root):
         raise TypeError(f"expected a rootshape_jax.Root, got {type(root).__name__}.")
     if root.n_laterals > capacity:
@@ -270,6 +271,19 @@ def root_to_arrays_with_radius(
         mask[k] = True
     for k in range(root.n_laterals, capacity):
         lats[k] = np.repeat(main_resampled[:1], n_points, axis=0)
+    # Checked in float64, before the cast (which would overflow to inf with a warning).
+    limit = coordinate_limit(dtype, n_points)
+    label = f"root {root.name!r}" if root.name else "root"
+    for x, what in (
+        (main_resampled, "main root"), (lats, "laterals"), (main_radius, "main radius"),
+        (lat_radius, "lateral radii"),
+    ):
+        check_range(
+            x, limit=limit, what=f"{label}: {what}",
+            fix=f"With dtype={np.dtype(dtype).name} and n_points={n_points}, rescale the "
+            "coordinates (another unit, or normalise_scale=True), or use dtype=float64 "
+            "(jax.config.update('jax_enable_x64', True)).",
+        )
     return (
         main_resampled.astype(dtype),
         lats.astype(dtype),
@@ -302,6 +316,11 @@ def batch(
     no root has radius data both fields are ``None``; if only some have, the others get radius
     0 and a warning names them.
 
+    Raises ``ValueError`` for a dtype other than float32 / float64 (float16 rounds small
+    distances to 0), and `CoordinateRangeError` (naming the root and the fix) for coordinates
+    whose squared lengths would overflow ``dtype`` (`coordinate_limit`: about 1e16 in float32
+    and 8e150 in float64 at ``n_points = 100``).
+
     A single `Root` gives an unbatched `RootTree`.
     """
     single = isinstance(roots, Root)
@@ -329,15 +348,6 @@ def batch(
         )
         for r in roots_list
     ]
-    limit = coordinate_limit(dtype, n_points)
-    for i, (r, a) in enumerate(zip(roots_list, arrays)):
-        for x, what in ((a[0], "main root"), (a[1], "laterals"), (a[4], "main radius"), (a[5], "lateral radii")):
-            check_range(
-                x, limit=limit, what=f"batch(): root {_root_label(r, i)}: {what}",
-                fix=f"With dtype={np.dtype(dtype).name} and n_points={n_points}, rescale the "
-                "coordinates (another unit, or normalise_scale=True), or use dtype=float64 "
-                "(jax.config.update('jax_enable_x64', True)).",
-            )
     main, lats, attach, mask, main_r, lat_r = (np.stack(a) for a in zip(*arrays))
     radii = {}
     if any(r.has_radius for r in roots_list):

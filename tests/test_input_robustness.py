@@ -79,8 +79,13 @@ def test_root_refuses_coordinates_that_overflow():
 def test_batch_refuses_float32_overflow_and_names_the_fix(rng=np.random.default_rng(0)):
     small = random_root(rng, n_laterals=2)
     big = dataclasses.replace(small.scaled(1e20), name="big")
-    with pytest.raises(CoordinateRangeError, match=r"root 'big'.*float32.*float64"):
+    with pytest.raises(CoordinateRangeError, match=r"root 'big': main root.*float32.*float64"):
         batch([small, big], n_points=30, dtype=jnp.float32)
+    # Far beyond float32's range: the same error, and no overflow warning on the way.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(CoordinateRangeError, match="coordinates reach"):
+            batch([small.scaled(1e100)], n_points=30, dtype=jnp.float32)
     # The same roots work in float64, or scale-normalised in float32.
     t64 = batch([small, big], n_points=30, dtype=jnp.float64)
     assert np.all(np.isfinite(np.asarray(t64.main)))
