@@ -6,9 +6,10 @@ This module maps every top-level root of every plant to one `Root`: its direct c
 laterals, deeper orders go to `Root.children` (one `Root` per lateral, recursively).
 
 Files are parsed with ``defusedxml`` (DTDs and entity declarations are refused, nothing is
-fetched), written with ``xml.etree``. Tags and attribute names are matched on their local name,
-case-insensitively, so ``point``/``Point``, ``id``/``ID`` and namespaced files all read. Nested
-``<root>`` elements are walked with explicit stacks, so any nesting depth reads.
+fetched) and written as an ``xml.etree`` tree serialised by a small iterative writer. Tags and
+attribute names are matched on their local name, case-insensitively, so ``point``/``Point``,
+``id``/``ID`` and namespaced files all read. Nested ``<root>`` elements are walked with
+explicit stacks (no recursion), so any nesting depth reads and writes.
 """
 
 from __future__ import annotations
