@@ -279,7 +279,7 @@ def _lateral_color(k: int, colors: Any, slot_colors: bool) -> Any:
 
 # Line widths from radii: the thickest point of a root is drawn RADIUS_WIDTH x `linewidth`
 # points wide, thinner points in proportion, never thinner than MIN_WIDTH x `linewidth`.
-RADIUS_WIDTH = 3.0
+RADIUS_WIDTH = 2.4
 MIN_WIDTH = 0.25
 
 
