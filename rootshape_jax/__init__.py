@@ -8,6 +8,7 @@ and Karcher means are jit/vmap-compiled. See README.md and docs/architecture.md.
 from ._errors import (
     CapacityError as CapacityError,
     ConvergenceError as ConvergenceError,
+    CoordinateRangeError as CoordinateRangeError,
     InvalidCostError as InvalidCostError,
     StoreMismatchError as StoreMismatchError,
     ImageError as ImageError,

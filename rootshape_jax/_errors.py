@@ -13,6 +13,10 @@ class InvalidRootError(RootShapeError, ValueError):
     """A root (or a curve, or a tree) is not valid input: too few points, NaN/inf, wrong shape."""
 
 
+class CoordinateRangeError(InvalidRootError):
+    """Coordinates so large that squared lengths overflow the working float precision."""
+
+
 class CapacityError(InvalidRootError):
     """A root has more laterals than the padded capacity ``K`` (or more points than ``T``)."""
 

@@ -8,7 +8,29 @@ from typing import Any
 
 import numpy as np
 
-from ._errors import InvalidRootError
+from ._errors import CoordinateRangeError, InvalidRootError
+
+
+def coordinate_limit(dtype: Any, n_points: int = 1) -> float:
+    """Largest coordinate magnitude that computations in ``dtype`` with ``n_points`` points per
+    branch can square without overflow: SRVFs square derivatives ~ ``n_points × |x|``, and
+    rotations sum ``n_points`` squared coordinates. ``sqrt(max) / (16 n_points)``: about
+    1e16 for float32 and 8e150 for float64 at ``n_points = 100``."""
+    return float(np.sqrt(np.finfo(dtype).max)) / (16.0 * max(int(n_points), 1))
+
+
+# A `Root` is checked in float64 (its numpy arithmetic); `batch` checks its own dtype and T.
+ROOT_COORDINATE_LIMIT = coordinate_limit(np.float64, 1)
+
+
+def check_range(points: np.ndarray, *, limit: float, what: str, fix: str) -> None:
+    """Raise `CoordinateRangeError` naming ``what`` when ``|points|`` exceeds ``limit``."""
+    big = float(np.max(np.abs(points))) if points.size else 0.0
+    if not big <= limit:
+        raise CoordinateRangeError(
+            f"{what}: coordinates reach {big:.3g}, beyond {limit:.3g}, the largest magnitude whose "
+            f"squared lengths stay finite in the working precision. {fix}"
+        )
 
 
 def check_polyline(points: Any, *, what: str, dim: int | None = None) -> np.ndarray:
@@ -42,6 +64,32 @@ def check_polyline(points: Any, *, what: str, dim: int | None = None) -> np.ndar
             f"{what}: coordinates contain NaN or inf (first at point {bad}). "
             "Remove or repair those points."
         )
+    check_range(
+        arr, limit=ROOT_COORDINATE_LIMIT, what=what,
+        fix="Rescale the coordinates (e.g. express them in another unit) before building a Root.",
+    )
+    return arr
+
+
+def check_radius(radius: Any, *, n_points: int, what: str) -> np.ndarray:
+    """Return ``radius`` as a float (n_points,) array, or raise `InvalidRootError` naming ``what``."""
+    arr = np.asarray(radius)
+    if arr.dtype.kind not in "fiu":
+        raise InvalidRootError(f"{what}: radii must be numbers, got dtype {arr.dtype}.")
+    if not np.issubdtype(arr.dtype, np.floating):
+        arr = arr.astype(np.float64)
+    if arr.shape != (n_points,):
+        raise InvalidRootError(
+            f"{what}: expected one radius per point, shape ({n_points},), got shape {arr.shape}. "
+            "Give the radius at each polyline point (or None when it is unknown)."
+        )
+    if not np.all(np.isfinite(arr)) or np.any(arr < 0):
+        bad = int(np.argmax(~(np.isfinite(arr) & (arr >= 0))))
+        raise InvalidRootError(
+            f"{what}: radii must be finite and >= 0, got {arr[bad]!r} at point {bad}. "
+            "Repair that value, or pass None when the radius is unknown."
+        )
+    check_range(arr, limit=ROOT_COORDINATE_LIMIT, what=what, fix="Rescale the radii with the coordinates.")
     return arr
 
 
@@ -78,6 +126,11 @@ class Root:
     - `children`: optional deeper topology: one `Root` per lateral whose `main` is that lateral
       and whose `laterals` are its own (order-3) children, recursively. Empty when unknown. The
       shape analysis uses main + first-order laterals only; this keeps higher orders for I/O.
+      Each child carries its own radii (`main_radius` = that lateral's radii).
+    - `main_radius`: optional (n,) radius of the root at each main-root point, in the unit of the
+      coordinates; ``None`` when unknown.
+    - `lateral_radii`: optional tuple of (m_i,) radii, one array per lateral; ``None`` when
+      unknown.
 
     Coordinates are in physical units when known (see `metadata["unit"]`).
     """
@@ -88,6 +141,8 @@ class Root:
     name: str = ""
     metadata: dict = dataclasses.field(default_factory=dict)
     children: tuple["Root", ...] = ()
+    main_radius: np.ndarray | None = None
+    lateral_radii: tuple[np.ndarray, ...] | None = None
 
     def __post_init__(self):
         label = f"root {self.name!r}" if self.name else "root"
@@ -121,8 +176,29 @@ class Root:
                 f"{label}: `children` must hold one entry per lateral ({len(lats)}), "
                 f"got {len(self.children)}."
             )
+        main_radius = None
+        if self.main_radius is not None:
+            main_radius = check_radius(
+                self.main_radius, n_points=main.shape[0], what=f"{label}: main root radius"
+            ).astype(main.dtype, copy=False)
+        lateral_radii = None
+        if self.lateral_radii is not None:
+            radii_in = list(self.lateral_radii)
+            if len(radii_in) != len(lats):
+                raise InvalidRootError(
+                    f"{label}: {len(radii_in)} lateral radius arrays for {len(lats)} laterals; "
+                    "give one (m_i,) array per lateral, or lateral_radii=None when unknown."
+                )
+            lateral_radii = tuple(
+                check_radius(r, n_points=lat.shape[0], what=f"{label}: lateral {i} radius").astype(
+                    main.dtype, copy=False
+                )
+                for i, (r, lat) in enumerate(zip(radii_in, lats))
+            )
         object.__setattr__(self, "main", main)
         object.__setattr__(self, "laterals", lats)
+        object.__setattr__(self, "main_radius", main_radius)
+        object.__setattr__(self, "lateral_radii", lateral_radii)
         object.__setattr__(self, "attach", attach)
         object.__setattr__(self, "metadata", dict(self.metadata))
 
@@ -135,6 +211,11 @@ class Root:
         return len(self.laterals)
 
     @property
+    def has_radius(self) -> bool:
+        """True when any radius data (main root or laterals) is known."""
+        return self.main_radius is not None or self.lateral_radii is not None
+
+    @property
     def main_length(self) -> float:
         return polyline_length(self.main)
 
@@ -143,21 +224,35 @@ class Root:
         return np.array([polyline_length(lat) for lat in self.laterals], dtype=self.main.dtype)
 
     def scaled(self, factor: float) -> "Root":
-        """The same root with every coordinate multiplied by ``factor`` (about the main base)."""
-        o = self.main[0]
-        return dataclasses.replace(
-            self,
-            main=o + (self.main - o) * factor,
-            laterals=tuple(o + (lat - o) * factor for lat in self.laterals),
-            children=tuple(c.scaled_about(o, factor) for c in self.children),
-        )
+        """The same root with every coordinate multiplied by ``factor`` (about the main base).
+        Radii are multiplied by ``|factor|``."""
+        return self.scaled_about(self.main[0], factor)
 
     def scaled_about(self, origin: np.ndarray, factor: float) -> "Root":
+        f = abs(float(factor))
         return dataclasses.replace(
             self,
             main=origin + (self.main - origin) * factor,
             laterals=tuple(origin + (lat - origin) * factor for lat in self.laterals),
             children=tuple(c.scaled_about(origin, factor) for c in self.children),
+            main_radius=None if self.main_radius is None else self.main_radius * f,
+            lateral_radii=(
+                None if self.lateral_radii is None else tuple(r * f for r in self.lateral_radii)
+            ),
+        )
+
+    def select_laterals(self, indices: Sequence[int]) -> "Root":
+        """The same root keeping only the laterals at ``indices`` (with their attachments,
+        children and radii), in the order given."""
+        idx = [int(i) for i in indices]
+        return dataclasses.replace(
+            self,
+            laterals=tuple(self.laterals[i] for i in idx),
+            attach=self.attach[idx] if idx else np.zeros((0,), self.main.dtype),
+            children=tuple(self.children[i] for i in idx) if self.children else (),
+            lateral_radii=(
+                None if self.lateral_radii is None else tuple(self.lateral_radii[i] for i in idx)
+            ),
         )
 
     def __repr__(self) -> str:

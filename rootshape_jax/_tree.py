@@ -11,6 +11,7 @@ point. Never NaN: a NaN in a masked branch of ``jnp.where`` still poisons gradie
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -21,7 +22,7 @@ from jaxtyping import Array, Bool, Float
 
 from ._curves import interpolate_at_fraction, srvf, srvf_to_curve
 from ._errors import CapacityError, InvalidRootError
-from ._root import Root, check_polyline, polyline_length
+from ._root import Root, check_polyline, check_range, coordinate_limit, polyline_length
 from ._thickness import extended_srvf, integrate_branch, wants_thickness
 
 
@@ -39,8 +40,13 @@ class RootTree(eqx.Module):
       Null slots (``mask = False``) are collapsed to a single repeated point.
     - `attach`: ``[K]`` arc-length fraction in [0, 1] of each lateral's attachment point.
     - `mask`: ``[K]`` True for real laterals, False for padding (null laterals).
-    - `main_radius`, `lateral_radius`: ``[T]`` and ``[K, T]`` radius along each branch, in the
-      coordinates' unit, or None when the batch has no radius data. Null slots have radius 0.
+    - `main_radius`: ``[T]`` radius of the main root at each point (same unit as the
+      coordinates), or ``None`` when the batch has no radius data at all.
+    - `lateral_radius`: ``[K, T]`` radius of each lateral at each point, or ``None`` (set
+      together with `main_radius`).
+
+    Radius padding: null slots have radius 0; so does every branch of a root that came without
+    radius data in a batch where other roots have it (`batch` warns and names those roots).
     """
 
     main: Float[Array, "*B T d"]
@@ -54,19 +60,7 @@ class RootTree(eqx.Module):
         _check_shapes(
             "RootTree", self.main, self.laterals, self.attach, self.mask, names=("main", "laterals")
         )
-        if (self.main_radius is None) != (self.lateral_radius is None):
-            raise ValueError("RootTree: give both main_radius and lateral_radius, or neither.")
-        if self.main_radius is not None and _is_array(self.main_radius) and _is_array(self.main):
-            if self.main_radius.shape != self.main.shape[:-1]:
-                raise ValueError(
-                    f"RootTree: main_radius has shape {self.main_radius.shape}, expected "
-                    f"{self.main.shape[:-1]}."
-                )
-            if self.lateral_radius.shape != self.laterals.shape[:-1]:
-                raise ValueError(
-                    f"RootTree: lateral_radius has shape {self.lateral_radius.shape}, expected "
-                    f"{self.laterals.shape[:-1]}."
-                )
+        _check_radius_shapes("RootTree", self.main, self.laterals, self.main_radius, self.lateral_radius)
 
     @property
     def n_points(self) -> int:
@@ -164,6 +158,32 @@ def _check_shapes(cls, main, lats, attach, mask, *, names):
         raise ValueError(f"{cls}: mask must be boolean, got {mask.dtype}.")
 
 
+def _check_radius_shapes(cls, main, lats, main_radius, lateral_radius):
+    """Radii are both None or both arrays shaped like the coordinates without ``d``."""
+    if (main_radius is None) != (lateral_radius is None):
+        raise ValueError(
+            f"{cls}: main_radius and lateral_radius must be given together (both None means no "
+            "radius data); pass zeros for the branches whose radius is unknown."
+        )
+    if main_radius is None:
+        return
+    if not all(_is_array(x) for x in (main, lats, main_radius, lateral_radius)):
+        return
+    if main_radius.shape != main.shape[:-1]:
+        raise ValueError(
+            f"{cls}: main_radius has shape {main_radius.shape}, expected {main.shape[:-1]} "
+            "(one radius per main-root point)."
+        )
+    if lateral_radius.shape != lats.shape[:-1]:
+        raise ValueError(
+            f"{cls}: lateral_radius has shape {lateral_radius.shape}, expected {lats.shape[:-1]} "
+            "(one radius per lateral point, 0 in null slots)."
+        )
+    for nm, r in (("main_radius", main_radius), ("lateral_radius", lateral_radius)):
+        if not jnp.issubdtype(r.dtype, jnp.floating):
+            raise ValueError(f"{cls}: {nm} must be a float array, got dtype {r.dtype}.")
+
+
 # --------------------------------------------------------------------------------------------
 # Root (numpy, unpadded) <-> RootTree (padded)
 
@@ -180,6 +200,19 @@ def resample_polyline(points: np.ndarray, n_points: int) -> np.ndarray:
     return np.stack([np.interp(target, cum, pts[:, k]) for k in range(points.shape[1])], axis=1)
 
 
+def resample_values(points: np.ndarray, values: np.ndarray, n_points: int) -> np.ndarray:
+    """numpy: values carried by the points of a polyline (e.g. radii), at the ``n_points``
+    points of `resample_polyline` (linear in arc length, same repeated-point handling)."""
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    if cum[-1] <= 0:
+        return np.repeat(values[:1], n_points, axis=0)
+    keep = np.concatenate([[True], seg > 0])
+    cum, vals = cum[keep], values[keep]
+    target = np.linspace(0.0, cum[-1], n_points)
+    return np.interp(target, cum, vals)
+
+
 def _point_at_fraction(main: np.ndarray, fraction: float) -> np.ndarray:
     seg = np.linalg.norm(np.diff(main, axis=0), axis=1)
     cum = np.concatenate([[0.0], np.cumsum(seg)])
@@ -193,6 +226,20 @@ def root_to_arrays(
     root: Root, *, n_points: int, capacity: int, normalise_scale: bool = False, dtype=np.float64
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """numpy arrays (main, laterals, attach, mask) for one root at the given capacities."""
+    main, lats, attach, mask, _, _ = root_to_arrays_with_radius(
+        root, n_points=n_points, capacity=capacity, normalise_scale=normalise_scale, dtype=dtype
+    )
+    return main, lats, attach, mask
+
+
+def root_to_arrays_with_radius(
+    root: Root, *, n_points: int, capacity: int, normalise_scale: bool = False, dtype=np.float64
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """numpy arrays (main, laterals, attach, mask, main_radius, lateral_radius) for one root.
+
+    Radii are resampled at the same arc-length positions as the coordinates and scaled with
+    them; unknown radii (and null slots) are 0. Raises `CoordinateRangeError` when the arrays
+    exceed what ``dtype`` can compute with (`coordinate_limit`)."""
     if not isinstance(root, Root):
         raise TypeError(f"expected a rootshape_jax.Root, got {type(root).__name__}.")
     if root.n_laterals > capacity:
@@ -212,28 +259,54 @@ def root_to_arrays(
     main = o + (main - o) * scale
     d = main.shape[1]
     main_resampled = resample_polyline(main, n_points)
+    main_radius = np.zeros((n_points,))
+    if root.main_radius is not None:
+        main_radius = resample_values(main, root.main_radius.astype(np.float64) * scale, n_points)
     lats = np.zeros((capacity, n_points, d))
+    lat_radius = np.zeros((capacity, n_points))
     attach = np.zeros((capacity,))
     mask = np.zeros((capacity,), dtype=bool)
     for k, (lat, s) in enumerate(zip(root.laterals, root.attach)):
         lat = o + (lat.astype(np.float64) - o) * scale
+        radius = None
+        if root.lateral_radii is not None:
+            radius = root.lateral_radii[k].astype(np.float64) * scale
         base = _point_at_fraction(main, float(s))
         # A lateral emerges from the main root: join its first point to the attachment point.
         if np.linalg.norm(lat[0] - base) > 1e-9 * max(1.0, np.abs(main).max()):
             lat = np.concatenate([base[None], lat], axis=0)
+            if radius is not None:  # the joining segment has the lateral's base radius
+                radius = np.concatenate([radius[:1], radius])
         # Resampling the main root moves its points slightly (chords); move the lateral with it
         # so that it starts exactly at the resampled main root's point at `attach`.
         lat = lat + (_point_at_fraction(main_resampled, float(s)) - base)
         lats[k] = resample_polyline(lat, n_points)
+        if radius is not None:
+            lat_radius[k] = resample_values(lat, radius, n_points)
         attach[k] = s
         mask[k] = True
     for k in range(root.n_laterals, capacity):
         lats[k] = np.repeat(main_resampled[:1], n_points, axis=0)
+    # Checked in float64, before the cast (which would overflow to inf with a warning).
+    limit = coordinate_limit(dtype, n_points)
+    label = f"root {root.name!r}" if root.name else "root"
+    for x, what in (
+        (main_resampled, "main root"), (lats, "laterals"), (main_radius, "main radius"),
+        (lat_radius, "lateral radii"),
+    ):
+        check_range(
+            x, limit=limit, what=f"{label}: {what}",
+            fix=f"With dtype={np.dtype(dtype).name} and n_points={n_points}, rescale the "
+            "coordinates (another unit, or normalise_scale=True), or use dtype=float64 "
+            "(jax.config.update('jax_enable_x64', True)).",
+        )
     return (
         main_resampled.astype(dtype),
         lats.astype(dtype),
         attach.astype(dtype),
         mask,
+        main_radius.astype(dtype),
+        lat_radius.astype(dtype),
     )
 
 
@@ -253,6 +326,16 @@ def batch(
     - `normalise_scale`: divide each root by its main-root length (the paper's scale invariance;
       leave off for growth studies).
     - `dtype`: float dtype of the arrays; default JAX's default float (float32 unless x64 is on).
+
+    Radii (`Root.main_radius`, `Root.lateral_radii`) are resampled like the coordinates (and
+    scaled with them by `normalise_scale`) into `RootTree.main_radius` / `lateral_radius`. If
+    no root has radius data both fields are ``None``; if only some have, the others get radius
+    0 and a warning names them.
+
+    Raises ``ValueError`` for a dtype other than float32 / float64 (float16 rounds small
+    distances to 0), and `CoordinateRangeError` (naming the root and the fix) for coordinates
+    whose squared lengths would overflow ``dtype`` (`coordinate_limit`: about 1e16 in float32
+    and 8e150 in float64 at ``n_points = 100``).
 
     A single `Root` gives an unbatched `RootTree`.
     """
@@ -274,15 +357,63 @@ def batch(
         max_laterals = max(2, 2 * max(r.n_laterals for r in roots_list))
     if dtype is None:
         dtype = jnp.zeros(()).dtype  # JAX's default float: respects jax_enable_x64
+    dtype = _working_dtype(dtype)
     arrays = [
-        root_to_arrays(
+        root_to_arrays_with_radius(
             r, n_points=n_points, capacity=max_laterals, normalise_scale=normalise_scale, dtype=dtype
         )
         for r in roots_list
     ]
-    main, lats, attach, mask = (np.stack(a) for a in zip(*arrays))
-    tree = RootTree(jnp.asarray(main), jnp.asarray(lats), jnp.asarray(attach), jnp.asarray(mask))
+    main, lats, attach, mask, main_r, lat_r = (np.stack(a) for a in zip(*arrays))
+    radii = {}
+    if any(r.has_radius for r in roots_list):
+        _warn_missing_radius(roots_list)
+        radii = dict(main_radius=jnp.asarray(main_r), lateral_radius=jnp.asarray(lat_r))
+    tree = RootTree(
+        jnp.asarray(main), jnp.asarray(lats), jnp.asarray(attach), jnp.asarray(mask), **radii
+    )
     return unstack(tree)[0] if single else tree
+
+
+def _working_dtype(dtype) -> np.dtype:
+    """float32 or float64; anything else is refused (float16 rounds every distance below ~0.1
+    to 0, and integer or complex trees make no sense)."""
+    try:
+        dt = np.dtype(dtype)
+    except TypeError:
+        raise ValueError(f"batch(): dtype={dtype!r} is not a dtype; use float32 or float64.") from None
+    if dt not in (np.dtype(np.float32), np.dtype(np.float64)):
+        raise ValueError(
+            f"batch(): dtype={dt.name} is not supported; use float32 or float64 (float16 and "
+            "bfloat16 are too coarse: distances below ~0.1 come out as exactly 0)."
+        )
+    return dt
+
+
+def _root_label(r: Root, i: int) -> str:
+    return repr(r.name) if r.name else f"#{i}"
+
+
+def _warn_missing_radius(roots: Sequence[Root]) -> None:
+    """One warning naming the roots (or their laterals) whose radius is taken as 0."""
+    missing = []
+    for i, r in enumerate(roots):
+        if not r.has_radius:
+            missing.append(f"root {_root_label(r, i)} has no radius data; its radius is taken as 0")
+        elif r.main_radius is None:
+            missing.append(f"root {_root_label(r, i)} has no main-root radius; it is taken as 0")
+        elif r.lateral_radii is None and r.n_laterals:
+            missing.append(
+                f"root {_root_label(r, i)} has no lateral radii; they are taken as 0"
+            )
+    if missing:
+        shown = "; ".join(missing[:10])
+        more = f"; ... and {len(missing) - 10} more" if len(missing) > 10 else ""
+        warnings.warn(
+            f"batch(): {shown}{more}. Give every root radii (or none) to avoid this.",
+            UserWarning,
+            stacklevel=3,
+        )
 
 
 def to_roots(tree: RootTree, *, names: Sequence[str] | None = None) -> list[Root]:
@@ -293,14 +424,20 @@ def to_roots(tree: RootTree, *, names: Sequence[str] | None = None) -> list[Root
     lats = np.asarray(tree.laterals)
     attach = np.asarray(tree.attach)
     mask = np.asarray(tree.mask)
-    if main.ndim == 2:
-        main, lats, attach, mask = main[None], lats[None], attach[None], mask[None]
-    else:
-        n = int(np.prod(main.shape[:-2]))
-        main = main.reshape((n,) + main.shape[-2:])
-        lats = lats.reshape((n,) + lats.shape[-3:])
-        attach = attach.reshape(n, -1)
-        mask = mask.reshape(n, -1)
+    has_radius = tree.main_radius is not None
+    T = main.shape[-2]
+    main_r = np.asarray(tree.main_radius) if has_radius else None
+    lat_r = np.asarray(tree.lateral_radius) if has_radius else None
+    K = lats.shape[-3]
+    n = int(np.prod(main.shape[:-2]))
+    main = main.reshape((n,) + main.shape[-2:])
+    lats = lats.reshape((n,) + lats.shape[-3:])
+    attach = attach.reshape(n, K)
+    mask = mask.reshape(n, K)
+    if has_radius:
+        # Radii come from arithmetic on trees (means, geodesics): clip tiny negatives to 0.
+        main_r = np.maximum(main_r.reshape(n, T), 0.0)
+        lat_r = np.maximum(lat_r.reshape(n, K, T), 0.0)
     out = []
     for i in range(main.shape[0]):
         keep = np.flatnonzero(mask[i])
@@ -310,6 +447,8 @@ def to_roots(tree: RootTree, *, names: Sequence[str] | None = None) -> list[Root
                 laterals=tuple(lats[i, k] for k in keep),
                 attach=np.clip(attach[i, keep], 0.0, 1.0),
                 name=names[i] if names is not None else "",
+                main_radius=main_r[i] if has_radius else None,
+                lateral_radii=tuple(lat_r[i, k] for k in keep) if has_radius else None,
             )
         )
     return out

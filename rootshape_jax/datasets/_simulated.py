@@ -123,9 +123,10 @@ def _join_to_parent(root: Root) -> Root:
         return root
     main = root.main
     cum = _cumlen(main)
-    lats, attach, kids = [], [], []
-    for lat, a, child in zip(root.laterals, root.attach, root.children):
+    lats, attach, kids, radii = [], [], [], []
+    for k, (lat, a, child) in enumerate(zip(root.laterals, root.attach, root.children)):
         child = _join_to_parent(child)
+        radius = root.lateral_radii[k] if root.lateral_radii is not None else None
         pn = child.metadata.get("parent_node")
         if isinstance(pn, (int, np.integer)) and 0 <= pn < len(main) and cum[-1] > 0:
             base = main[pn]
@@ -134,14 +135,27 @@ def _join_to_parent(root: Root) -> Root:
                 old_len = _cumlen(lat)[-1]
                 lat = np.vstack([base[None, :], lat])
                 new_len = _cumlen(lat)[-1]
+                # The new first segment has the lateral's own (base) radius.
+                if radius is not None:
+                    radius = np.concatenate([radius[:1], radius])
+                child_radius = child.main_radius
+                if child_radius is not None:
+                    child_radius = np.concatenate([child_radius[:1], child_radius])
                 # The child's own laterals keep their points; their fractions move along.
                 child_attach = (child.attach * old_len + (new_len - old_len)) / new_len
-                child = dataclasses.replace(child, main=lat, attach=np.clip(child_attach, 0.0, 1.0))
+                child = dataclasses.replace(
+                    child, main=lat, attach=np.clip(child_attach, 0.0, 1.0), main_radius=child_radius
+                )
         lats.append(lat)
         attach.append(a)
         kids.append(child)
+        radii.append(radius)
     return dataclasses.replace(
-        root, laterals=tuple(lats), attach=np.asarray(attach, dtype=main.dtype), children=tuple(kids)
+        root,
+        laterals=tuple(lats),
+        attach=np.asarray(attach, dtype=main.dtype),
+        children=tuple(kids),
+        lateral_radii=tuple(radii) if root.lateral_radii is not None else None,
     )
 
 
@@ -158,6 +172,10 @@ def _to_library_frame(root: Root, scale: float, dim: int) -> Root:
         main=root.main @ m,
         laterals=tuple(lat @ m for lat in root.laterals),
         children=tuple(_to_library_frame(c, scale, dim) for c in root.children),
+        main_radius=None if root.main_radius is None else root.main_radius * scale,
+        lateral_radii=(
+            None if root.lateral_radii is None else tuple(r * scale for r in root.lateral_radii)
+        ),
     )
 
 
@@ -192,7 +210,10 @@ def simulated_roots(
     (CPlantBox writes cm with z up: a 180° rotation about x, no mirror image); in 2D,
     ``(x, y)`` with y the depth. CPlantBox's RSML leaves out each lateral's branching node;
     it is put back, so every lateral starts exactly on its parent, at the arc-length fraction
-    of its RSML ``parent-node`` (laterals of a single node, just emerged, are dropped). Metadata:
+    of its RSML ``parent-node`` (laterals of a single node, just emerged, are dropped).
+    Radii: CPlantBox gives each root one radius (its ``diameter`` RSML property, from the
+    parameter ``a``); it is kept as a constant `Root.main_radius` / `Root.lateral_radii` per
+    branch, in mm (the branching point put back takes the lateral's radius). Metadata:
     ``species``, ``parameter_file``, ``days``, ``seed``, ``index``, ``cplantbox_seed``,
     ``unit = "mm"``, ``source = "cplantbox"``, plus what the RSML reader records.
 

@@ -5,8 +5,11 @@ RSML stores a scene of plants; each plant holds roots (``<root>``), each root a
 This module maps every top-level root of every plant to one `Root`: its direct children are the
 laterals, deeper orders go to `Root.children` (one `Root` per lateral, recursively).
 
-Only ``xml.etree`` is used. Tags and attribute names are matched on their local name,
-case-insensitively, so ``point``/``Point``, ``id``/``ID`` and namespaced files all read.
+Files are parsed with ``defusedxml`` (DTDs and entity declarations are refused, nothing is
+fetched) and written as an ``xml.etree`` tree serialised by a small iterative writer. Tags and
+attribute names are matched on their local name, case-insensitively, so ``point``/``Point``,
+``id``/``ID`` and namespaced files all read. Nested ``<root>`` elements are walked with
+explicit stacks (no recursion), so any nesting depth reads and writes.
 """
 
 from __future__ import annotations
@@ -20,11 +23,14 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from xml.sax.saxutils import escape, quoteattr
 
 import numpy as np
+from defusedxml import DefusedXmlException
+from defusedxml import ElementTree as DET
 
-from .._errors import RSMLError, RSMLWarning
-from .._root import Root
+from .._errors import InvalidRootError, RSMLError, RSMLWarning
+from .._root import ROOT_COORDINATE_LIMIT, Root, check_range
 
 _PO_NS = "http://www.plantontology.org/xml-dtd/po.dtd"
 _PIXEL_UNITS = ("pixel", "pixels", "px")
@@ -97,11 +103,13 @@ class _Node:
     points: np.ndarray | None = None  # (n, 3), z = 0 where absent; None when unreadable
     has_z: bool = False
     problem: str | None = None
+    radius: np.ndarray | None = None  # (n,) radius per point in stored (pixel) units
+    radius_problem: str | None = None
     children: list["_Node"] = field(default_factory=list)
     position: str = ""  # "1", "1.3", ... (1-based position among sibling roots)
 
     def n_descendants(self) -> int:
-        return sum(1 + c.n_descendants() for c in self.children)
+        return sum(1 for _ in _walk(self.children))  # iterative: files can nest deeply
 
 
 class _Problems:
@@ -157,6 +165,11 @@ def _parse_points(polyline: ET.Element) -> tuple[np.ndarray, bool]:
                 raise ValueError(f"point {k}: {axis}={raw!r} is not a number") from None
             if not math.isfinite(v):
                 raise ValueError(f"point {k}: {axis}={raw!r} is not finite")
+            if abs(v) > ROOT_COORDINATE_LIMIT:
+                raise ValueError(
+                    f"point {k}: {axis}={raw!r} is too large to compute lengths with (limit "
+                    f"{ROOT_COORDINATE_LIMIT:.3g}); rescale the file's coordinates"
+                )
             values.append(v)
         rows.append(values)
         z_flags.append(coords["z"] is not None)
@@ -200,6 +213,57 @@ def _parse_functions(root_el: ET.Element) -> dict:
     return out
 
 
+_RADIUS_NAMES = (("diameter", 0.5), ("radius", 1.0))
+
+
+def _radius_of(node: _Node) -> tuple[np.ndarray | None, str | None]:
+    """(radius at each polyline point in stored units, problem) from a ``diameter`` or ``radius``
+    function (domains ``polyline``, ``uniform``, ``length``) or, failing that, a numeric
+    ``diameter`` / ``radius`` property (one value for the whole branch, as CPlantBox writes)."""
+    pts = node.points
+    by_name = {str(k).strip().lower(): v for k, v in node.functions.items()}
+    for name, factor in _RADIUS_NAMES:
+        fn = by_name.get(name)
+        if fn is None:
+            continue
+        what = f"<function name={name!r}>"
+        values = fn["values"]
+        domain = fn["domain"]
+        if values.size == 0:
+            return None, f"{what} has no samples; radius dropped"
+        if not np.all(np.isfinite(values)) or np.any(values < 0):
+            return None, f"{what} has a missing, non-numeric or negative sample; radius dropped"
+        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        cum = np.concatenate([[0.0], np.cumsum(seg)])
+        if domain == "polyline":
+            if values.size != pts.shape[0]:
+                return None, (
+                    f"{what} (domain polyline) has {values.size} samples for {pts.shape[0]} "
+                    "points; radius dropped"
+                )
+            r = values
+        elif domain == "uniform":
+            # Samples evenly spaced in arc length from the base to the tip.
+            where = np.linspace(0.0, cum[-1], values.size) if values.size > 1 else np.zeros(1)
+            r = np.interp(cum, where, values)
+        elif domain == "length":
+            pos = fn.get("positions")
+            if pos is None or pos.shape != values.shape or not np.all(np.isfinite(pos)):
+                return None, f"{what} (domain length) needs a numeric position on every sample; radius dropped"
+            order = np.argsort(pos, kind="stable")
+            r = np.interp(cum, pos[order], values[order])
+        else:
+            return None, f"{what} has unknown domain {domain!r}; radius dropped"
+        return np.asarray(r, dtype=np.float64) * factor, None
+    for name, factor in _RADIUS_NAMES:
+        value = node.properties.get(name)
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            if not (math.isfinite(value) and value >= 0):
+                return None, f"property {name}={value!r} is not a finite number >= 0; radius dropped"
+            return np.full(pts.shape[0], float(value) * factor), None
+    return None, None
+
+
 def _parse_properties(elem: ET.Element) -> dict:
     out = {}
     for props in _children(elem, "properties"):
@@ -213,6 +277,22 @@ def _parse_properties(elem: ET.Element) -> dict:
 
 
 def _parse_root(el: ET.Element, where_prefix: str, position: str) -> _Node:
+    """The `_Node` tree of a ``<root>`` and every ``<root>`` nested in it.
+
+    Iterative (an explicit stack, not recursion), so any nesting depth reads."""
+    top = _parse_one_root(el, where_prefix, position)
+    stack = [(el, top)]
+    while stack:
+        el, node = stack.pop()
+        for k, c in enumerate(_children(el, "root")):
+            child = _parse_one_root(c, where_prefix, f"{node.position}.{k + 1}")
+            node.children.append(child)
+            stack.append((c, child))
+    return top
+
+
+def _parse_one_root(el: ET.Element, where_prefix: str, position: str) -> _Node:
+    """One ``<root>`` element without its nested roots."""
     rid = _attr(el, "id")
     rid = rid.strip() if rid and rid.strip() else None
     label = _attr(el, "label")
@@ -244,8 +324,8 @@ def _parse_root(el: ET.Element, where_prefix: str, position: str) -> _Node:
             node.points, node.has_z = _parse_points(polyline)
         except ValueError as e:
             node.problem = str(e)
-    for k, c in enumerate(_children(el, "root")):
-        node.children.append(_parse_root(c, where_prefix, f"{position}.{k + 1}"))
+        else:
+            node.radius, node.radius_problem = _radius_of(node)
     return node
 
 
@@ -387,8 +467,18 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
       unit. Files in ``pixel`` (or with no ``<unit>``) are returned as stored. A physical unit
       without a usable resolution keeps pixels (with a warning). ``metadata["unit"]`` always
       names the unit of the returned coordinates; ``metadata["resolution"]`` and
-      ``metadata["file_unit"]`` are the file's values. Function samples (e.g. diameters) are
-      never rescaled.
+      ``metadata["file_unit"]`` are the file's values. Function samples kept in
+      ``metadata["functions"]`` are never rescaled.
+    - Radii: a ``diameter`` (radius = diameter / 2) or ``radius`` function gives
+      `Root.main_radius` / `Root.lateral_radii` (and each child's `main_radius`), converted like
+      the coordinates (``stored / resolution`` in physical units). Domains: ``polyline`` (one
+      sample per point), ``uniform`` (samples evenly spaced in arc length from base to tip) and
+      ``length`` (``position`` = arc length from the base, in stored units), interpolated
+      linearly at the polyline points. Without a function, a numeric ``diameter`` / ``radius``
+      property (CPlantBox) is a constant radius. A root without any has radius ``None``; a
+      lateral without one beside siblings that have one gets radius 0 (with an
+      `RSMLWarning`). An unusable function (wrong sample count, negative or non-numeric
+      samples) drops that radius (reported like other unreadable parts).
     - Dimension: the file is 3D if any polyline point has a non-zero ``z``; otherwise roots are
       returned 2D (``z = 0`` is dropped). In a 3D file a root without ``z`` lies in ``z = 0``.
     - Names: the root's ``label`` when it is set and unique in the file, else
@@ -401,9 +491,14 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
 
     Unreadable (skipped or raising): malformed XML, no ``<scene>``, a root without geometry
     or with an empty ``<root/>``, a polyline with fewer than 2 points or coinciding points,
-    a non-numeric / NaN / inf coordinate. A bad lateral drops only that lateral (and its own
-    sub-roots). A file with nothing readable raises with ``strict=True`` and warns and returns
-    ``[]`` otherwise. Extra geometry (``<rootnavspline>``, ...) is ignored.
+    a non-numeric / NaN / inf coordinate, or one too large to compute lengths with (above
+    ~8e152, or a top-level root whose converted coordinates are; the other roots are kept). A
+    bad lateral drops only that lateral (and its own sub-roots). A file with nothing readable
+    raises with ``strict=True`` and warns and returns ``[]`` otherwise. Extra geometry
+    (``<rootnavspline>``, ...) is ignored. Any nesting depth of ``<root>`` reads.
+
+    Refused with `RSMLError` whatever `strict` says: a file declaring a DTD (``<!DOCTYPE``)
+    or entities (billion laughs, quadratic blow-up, external entities); nothing is fetched.
     """
     source, stem = _source_name(path)
     problems = _Problems(source, strict)
@@ -411,9 +506,19 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
         raise FileNotFoundError(f"RSML file not found: {source}")
 
     try:
-        doc = ET.parse(path)
+        # defusedxml: no DTD, no entity declarations, nothing fetched. RSML never needs them,
+        # and they are how XML files blow up memory (billion laughs) or leak local files.
+        doc = DET.parse(path, forbid_dtd=True, forbid_entities=True, forbid_external=True)
+    except DefusedXmlException as e:
+        raise RSMLError(
+            f"{source}: refused to read: the file declares a DTD or entities ({type(e).__name__}: "
+            f"{e}). RSML does not use them and they can exhaust memory or read/fetch other "
+            "files; remove the <!DOCTYPE ...> / <!ENTITY ...> declarations if the file is trusted."
+        ) from None
     except ET.ParseError as e:
         return _nothing(problems, f"not well-formed XML ({e})")
+    except (LookupError, UnicodeError) as e:  # e.g. <?xml encoding="UTF-0"?>
+        return _nothing(problems, f"unreadable XML encoding ({e})")
     top = doc.getroot()
     scene = top if _local(top.tag) == "scene" else _child(top, "scene")
     if scene is None:
@@ -462,18 +567,69 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
             return node.label
         return f"{stem}/{pid}/{node.rid or node.position}"
 
-    def build(node: _Node, plant_info: dict, order: int, extra: dict) -> Root:
+    def build(top: _Node, plant_info: dict) -> Root:
+        """The `Root` of a top-level node, children included, without recursion: a pre-order
+        pass checks children and finds attachments, then roots are made leaves first."""
+        pre: list[tuple[_Node, int, dict]] = []
+        usable: dict[int, list[tuple[_Node, float]]] = {}
+        stack = [(top, 1, {})]
+        while stack:
+            node, order, extra = stack.pop()
+            pre.append((node, order, extra))
+            if node.radius_problem is not None:
+                problems.report(node.where, node.radius_problem)
+            main = scaled(node)
+            kids, pushed = [], []
+            for child in node.children:
+                if child.problem is not None:
+                    problems.report(child.where, _problem_text(child))
+                    continue
+                lat = scaled(child)
+                frac, method = attachment_fraction(main, lat, child.parent_node)
+                kids.append((child, frac))
+                pushed.append((child, order + 1, {"attach_method": method}))
+            usable[id(node)] = kids
+            stack.extend(reversed(pushed))  # file order
+        built: dict[int, Root] = {}
+        for node, order, extra in reversed(pre):  # children before their parent
+            kids = [built.pop(id(c)) for c, _ in usable[id(node)]]
+            attach = [f for _, f in usable[id(node)]]
+            built[id(node)] = make_root(node, plant_info, order, extra, kids, attach)
+        return built[id(top)]
+
+    def scaled(node: _Node) -> np.ndarray:
+        """The node's points in the returned unit; out of range -> CoordinateRangeError."""
+        with np.errstate(over="ignore"):
+            pts = node.points[:, :dim] * scale
+        check_range(
+            np.where(np.isfinite(pts), pts, np.inf), limit=ROOT_COORDINATE_LIMIT,
+            what=f"{node.where}: in {info['unit']!r}",
+            fix="The file's <resolution> is too small for its coordinates; fix it, or read "
+            "with physical_units=False.",
+        )
+        return pts
+
+    def make_root(node, plant_info, order, extra, kids, attach) -> Root:
         main = node.points[:, :dim] * scale
-        lats, attach, kids = [], [], []
-        for child in node.children:
-            if child.problem is not None:
-                problems.report(child.where, _problem_text(child))
-                continue
-            lat = child.points[:, :dim] * scale
-            frac, method = attachment_fraction(main, lat, child.parent_node)
-            kids.append(build(child, plant_info, order + 1, {"attach_method": method}))
-            lats.append(kids[-1].main)
-            attach.append(frac)
+        # Radii are stored in pixels like the coordinates, so they take the same scale.
+        main_radius = None
+        if node.radius is not None:
+            with np.errstate(over="ignore"):
+                main_radius = node.radius * scale
+            if not np.all(main_radius <= ROOT_COORDINATE_LIMIT):
+                problems.report(node.where, "radius out of range once converted; radius dropped")
+                main_radius = None
+        lats = [k.main for k in kids]
+        lateral_radii = None
+        if any(k.main_radius is not None for k in kids):
+            lateral_radii = []
+            for k in kids:
+                if k.main_radius is None:
+                    no_radius.append(k.metadata.get("root_id") or k.name)
+                    lateral_radii.append(np.zeros(k.main.shape[0]))
+                else:
+                    lateral_radii.append(k.main_radius)
+            lateral_radii = tuple(lateral_radii)
         meta = dict(info)
         meta.update(plant_info)
         meta.update(root_id=node.rid, root_label=node.label, order=order)
@@ -495,6 +651,8 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
             name=name_of(node, plant_info["plant_id"]),
             metadata=meta,
             children=tuple(kids),
+            main_radius=main_radius,
+            lateral_radii=lateral_radii,
         )
 
     top_nodes = [n for _, nodes in plants for n in nodes]
@@ -505,6 +663,7 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
         )
         raise RSMLError(f"{source}: nothing readable: {what}.")
     roots = []
+    no_radius: list[str] = []  # laterals without radius beside siblings that have one
     n_top = 0
     for plant_info, nodes in plants:
         for node in nodes:
@@ -512,13 +671,28 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
             if node.problem is not None:
                 problems.report(node.where, _problem_text(node))
                 continue
-            roots.append(build(node, plant_info, 1, {}))
+            try:
+                roots.append(build(node, plant_info))
+            except InvalidRootError as e:  # e.g. coordinates out of range after unit scaling
+                k = node.n_descendants()
+                subs = f" (its {k} sub-root(s) are skipped with it)" if k else ""
+                problems.report(node.where, f"{e}{subs}")
     if not roots:
         what = "no root" if n_top == 0 else f"none of its {n_top} top-level root(s) has usable geometry"
         if strict:
             raise RSMLError(f"{source}: nothing readable: {what}.")
         problems.items.insert(0, f"nothing readable: {what}")
     problems.warn(stacklevel=3)
+    if no_radius:
+        shown = ", ".join(repr(n) for n in no_radius[:10])
+        more = f" and {len(no_radius) - 10} more" if len(no_radius) > 10 else ""
+        warnings.warn(
+            RSMLWarning(
+                f"{source}: {len(no_radius)} lateral(s) have no diameter/radius while their "
+                f"siblings have one; their radius is taken as 0: {shown}{more}."
+            ),
+            stacklevel=2,
+        )
     return roots
 
 
@@ -528,9 +702,12 @@ def _problem_text(node: _Node) -> str:
 
 
 def _walk(nodes: Iterable[_Node]):
-    for n in nodes:
+    """Every node and its descendants, depth first, in file order (iterative)."""
+    stack = list(nodes)[::-1]
+    while stack:
+        n = stack.pop()
         yield n
-        yield from _walk(n.children)
+        stack.extend(n.children[::-1])
 
 
 def _nothing(problems: _Problems, message: str) -> list[Root]:
@@ -589,7 +766,10 @@ def write_rsml(
     polyline point nearest to the attachment); `Root.children` are written recursively (a
     child's `main` must equal its lateral). 2D roots are written without ``z``; if any root is
     3D, 2D roots get ``z = 0``. Functions kept in ``metadata["functions"]`` are written back
-    (polyline-domain ones only when their sample count still matches the polyline).
+    (polyline-domain ones only when their sample count still matches the polyline). Radii
+    (`Root.main_radius`, `Root.lateral_radii`, or a child's `main_radius`) are written as a
+    ``diameter`` function (domain ``polyline``, in pixels like the coordinates), replacing any
+    ``diameter`` / ``radius`` function kept in the metadata.
 
     The attachment fractions read back equal `Root.attach` when each lateral starts on the main
     root (as from `read_rsml`, `roots_from_image` and `Root(attach=None)`); RSML stores only
@@ -676,10 +856,44 @@ def write_rsml(
             attrs["label"] = str(first.metadata["plant_label"])
         plant_el = ET.SubElement(scene, "plant", attrs)
         for k, r in enumerate(members):
-            _write_root(plant_el, r.main, r, f"{pid}.{k + 1}", None, resolution, dim3, used_ids)
+            _write_root(
+                plant_el, r.main, r, f"{pid}.{k + 1}", None, resolution, dim3, used_ids, r.main_radius
+            )
 
-    ET.indent(top, space="  ")
-    ET.ElementTree(top).write(path, encoding="UTF-8", xml_declaration=True)
+    data = _serialise(top)
+    if hasattr(path, "write"):
+        path.write(data)
+    else:
+        with open(path, "wb") as f:
+            f.write(data)
+
+
+_ATTR_ENTITIES = {"\n": "&#10;", "\r": "&#13;", "\t": "&#9;"}
+
+
+def _serialise(top: ET.Element) -> bytes:
+    """UTF-8 XML of ``top``, indented by two spaces, written with an explicit stack:
+    xml.etree's ``indent`` and ``write`` recurse once per level and fail on deep trees.
+    (Elements written here have text or children, never both.)"""
+    out = ["<?xml version='1.0' encoding='UTF-8'?>\n"]
+    stack: list[tuple[ET.Element, int, bool]] = [(top, 0, False)]
+    while stack:
+        el, depth, closing = stack.pop()
+        pad = "  " * depth
+        if closing:
+            out.append(f"{pad}</{el.tag}>\n")
+            continue
+        attrs = "".join(f" {k}={quoteattr(str(v), _ATTR_ENTITIES)}" for k, v in el.attrib.items())
+        kids = list(el)
+        if kids:
+            out.append(f"{pad}<{el.tag}{attrs}>\n")
+            stack.append((el, depth, True))
+            stack.extend((c, depth + 1, False) for c in reversed(kids))
+        elif el.text:
+            out.append(f"{pad}<{el.tag}{attrs}>{escape(el.text)}</{el.tag}>\n")
+        else:
+            out.append(f"{pad}<{el.tag}{attrs} />\n")
+    return "".join(out).encode("utf-8")
 
 
 def _unique_id(wanted: Any, fallback: str, used: set[str]) -> str:
@@ -694,8 +908,24 @@ def _unique_id(wanted: Any, fallback: str, used: set[str]) -> str:
     return rid
 
 
-def _write_root(parent_el, polyline, root, fallback_id, parent_node, resolution, dim3, used_ids):
-    """One ``<root>``: ``polyline`` is its geometry; ``root`` (or None) gives names and laterals."""
+def _write_root(
+    parent_el, polyline, root, fallback_id, parent_node, resolution, dim3, used_ids, radius=None
+):
+    """A ``<root>`` and all its nested laterals, depth first in order, with an explicit stack
+    (any nesting depth)."""
+    stack = [(parent_el, polyline, root, fallback_id, parent_node, radius)]
+    while stack:
+        el, poly, r, fid, pn, rad = stack.pop()
+        jobs = _write_one_root(el, poly, r, fid, pn, resolution, dim3, used_ids, rad)
+        stack.extend(reversed(jobs))
+
+
+def _write_one_root(
+    parent_el, polyline, root, fallback_id, parent_node, resolution, dim3, used_ids, radius
+) -> list[tuple]:
+    """One ``<root>``: ``polyline`` is its geometry; ``root`` (or None) gives names and laterals;
+    ``radius`` (or None) its radius per point, written as a ``diameter`` function. Returns the
+    laterals still to write, as `_write_root` stack entries."""
     meta = root.metadata if root is not None else {}
     attrs = {"id": _unique_id(meta.get("root_id"), fallback_id, used_ids)}
     if root is not None and root.name:
@@ -713,7 +943,16 @@ def _write_root(parent_el, polyline, root, fallback_id, parent_node, resolution,
         if dim3:
             a["z"] = _fmt(p[2]) if p.shape[0] == 3 else "0.0"
         ET.SubElement(geom, "point", a)
-    functions = meta.get("functions") or {}
+    functions = dict(meta.get("functions") or {})
+    if radius is not None:
+        # The radii are the truth now: drop stale diameter/radius functions read from a file.
+        functions = {
+            n: f for n, f in functions.items() if str(n).strip().lower() not in ("diameter", "radius")
+        }
+        functions["diameter"] = {
+            "domain": "polyline",
+            "values": 2.0 * np.asarray(radius, dtype=np.float64) * resolution,
+        }
     written = {
         name: f
         for name, f in functions.items()
@@ -733,7 +972,8 @@ def _write_root(parent_el, polyline, root, fallback_id, parent_node, resolution,
                     sa["position"] = _fmt(positions[j])
                 ET.SubElement(fn, "sample", sa)
     if root is None:
-        return
+        return []
+    jobs = []
     for k, lat in enumerate(root.laterals):
         child = root.children[k] if root.children else None
         if child is not None and (
@@ -743,8 +983,14 @@ def _write_root(parent_el, polyline, root, fallback_id, parent_node, resolution,
                 f"write_rsml: root {root.name!r}: children[{k}].main differs from laterals[{k}]; "
                 "a child Root must describe the same polyline as its lateral."
             )
+        lat_radius = root.lateral_radii[k] if root.lateral_radii is not None else None
         if child is None:
             # Named so that the lateral keeps an identity when read back.
             child = Root(main=lat, name=f"{root.name}/{k + 1}" if root.name else "")
+        else:
+            # The child is the branch's own record: no radius there means none was known
+            # (read_rsml pads such a lateral with 0 in `lateral_radii`).
+            lat_radius = child.main_radius
         node = _nearest_node(root.main, float(root.attach[k]))
-        _write_root(el, lat, child, f"{attrs['id']}.{k + 1}", node, resolution, dim3, used_ids)
+        jobs.append((el, lat, child, f"{attrs['id']}.{k + 1}", node, lat_radius))
+    return jobs

@@ -63,28 +63,49 @@ class Drawing:
     nulls: tuple[tuple[int, np.ndarray], ...]  # (slot, (d,)) position of padding slots
     unit: str | None = None
     name: str = ""
+    main_radius: np.ndarray | None = None  # (n,) when known
+    lateral_radii: tuple[tuple[int, np.ndarray], ...] = ()  # (slot, (m,)) where known
 
     @property
     def dim(self) -> int:
         return int(self.main.shape[1])
 
+    def shifted(self, shift: np.ndarray) -> "Drawing":
+        """The same drawing translated by ``shift`` (radii, names and units kept)."""
+        return dataclasses.replace(
+            self,
+            main=self.main + shift,
+            laterals=tuple((k, lat + shift) for k, lat in self.laterals),
+            nulls=tuple((k, p + shift) for k, p in self.nulls),
+        )
+
 
 def _from_root(root: Root) -> Drawing:
     unit = root.metadata.get("unit")
+    main_radius = None if root.main_radius is None else np.asarray(root.main_radius, dtype=float)
+    lateral_radii = ()
+    if root.lateral_radii is not None:
+        lateral_radii = tuple((k, np.asarray(r, dtype=float)) for k, r in enumerate(root.lateral_radii))
     return Drawing(
         main=np.asarray(root.main, dtype=float),
         laterals=tuple((k, np.asarray(lat, dtype=float)) for k, lat in enumerate(root.laterals)),
         nulls=(),
         unit=str(unit) if unit is not None else None,
         name=root.name,
+        main_radius=main_radius,
+        lateral_radii=lateral_radii,
     )
 
 
-def _from_arrays(main, lats, mask) -> Drawing:
+def _from_arrays(main, lats, mask, main_r=None, lat_r=None) -> Drawing:
+    # In a batch, a root without radius data is padded with radius 0: draw it as unknown.
+    known = main_r is not None and (np.any(main_r > 0) or np.any(lat_r[mask] > 0))
     return Drawing(
         main=main,
         laterals=tuple((k, lats[k]) for k in range(lats.shape[0]) if mask[k]),
         nulls=tuple((k, lats[k, 0]) for k in range(lats.shape[0]) if not mask[k]),
+        main_radius=main_r if known else None,
+        lateral_radii=tuple((k, lat_r[k]) for k in range(lats.shape[0]) if mask[k]) if known else (),
     )
 
 
@@ -104,10 +125,18 @@ def _tree_drawings(tree: RootTree) -> np.ndarray:
     main = np.asarray(tree.main, dtype=float)
     lats = np.asarray(tree.laterals, dtype=float)
     mask = np.asarray(tree.mask, dtype=bool)
+    main_r = getattr(tree, "main_radius", None)
+    lat_r = getattr(tree, "lateral_radius", None)
+    if main_r is not None and lat_r is not None:
+        main_r = np.asarray(main_r, dtype=float)
+        lat_r = np.asarray(lat_r, dtype=float)
+    else:
+        main_r = lat_r = None
     batch = main.shape[:-2]
     out = np.empty(batch, dtype=object)
     for idx in np.ndindex(*batch):
-        out[idx] = _from_arrays(main[idx], lats[idx], mask[idx])
+        radii = (main_r[idx], lat_r[idx]) if main_r is not None else (None, None)
+        out[idx] = _from_arrays(main[idx], lats[idx], mask[idx], *radii)
     return out
 
 
@@ -248,6 +277,33 @@ def _lateral_color(k: int, colors: Any, slot_colors: bool) -> Any:
     return colors[k]
 
 
+# Line widths from radii: the thickest point of a root is drawn RADIUS_WIDTH x `linewidth`
+# points wide, thinner points in proportion, never thinner than MIN_WIDTH x `linewidth`.
+RADIUS_WIDTH = 2.4
+MIN_WIDTH = 0.25
+
+
+def segment_widths(radius: np.ndarray, reference: float, linewidth: float) -> np.ndarray:
+    """Line width (points) of each segment of a branch with ``radius`` at its points: the mean
+    radius of the segment relative to ``reference`` (the root's largest radius), clipped to
+    ``[MIN_WIDTH, RADIUS_WIDTH] x linewidth`` so that thin laterals stay visible."""
+    r = 0.5 * (radius[:-1] + radius[1:])
+    return np.clip(RADIUS_WIDTH * linewidth * r / reference, MIN_WIDTH * linewidth,
+                   RADIUS_WIDTH * linewidth)
+
+
+def _radius_reference(drawing: Drawing) -> float:
+    rs = ([drawing.main_radius] if drawing.main_radius is not None else []) + [
+        r for _, r in drawing.lateral_radii
+    ]
+    ref = max((float(np.max(r)) for r in rs if r.size), default=0.0)
+    return ref if np.isfinite(ref) and ref > 0 else 0.0
+
+
+def _split(line: np.ndarray) -> list[np.ndarray]:
+    return [line[i : i + 2] for i in range(line.shape[0] - 1)]
+
+
 def draw(
     ax,
     drawing: Drawing,
@@ -260,11 +316,27 @@ def draw(
     alpha: float = 1.0,
     zorder: float = 2.0,
 ) -> None:
-    """Draw one root on ``ax``: laterals first, main root on top, nulls as hollow circles."""
+    """Draw one root on ``ax``: laterals first, main root on top, nulls as hollow circles.
+
+    Where the radius is known, each segment's width follows it (`segment_widths`: relative to
+    the root's largest radius, clipped to a readable range); elsewhere laterals are
+    ``linewidth`` wide and the main root 1.6 times that."""
     cols = list(COLUMNS[projection])
     main_color = colors if _is_single_color(colors) else MAIN_COLOR
-    segs = [lat[:, cols] for _, lat in drawing.laterals]
-    lat_colors = [_lateral_color(k, colors, slot_colors) for k, _ in drawing.laterals]
+    reference = _radius_reference(drawing)
+    lat_radius = dict(drawing.lateral_radii) if reference > 0 else {}
+    segs, lat_colors, lat_widths = [], [], []
+    for k, lat in drawing.laterals:
+        c = _lateral_color(k, colors, slot_colors)
+        if k in lat_radius and lat.shape[0] >= 2:
+            pieces = _split(lat[:, cols])
+            segs += pieces
+            lat_colors += [c] * len(pieces)
+            lat_widths += list(segment_widths(lat_radius[k], reference, linewidth))
+        else:
+            segs.append(lat[:, cols])
+            lat_colors.append(c)
+            lat_widths.append(linewidth)
     if projection == "3d":
         from mpl_toolkits.mplot3d.art3d import Line3DCollection
 
@@ -282,9 +354,14 @@ def draw(
             ax.add_collection(lc, autolim=True)
 
     if segs:
-        add(segs, lat_colors, linewidth, zorder)
-    # The main root is drawn thicker, as it is in the plant.
-    add([drawing.main[:, cols]], [main_color], 1.6 * linewidth, zorder + 0.1)
+        add(segs, lat_colors, lat_widths, zorder)
+    if reference > 0 and drawing.main_radius is not None:
+        pieces = _split(drawing.main[:, cols])
+        widths = segment_widths(drawing.main_radius, reference, linewidth)
+        add(pieces, [main_color] * len(pieces), list(widths), zorder + 0.1)
+    else:
+        # The main root is drawn thicker, as it is in the plant.
+        add([drawing.main[:, cols]], [main_color], 1.6 * linewidth, zorder + 0.1)
     if show_nulls and drawing.nulls:
         pts = np.stack([p[cols] for _, p in drawing.nulls])
         ncol = [_lateral_color(k, colors, slot_colors) for k, _ in drawing.nulls]

@@ -14,6 +14,8 @@ Conventions shared by every function here:
 
 from __future__ import annotations
 
+import dataclasses
+
 from collections.abc import Sequence
 from typing import Any
 
@@ -22,7 +24,6 @@ from matplotlib.ticker import MaxNLocator
 
 from ._draw import (
     COLUMNS,
-    Drawing,
     Frame,
     absolute_frame,
     add_scale_bar,
@@ -352,10 +353,7 @@ def _mean_overlay(drawings, mean_d, projection, invert_y, style, unit, title):
     for d in drawings:
         shift = np.zeros(d.dim)
         shift[cols] = base - panel_offset(d, projection)
-        moved = Drawing(
-            main=d.main + shift, laterals=tuple((k, lat + shift) for k, lat in d.laterals),
-            nulls=(), unit=d.unit,
-        )
+        moved = dataclasses.replace(d.shifted(shift), nulls=())
         draw(ax, moved, projection=projection, alpha=alpha, zorder=1.0, **faint)
     bold = dict(style, linewidth=2 * style["linewidth"])
     draw(ax, mean_d, projection=projection, zorder=3.0, **bold)
