@@ -94,4 +94,5 @@ __version__ = "0.1.0"
 from . import baselines as baselines
 from .baselines import Shrinkage as Shrinkage, geodesic_shrinkage as geodesic_shrinkage
 from ._executor import LocalExecutor as LocalExecutor
+from ._devices import use_all_cores as use_all_cores
 from . import _dask  # noqa: F401  (registers the Dask executor for client=; imports no Dask)

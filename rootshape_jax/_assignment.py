@@ -1,11 +1,11 @@
 """Exact linear assignment (minimum-cost perfect matching on a square cost matrix).
 
-Used by the registration (DESIGN.md §4) to match the laterals of two trees through their
+Used by the registration (docs/design.md §4) to match the laterals of two trees through their
 K×K cost matrix. Two interchangeable solvers, both exact:
 
 - ``method="callback"`` (default): `scipy.optimize.linear_sum_assignment` on the host through
   `jax.pure_callback`. A vmapped batch, however deeply nested, is a single host call that loops
-  over the batch (DESIGN.md §8).
+  over the batch (docs/design.md §8).
 - ``method="jax"``: a pure-JAX shortest-augmenting-path (Hungarian / Jonker–Volgenant) solver
   with dual potentials, O(K³), written with `lax` loops so that it jits and vmaps without a host
   round trip (for accelerators or exported programs where a callback is unwanted).

@@ -1,4 +1,4 @@
-"""Clustering and classification from a distance matrix (DESIGN.md §6, paper §6.6).
+"""Clustering and classification from a distance matrix (docs/design.md §6, paper §6.6).
 
 Everything here works on an ``(n, n)`` matrix of elastic distances (`pairwise_distances`), on
 the host with numpy / scipy: the expensive part, the registrations, is done already.

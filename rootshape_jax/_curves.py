@@ -1,6 +1,6 @@
 """Curves on the parameter grid: arc-length resampling, length, SRVF and its inverse.
 
-Conventions (DESIGN.md §3): a curve is sampled at ``T`` points of the grid
+Conventions (docs/design.md §3): a curve is sampled at ``T`` points of the grid
 ``t = linspace(0, 1, T)``; SRVF ``q = b' / sqrt(|b'|)``; integrals over ``t`` use the trapezoid
 rule on that grid. The SRVF is discretised so that ``||q||² = ∫|q|²`` equals the polyline length
 *exactly*: the speed at a grid node is the mean of the two adjacent segment speeds (one at the

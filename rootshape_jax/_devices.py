@@ -1,4 +1,4 @@
-"""Split a leading batch axis across every available device (DESIGN.md §8).
+"""Split a leading batch axis across every available device (docs/design.md §8).
 
 XLA:CPU runs most of a loop on one core. Several host devices (set with
 ``jax.config.update("jax_num_cpu_devices", n)`` *before* JAX initialises — the command line and
@@ -66,3 +66,33 @@ def device_vmap(fn: Callable, *, devices: Sequence[Any] | None = None) -> Callab
     (`split_over_devices`). Bind options with `functools.partial` first."""
     vfn = jax.vmap(fn)
     return lambda *args: split_over_devices(vfn, args, devices=devices)
+
+
+def use_all_cores(n: int | None = None) -> int:
+    """Give JAX one CPU device per core (or `n`), so that distance matrices, registrations and
+    means run on every core. Call it right after ``import rootshape_jax``, before any JAX
+    computation: XLA fixes its devices when it starts.
+
+    This is the one place where the library changes JAX's global configuration, and only when
+    you call it. Returns the number of devices in use; if JAX has already started, nothing
+    changes and a warning says how many devices it has.
+    """
+    import os
+    import warnings
+
+    want = int(n) if n is not None else (os.cpu_count() or 1)
+    if want < 1:
+        raise ValueError(f"use_all_cores: n must be >= 1, got {n!r}.")
+    try:
+        jax.config.update("jax_num_cpu_devices", want)
+    except RuntimeError:
+        have = jax.local_device_count()
+        if have != want:
+            warnings.warn(
+                f"use_all_cores: JAX has already started with {have} device(s), so {want} cannot be "
+                "set now; call rootshape_jax.use_all_cores() right after importing it, before any "
+                "computation (restart the kernel in a notebook).",
+                stacklevel=2,
+            )
+        return have
+    return want

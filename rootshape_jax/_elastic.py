@@ -1,4 +1,4 @@
-"""Elastic shape distance between two open curves (SRVF framework; DESIGN.md §3, §4).
+"""Elastic shape distance between two open curves (SRVF framework; docs/design.md §3, §4).
 
 ``d(β1, β2) = min_{O ∈ SO(d), γ} ||q1 − O (q2∘γ)√γ'||``, minimised by alternating the two
 exact partial problems: for a fixed rotation, the DP warp (`dp_warp`); for a fixed warp, weighted

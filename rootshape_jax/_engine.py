@@ -1,6 +1,6 @@
 """The registration engine: one entry point, `register_pairs`, for a batch of pairs of trees.
 
-Registering b onto a follows the Duncan et al. formulation the paper uses (DESIGN.md §4). With
+Registering b onto a follows the Duncan et al. formulation the paper uses (docs/design.md §4). With
 the rotation fixed the problem splits exactly: one DP warp for the main roots, one DP warp per
 real–real lateral pair giving the K×K cost matrix (the lateral DP energy weighted by the
 lateral terms, plus the DP-free pair costs of the other terms, e.g. ``λp (sa_i − sb_j)²``),
@@ -29,6 +29,7 @@ import equinox as eqx
 import jax
 import jax.lax as lax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ._assignment import linear_assignment
@@ -92,9 +93,10 @@ class RegistrationOptions(eqx.Module):
             raise ValueError(f"assignment must be 'callback' or 'jax', got {assignment!r}.")
         if not rtol >= 0:
             raise ValueError(f"rtol must be a non-negative number, got {rtol!r}.")
-        self.rotation = jnp.asarray(bool(rotation))
-        self.max_iterations = jnp.asarray(max_iterations, jnp.int32)
-        self.rtol = jnp.asarray(float(rtol))
+        # numpy, not jnp: arrays (traced under jit) that do not start JAX at import time.
+        self.rotation = np.asarray(bool(rotation))
+        self.max_iterations = np.asarray(max_iterations, np.int32)
+        self.rtol = np.asarray(float(rtol))
         self.neighbourhood = neighbourhood
         self.prune = bool(prune)
         self.dp_batch_size = dp_batch_size
@@ -102,7 +104,7 @@ class RegistrationOptions(eqx.Module):
 
     def without_rotation(self) -> "RegistrationOptions":
         """The same options with b's pose kept (rotation search off)."""
-        return eqx.tree_at(lambda o: o.rotation, self, jnp.zeros_like(self.rotation))
+        return eqx.tree_at(lambda o: o.rotation, self, jnp.zeros_like(self.rotation, dtype=bool))
 
     def device_safe(self) -> "RegistrationOptions":
         """With several devices the assignment must run in JAX: a host callback inside a
@@ -152,7 +154,7 @@ def registration_options(
 
 
 def _concrete(x):
-    return x.item() if isinstance(x, jax.Array) else x
+    return x.item() if isinstance(x, (jax.Array, np.ndarray)) else x
 
 
 class Registration(eqx.Module):
@@ -200,7 +202,7 @@ class Registration(eqx.Module):
 
 
 def rotate_srvf(q: Float[Array, "*S C"], O: Float[Array, "d d"]) -> Float[Array, "*S C"]:
-    """Rotate SRVF values by O; a thickness channel (beyond d) is left alone (DESIGN.md §11)."""
+    """Rotate SRVF values by O; a thickness channel (beyond d) is left alone (docs/design.md §11)."""
     d = O.shape[-1]
     if q.shape[-1] == d:
         return q @ O.T
@@ -522,6 +524,59 @@ def apply_registration(a: SRVFTree, b: SRVFTree, O, perm, g0, gam) -> SRVFTree:
     if b.base_radius is not None:
         base = jnp.concatenate([b.base_radius[:1], jnp.where(mb, b.base_radius[1:][perm], a.base_radius[1:])])
     return SRVFTree(q0=q0, q=qw, s=s, mask=mb, origin=b.origin, base_radius=base, thickness_scale=b.thickness_scale)
+
+
+# --------------------------------------------------------------------------------------------
+# Symmetric distances
+
+
+def _order_key(t: SRVFTree) -> Float[Array, "B F"]:
+    """A few numbers read off a tree's content (any fixed function works; only its values on
+    the two trees of a pair are compared)."""
+    dtype = t.q0.dtype
+    L = l2_norm_squared(t.q) * t.mask
+    feats = [
+        jnp.sum(t.mask, axis=-1).astype(dtype),
+        l2_norm_squared(t.q0),
+        jnp.sum(L, axis=-1),
+        jnp.sum(jnp.where(t.mask, t.s, 0.0), axis=-1),
+        jnp.sum(t.q0, axis=(-2, -1)),
+        jnp.sum(jnp.sum(t.q0, axis=-1) * jnp.linspace(0.0, 1.0, t.q0.shape[-2], dtype=dtype), axis=-1),
+        jnp.sum(t.q, axis=(-3, -2, -1)),
+        jnp.sum(t.origin, axis=-1),
+    ]
+    return jnp.stack(feats, axis=-1)
+
+
+def canonical_pairs(a: SRVFTree, b: SRVFTree) -> tuple[SRVFTree, SRVFTree]:
+    """Each pair in a fixed order that does not depend on the argument order: b first where its
+    content key is lexicographically smaller than a's.
+
+    The alternation finds a local optimum that can depend on which root is registered onto
+    which (measured up to 7e-4 relative on real roots). Registering every pair in a canonical
+    order makes a distance exactly symmetric, at no extra cost.
+    """
+    ka, kb = _order_key(a), _order_key(b)
+    diff = ka != kb
+    first = jnp.argmax(diff, axis=-1)[:, None]
+    swap = jnp.any(diff, axis=-1) & (
+        jnp.take_along_axis(kb, first, axis=-1)[:, 0] < jnp.take_along_axis(ka, first, axis=-1)[:, 0]
+    )
+
+    def pick(x, y):
+        return jnp.where(swap.reshape(swap.shape + (1,) * (x.ndim - 1)), x, y)
+
+    return jax.tree.map(pick, b, a), jax.tree.map(pick, a, b)
+
+
+def pair_distances_squared(
+    a: SRVFTree, b: SRVFTree, weights: Weights, options: RegistrationOptions, active=None
+) -> tuple[Array, Array, Array]:
+    """Symmetric squared distances of a batch of pairs (canonical order, `canonical_pairs`):
+    (energies, lateral DPs run, lateral DPs skipped). Differentiable in a and b."""
+    a, b = canonical_pairs(a, b)
+    reg = register_pairs(a, b, weights, options, active)
+    return reg.energy, reg.n_lateral_dp, reg.n_lateral_skipped
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""The scale-out seam (DESIGN.md §13): blocks of work, and executors that map them.
+"""The scale-out seam (docs/design.md §13): blocks of work, and executors that map them.
 
 The maths and statistics layers cut their work into blocks (a list of pairs, or a block of
 samples for one mean step) and give a pure, module-level function that computes one block. An

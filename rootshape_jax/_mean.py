@@ -1,4 +1,4 @@
-"""Karcher mean of a population of roots (DESIGN.md §6, paper §4).
+"""Karcher mean of a population of roots (docs/design.md §6, paper §4).
 
 The mean minimises ``F(μ) = (1/n) Σ_i min_g d²(μ, g·x_i)`` over SRVF trees μ, where g ranges
 over rotations, reparameterisations and lateral correspondences (`register`).
@@ -23,7 +23,7 @@ Two solvers, both optimistix:
   weighted Kabsch. No sub-step can raise J, so the recorded energy never increases. The first
   registrations come from a full registration (rotation search included) onto the start.
   The step loop is written once, on the host: the solver's `step`/`terminate` run there, so
-  the per-sample work can run here or on a Dask cluster alike (DESIGN.md §13).
+  the per-sample work can run here or on a Dask cluster alike (docs/design.md §13).
 - ``method="gradient"`` (`optx.minimise`, gradient descent by default, any optimistix
   minimiser accepted): minimises ``F`` itself, every evaluation registering all samples
   afresh under `stop_gradient` (envelope theorem), in whitened coordinates
@@ -338,7 +338,7 @@ def fp_update(y: FPIterate, registered: SRVFTree, energies, weights: Weights):
 
 
 # --------------------------------------------------------------------------------------------
-# Blocks of samples through the executor (DESIGN.md §13)
+# Blocks of samples through the executor (docs/design.md §13)
 
 
 def _tree_to_dict(prefix: str, tree) -> dict:

@@ -1,4 +1,4 @@
-"""The elastic pre-shape metric on SRVF trees: its terms, their weights and energies (DESIGN.md §4).
+"""The elastic pre-shape metric on SRVF trees: its terms, their weights and energies (docs/design.md §4).
 
 The metric is the sum of the terms listed in `TERMS` (each defined in `_terms` or its own
 module); `Weights` and `MetricTerms` have one field per term, in that order.
@@ -67,7 +67,7 @@ class Weights(_ByTerm):
     - `lateral` (λs, default 1): lateral bending/stretching and growth, ``Σ ||qa_k − qb_k||²``.
     - `position` (λp, default 1): movement of attachment points, ``Σ (sa_k − sb_k)²``.
     - `thickness` (λr, default 0): radius along each branch, through the extended SRVF of
-      ``(x, √λr·r)`` (DESIGN.md §11); used where trees carry radii. 0 is the paper's metric.
+      ``(x, √λr·r)`` (docs/design.md §11); used where trees carry radii. 0 is the paper's metric.
 
     ``Weights(0.02, 1, 1)`` gives values in that order; names are clearer. The paper's figures
     use ``(0.02, 1, 1)``. The values are JAX arrays, so weights can be learned by
@@ -120,7 +120,7 @@ def preshape_terms(a: SRVFTree, b: SRVFTree, weights: Weights | None = None) -> 
 
     Slot k of `a` is compared with slot k of `b`. A position difference counts only where both
     slots are real laterals: a null lateral has no length, so it sits at its partner's
-    attachment point (DESIGN.md §4: real vs null costs ``λs||q||²`` only).
+    attachment point (docs/design.md §4: real vs null costs ``λs||q||²`` only).
     """
     weights = Weights() if weights is None else weights
     return MetricTerms(**{t.name: t.energy(weights, a, b) for t in TERMS})

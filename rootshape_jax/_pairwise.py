@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._engine import RegistrationOptions, register_pairs, registration_options
+from ._engine import RegistrationOptions, pair_distances_squared, registration_options
 from ._executor import BlockStore, LocalExecutor, executor_for, fingerprint
 from ._metric import Weights
 from ._tree import RootTree, SRVFTree, batch_size, check_compatible, to_srvf
@@ -27,10 +27,10 @@ from ._tree import RootTree, SRVFTree, batch_size, check_compatible, to_srvf
 
 @eqx.filter_jit
 def chunk_energies(a: SRVFTree, b: SRVFTree, active, weights: Weights, options: RegistrationOptions):
-    """Squared distances of the pairs (a[k], b[k]); inactive pairs do no DP work. The shapes
+    """Squared distances of the pairs (a[k], b[k]), each registered in canonical order (so the
+    matrix agrees with `distance` either way round); inactive pairs do no DP work. The shapes
     depend on the chunk size only, so one compiled program serves every chunk and every N."""
-    reg = register_pairs(a, b, weights, options, active)
-    return reg.energy, reg.n_lateral_dp, reg.n_lateral_skipped
+    return pair_distances_squared(a, b, weights, options, active)
 
 
 def run_pair_chunks(s, t, I, J, weights, options, chunk_size: int) -> dict:

@@ -1,4 +1,4 @@
-"""Tangent PCA at the Karcher mean, modes of variation and random synthesis (DESIGN.md §6,
+"""Tangent PCA at the Karcher mean, modes of variation and random synthesis (docs/design.md §6,
 paper §4–5.1).
 
 The shape space is flat in SRVF-tree coordinates (the pre-shape metric is a weighted L2

@@ -1,4 +1,4 @@
-"""Registering root b onto root a, and the elastic distance (DESIGN.md §4).
+"""Registering root b onto root a, and the elastic distance (docs/design.md §4).
 
 The work is done by the engine (`_engine.register_pairs`): rotation, reparameterisations and
 lateral correspondence, with exact pruning of lateral DPs. This module checks the user's
@@ -11,7 +11,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._engine import Registration, RegistrationOptions, register_pairs_jit, registration_options
+import equinox as eqx
+
+from ._curves import safe_sqrt
+from ._engine import Registration, RegistrationOptions, pair_distances_squared, register_pairs_jit, registration_options
 from ._metric import Weights
 from ._tree import RootTree, SRVFTree, check_compatible, to_srvf
 
@@ -52,7 +55,7 @@ def register(
     registration: RegistrationOptions | None = None,
     **options,
 ) -> Registration:
-    """Register root `b` onto root `a` (DESIGN.md §4).
+    """Register root `b` onto root `a` (docs/design.md §4).
 
     `a` and `b` are single trees, or two batches of the same length registered element by
     element. They must share capacities (T, K, d); registering needs ``K >= n_a + n_b``, which
@@ -75,11 +78,30 @@ def register(
 
 
 def distance(
-    a: RootTree | SRVFTree, b: RootTree | SRVFTree, *, weights: Weights | None = None, **options
+    a: RootTree | SRVFTree,
+    b: RootTree | SRVFTree,
+    *,
+    weights: Weights | None = None,
+    registration: RegistrationOptions | None = None,
+    **options,
 ) -> Float[Array, "*B"]:
     """Elastic distance ``sqrt(min d²)`` between roots a and b (options as in `register`).
 
-    Differentiable with respect to both roots' coordinates (and the weights): the registration
-    is held fixed under `stop_gradient` (envelope theorem).
+    Exactly symmetric: the pair is registered in a canonical order that does not depend on the
+    argument order (`register` registers b onto a as asked, and the alternation's local
+    optimum may differ slightly the other way round). Equals `pairwise_distances` and
+    `cross_distances`, which use the same order. Differentiable with respect to both roots'
+    coordinates (and the weights): the registration is held fixed under `stop_gradient`
+    (envelope theorem).
     """
-    return register(a, b, weights=weights, **options).distance
+    weights = Weights() if weights is None else weights
+    opts = registration_options(registration, **options)
+    a, b, single = as_pair_batch(a, b, weights, "distance")
+    d = _distances(a, b, weights, opts)
+    return d[0] if single else d
+
+
+@eqx.filter_jit
+def _distances(a, b, weights, opts):
+    energy, _, _ = pair_distances_squared(a, b, weights, opts)
+    return safe_sqrt(energy)

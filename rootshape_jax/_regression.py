@@ -1,5 +1,5 @@
 """Trait-controlled root synthesis: linear regression from traits to PCA coefficients
-(DESIGN.md §6, paper §5.2).
+(docs/design.md §6, paper §5.2).
 
 Each training root has standardised PCA coefficients ``b`` (`TangentPCA.scores`, the kept
 components) and a trait vector ``p`` — by default the paper's main-root length, mean lateral

@@ -1,4 +1,4 @@
-"""The terms of the elastic metric, each a part with one obvious home (DESIGN.md §4, §11).
+"""The terms of the elastic metric, each a part with one obvious home (docs/design.md §4, §11).
 
 The squared pre-shape distance is a sum of weighted terms. Each term is a small strategy
 object that says, for its own part of the metric:

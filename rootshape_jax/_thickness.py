@@ -1,4 +1,4 @@
-"""Thickness: the extended SRVF of (x, √λr·r) (DESIGN.md §11).
+"""Thickness: the extended SRVF of (x, √λr·r) (docs/design.md §11).
 
 Each branch with radius ``r(t)`` along it is the curve ``(x(t), c·r(t))`` in R^(d+1), with
 ``c = √λr``; its SRVF is taken as usual, and the extra channel rides along in `SRVFTree.q0`

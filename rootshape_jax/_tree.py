@@ -80,7 +80,7 @@ class RootTree(eqx.Module):
 
 
 class SRVFTree(eqx.Module):
-    """Shape of a root (or a batch): the SRVF tree of DESIGN.md §2.
+    """Shape of a root (or a batch): the SRVF tree of docs/design.md §2.
 
     **Fields** (a batch adds leading axes ``*B`` to every field)
 
@@ -89,7 +89,7 @@ class SRVFTree(eqx.Module):
     - `s`: ``[K]`` attachment arc-length fractions along the main root.
     - `mask`: ``[K]`` True for real laterals.
     - `origin`: ``[d]`` start of the main root (SRVFs forget translation; kept to rebuild curves).
-    - `base_radius`, `thickness_scale`: present only with a thickness channel (DESIGN.md §11,
+    - `base_radius`, `thickness_scale`: present only with a thickness channel (docs/design.md §11,
       `Weights.thickness` > 0 and radii in the data): then `q0` and `q` have ``d + 1``
       channels, the last being the SRVF channel of ``c·r`` with ``c = thickness_scale``
       (``√λr``), and `base_radius` ``[K + 1]`` holds the starting radius of the main root
@@ -322,7 +322,7 @@ def batch(
 
     - `n_points`: ``T``, points per branch (uniform in arc length).
     - `max_laterals`: ``K``, lateral slots. Default ``2 × (most laterals of any root)`` (at least
-      2), enough to register any pair (DESIGN.md §2).
+      2), enough to register any pair (docs/design.md §2).
     - `normalise_scale`: divide each root by its main-root length (the paper's scale invariance;
       leave off for growth studies).
     - `dtype`: float dtype of the arrays; default JAX's default float (float32 unless x64 is on).
@@ -494,7 +494,7 @@ def to_srvf(tree: RootTree | SRVFTree, *, weights=None) -> SRVFTree:
     """SRVF tree of a (batched) `RootTree`; an `SRVFTree` is returned unchanged.
 
     With `weights` whose `thickness` (λr) is positive and a tree with radii, each branch's SRVF
-    is that of the extended curve ``(x, √λr·r)`` (DESIGN.md §11; see `SRVFTree`). Otherwise
+    is that of the extended curve ``(x, √λr·r)`` (docs/design.md §11; see `SRVFTree`). Otherwise
     radii are not used.
     """
     if isinstance(tree, SRVFTree):
@@ -551,7 +551,7 @@ def _to_curves_single(t: SRVFTree) -> RootTree:
 
 def to_curves(tree: SRVFTree | RootTree) -> RootTree:
     """Curves of a (batched) `SRVFTree`: integrate the main root from `origin`, then each
-    lateral from the main-root point at arc-length fraction `s` (DESIGN.md §5). With a
+    lateral from the main-root point at arc-length fraction `s` (docs/design.md §5). With a
     thickness channel the radii come back too (from `base_radius`)."""
     if isinstance(tree, RootTree):
         return tree

@@ -1,4 +1,4 @@
-"""Exact dynamic-programming reparameterisation of one SRVF onto another (DESIGN.md §4, §8).
+"""Exact dynamic-programming reparameterisation of one SRVF onto another (docs/design.md §4, §8).
 
 Discretisation. ``q1`` and ``q2`` are sampled on the grid ``t = linspace(0, 1, T)`` and
 linearly interpolated between nodes. A warp ``γ`` is piecewise linear between its values on

@@ -42,7 +42,7 @@ def _matched(cost, perm):
 
 
 def _block_cost(rng, n_real_a, n_real_b, k):
-    """The registration's structure (DESIGN.md §4): real-real costs, a real row against a null
+    """The registration's structure (docs/design.md §4): real-real costs, a real row against a null
     column costs that row's constant (and a null row against a real column that column's
     constant), null-null 0."""
     row_null = rng.uniform(0.5, 3.0, size=k)

@@ -52,7 +52,7 @@ def test_known_rotation_warp_and_translation_are_recovered():
     # The grid optimum at the true rotation (O = Rᵀ, so q2 Oᵀ = q2 R) ...
     _, grid_optimum = dp_warp_and_energy(q1, q2 @ R)
     assert float(energy) <= float(grid_optimum) * (1 + 1e-9)
-    # ... is a few times the energy of the true warp sampled on the grid (DESIGN.md §4: 2–4×).
+    # ... is a few times the energy of the true warp sampled on the grid (docs/design.md §4: 2–4×).
     true_energy = float(warp_energy(q1, q2 @ R, _phi_inv(t)))
     assert 0 < float(energy) <= 5 * true_energy
     assert abs(_angle(np.asarray(O)) - _angle(R.T)) < 0.02

@@ -1,4 +1,4 @@
-"""Thickness, the extended-SRVF metric term (DESIGN.md §11): λr = 0 is today's metric bit for
+"""Thickness, the extended-SRVF metric term (docs/design.md §11): λr = 0 is today's metric bit for
 bit, rigid motions leave it invariant, a thinner twin moves away as λr grows, gradients stay
 finite at zero radius, and curves with radii come back from the SRVF tree."""
 
@@ -53,17 +53,30 @@ def test_zero_thickness_weight_is_todays_metric_bit_for_bit(trees):
     assert np.array_equal(np.asarray(m0.energy_trace), np.asarray(m1.energy_trace))
 
 
-def test_extended_srvf_round_trip_gives_the_radii_back(trees):
-    _, thick = trees
-    s = rs.to_srvf(thick, weights=rs.Weights(thickness=0.5))
-    assert s.has_thickness and s.q0.shape[-1] == 3 and s.dim == 2
-    back = rs.to_curves(s)
-    np.testing.assert_allclose(np.asarray(back.main), np.asarray(thick.main), atol=1e-9)
-    np.testing.assert_allclose(np.asarray(back.main_radius), np.asarray(thick.main_radius), atol=1e-9)
-    m = np.asarray(thick.mask)
-    np.testing.assert_allclose(
-        np.asarray(back.lateral_radius)[m], np.asarray(thick.lateral_radius)[m], atol=1e-9
-    )
+def test_extended_srvf_round_trip_gives_the_radii_back():
+    """to_curves(to_srvf(tree)) returns coordinates and radii, converging at second order in T
+    as the plain SRVF round trip does (the SRVF discretisation is exact only on straight lines)."""
+    errors = []
+    for n in (50, 200):
+        t = np.linspace(0, 1, n)
+        main = np.stack([0.2 * np.sin(3 * t), t], axis=1)
+        lat = np.stack([0.3 * t, 0.5 + 0.1 * t**2], axis=1) + main[n // 2]
+        tree = rs.RootTree(
+            main=jnp.asarray(main), laterals=jnp.asarray(lat[None]), attach=jnp.asarray([t[n // 2]]),
+            mask=jnp.asarray([True]), main_radius=jnp.asarray(0.05 * (1.2 - t) + 0.01 * np.sin(5 * t)),
+            lateral_radius=jnp.asarray((0.02 * (1.1 - t))[None]),
+        )
+        s = rs.to_srvf(tree, weights=rs.Weights(thickness=0.5))
+        assert s.has_thickness and s.q0.shape[-1] == 3 and s.dim == 2
+        back = rs.to_curves(s)
+        errors.append([
+            np.max(np.abs(np.asarray(back.main) - main)),
+            np.max(np.abs(np.asarray(back.main_radius) - np.asarray(tree.main_radius))),
+            np.max(np.abs(np.asarray(back.lateral_radius) - np.asarray(tree.lateral_radius))),
+        ])
+    coarse, fine = np.asarray(errors)
+    assert np.all(fine < 1e-4), fine
+    assert np.all(fine < coarse / 8), (coarse, fine)  # 4× finer grid: ~16× smaller error
 
 
 def _rigid(tree: rs.RootTree, angle: float, shift) -> rs.RootTree:
@@ -93,7 +106,7 @@ def test_thinner_twin_moves_away_as_thickness_weight_grows(trees):
     a = rs.unstack(thick)[1]
     twin = dataclasses.replace(a, main_radius=0.3 * a.main_radius, lateral_radius=0.3 * a.lateral_radius)
     ds = [float(rs.distance(a, twin, weights=rs.Weights(thickness=lam))) for lam in (0.0, 0.1, 0.5, 2.0, 8.0)]
-    assert ds[0] == 0.0
+    assert ds[0] < 1e-12  # radii are not seen at λr = 0: the twin is the same shape
     assert all(x < y for x, y in zip(ds, ds[1:])), ds
 
 
@@ -108,7 +121,7 @@ def test_gradients_finite_at_zero_radius(trees):
 
     g = jax.grad(dist)(b.main_radius)
     assert np.all(np.isfinite(np.asarray(g)))
-    assert float(rs.distance(b, b, weights=w)) == 0.0
+    assert float(rs.distance(b, b, weights=w)) < 1e-12
 
 
 def test_mean_pca_geodesic_and_synthesis_with_thickness(trees):
@@ -122,7 +135,10 @@ def test_mean_pca_geodesic_and_synthesis_with_thickness(trees):
     assert mode.main_radius.shape == (3, T)
     a, b = rs.unstack(thick)[:2]
     path = rs.geodesic(a, b, weights=w, n_steps=3)
-    np.testing.assert_allclose(np.asarray(path.main_radius[0]), np.asarray(a.main_radius), atol=1e-9)
+    # The path starts at a (as its SRVF tree gives it back).
+    a_back = rs.to_curves(rs.to_srvf(a, weights=w))
+    np.testing.assert_allclose(np.asarray(path.main_radius[0]), np.asarray(a_back.main_radius), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(path.main[0]), np.asarray(a_back.main), atol=1e-12)
 
 
 def test_mixing_thickness_settings_is_refused(trees):

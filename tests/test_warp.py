@@ -184,7 +184,7 @@ def test_identical_srvfs_give_identity_and_zero():
 
 def test_known_warp_is_recovered_within_the_grid_resolution():
     # q2 is q1 reparameterised by φ; the DP should find γ ≈ φ⁻¹ and an energy within the
-    # grid's reach of the true warp sampled on the grid (not 0; DESIGN.md §4: 2–4× above).
+    # grid's reach of the true warp sampled on the grid (not 0; docs/design.md §4: 2–4× above).
     T = 60
     rng = np.random.default_rng(10)
     curve = smooth_curve(rng, n=400, bend=1.5)
