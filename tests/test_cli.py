@@ -227,7 +227,7 @@ def test_unknown_command(capsys):
 
 
 def test_limit_laterals_keeps_the_longest_in_order():
-    from rootshape_jax._cli import limit_laterals
+    from rootshape_jax import limit_laterals
 
     root = synthetic_roots(1, seed=3)[0]
     kept = limit_laterals(root, 3)
@@ -241,7 +241,7 @@ def test_limit_laterals_keeps_the_longest_in_order():
 
 
 def test_subsample_is_even_and_ordered():
-    from rootshape_jax._cli import subsample
+    from rootshape_jax._cli._inputs import subsample
 
     items = list(range(53))
     assert subsample(items, 6) == [0, 10, 21, 31, 42, 52]
@@ -250,7 +250,7 @@ def test_subsample_is_even_and_ordered():
 
 
 def test_scale_tree_scales_about_the_base():
-    from rootshape_jax._cli import scale_tree
+    from rootshape_jax import scale_tree
 
     tree = rs.batch(synthetic_roots(2, seed=0), n_points=20)
     scaled = scale_tree(tree, [2.0, 0.5])
@@ -258,6 +258,64 @@ def test_scale_tree_scales_about_the_base():
     np.testing.assert_allclose(np.asarray(scaled.main)[0], o[0] + 2.0 * (np.asarray(tree.main)[0] - o[0]))
     np.testing.assert_allclose(np.asarray(scaled.laterals)[1], o[1] + 0.5 * (np.asarray(tree.laterals)[1] - o[1]))
     np.testing.assert_array_equal(np.asarray(scaled.mask), np.asarray(tree.mask))
+
+
+def test_cluster_numbers_agree_in_csv_figure_and_table(tmp_path, monkeypatch):
+    """clusters.csv, the dendrogram's cluster rows (label, size, colour) and the HTML table all
+    number the clusters the same way (one `Clustering`)."""
+    import argparse
+
+    import matplotlib.colors as mcolors
+
+    import rootshape_jax.plot as rplot
+    from rootshape_jax._cli._inputs import prepare
+    from rootshape_jax._cli._report import Output
+    from rootshape_jax._cli._steps import Context, run_cluster
+
+    roots = [r for c in ("control", "drought", "high_nitrate") for r in synthetic_roots(4, condition=c, seed=5)]
+    args = argparse.Namespace(laterals=4, points=12, normalise_scale=True, clusters=3, linkage="average")
+    ctx = Context(prepare(roots, args))
+    # Distances between random points with three well-separated groups (no registration).
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(12, 3)) + np.repeat(np.array([[0, 0, 0], [9, 0, 0], [0, 9, 0]]), 4, axis=0)
+    x = x[rng.permutation(12)]
+    ctx.distances = np.linalg.norm(x[:, None] - x[None], axis=-1)
+
+    drawn = {}
+    original = rplot.plot_dendrogram
+
+    def spy(*a, **kw):
+        drawn["fig"], drawn["axes"] = original(*a, **kw)
+        return drawn["fig"], drawn["axes"]
+
+    monkeypatch.setattr(rplot, "plot_dendrogram", spy)
+    out = Output(tmp_path / "o", args)
+    run_cluster(ctx, out, args)
+
+    with open(tmp_path / "o" / "clusters.csv", newline="") as f:
+        csv_number = {r["root"]: int(r["cluster"]) for r in csv.DictReader(f)}
+    assert set(csv_number.values()) == {1, 2, 3}
+    seen = set()
+    for row in drawn["axes"]["roots"]:
+        label = row[0].get_ylabel()
+        m = re.fullmatch(r"cluster (\d+)\nn = (\d+)", label)
+        assert m, label
+        number, size = int(m.group(1)), int(m.group(2))
+        seen.add(number)
+        assert size == sum(v == number for v in csv_number.values())
+        for ax in row:  # every root drawn in this row is in this cluster in the CSV
+            assert csv_number[ax.get_title()] == number, (ax.get_title(), number)
+        assert mcolors.to_hex(row[0].yaxis.label.get_color()) == mcolors.to_hex(rplot.slot_color(number - 1))
+    assert seen == {1, 2, 3}
+    # The condition-by-cluster table on the page uses the same numbers.
+    table = out.sections[0].items[0].html
+    assert all(f"<th>cluster {g}</th>" in table for g in (1, 2, 3)) and "cluster 0" not in table
+    cond = {r.name: r.metadata["condition"] for r in ctx.pop.roots}
+    cells = re.findall(r"<tr><td>(\w+)</td>((?:<td>\d+</td>)+)</tr>", table)
+    for condition, counts in cells:
+        counts = [int(c) for c in re.findall(r"\d+", counts)]
+        assert counts == [sum(cond[n] == condition and csv_number[n] == g for n in csv_number) for g in (1, 2, 3)]
+    assert len(cells) == 3
 
 
 # --------------------------------------------------------------------------------------------
@@ -326,7 +384,7 @@ def test_distances_match_the_library(rsml_files, tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert (out / "distances.png").read_bytes()[:4] == b"\x89PNG"
     names, D = read_matrix(out / "distances.csv")
-    from rootshape_jax._cli import limit_laterals
+    from rootshape_jax import limit_laterals
 
     roots = read_rsml(rsml_files / "control.rsml") + read_rsml(rsml_files / "drought.rsml")
     roots = [limit_laterals(r, 3) for r in roots]
