@@ -8,8 +8,8 @@ from collections.abc import Callable
 import numpy as np
 
 from ._common import PAPER_TRAITS, say
-from ._inputs import load_roots, pick, prepare, read_requested, subsample
-from ._report import Output, settings, write_index
+from ._inputs import Reading, load_roots, pick, prepare, read_requested, subsample
+from ._report import LOG_NAME, Output, settings, write_index
 from ._steps import (
     Context,
     run_cluster,
@@ -23,13 +23,28 @@ from ._steps import (
 )
 
 
+def _read(args, out: Output, reading: Reading, paths=None) -> list:
+    """The input roots; the details of any skipped file or part go to the log file at once."""
+    roots = load_roots(args, paths=paths, reading=reading)
+    out.log[:] = reading.log
+    out.write_log()
+    return roots
+
+
+def _finish(out: Output, reading: Reading) -> None:
+    out.print_summary()
+    if reading.files or reading.skipped:
+        print(reading.summary())
+
+
 def _pipeline(args, steps, *, min_roots: int = 2) -> None:
     """Load and prepare the roots, run `steps` (each ``step(ctx, out, args)``) in order."""
     out = Output(args.out, args)
-    ctx = Context(prepare(load_roots(args), args, min_roots=min_roots, samples=args.samples))
+    reading = Reading(log_path=str(out.path(LOG_NAME)))
+    ctx = Context(prepare(_read(args, out, reading), args, min_roots=min_roots, samples=args.samples))
     for step in steps:
         step(ctx, out, args)
-    out.print_summary()
+    _finish(out, reading)
 
 
 def cmd_distances(args) -> None:
@@ -60,17 +75,19 @@ def cmd_cluster(args) -> None:
 
 def cmd_traits(args) -> None:
     out = Output(args.out, args)
-    roots = subsample(load_roots(args), args.samples)
+    reading = Reading(log_path=str(out.path(LOG_NAME)))
+    roots = subsample(_read(args, out, reading), args.samples)
     run_traits(roots, out, args)
-    out.print_summary()
+    _finish(out, reading)
 
 
 def cmd_geodesic(args) -> None:
     out = Output(args.out, args)
-    a = pick(load_roots(args, paths=[args.a]), args.root_a, args.a)
-    b = pick(load_roots(args, paths=[args.b]), args.root_b, args.b)
+    reading = Reading(log_path=str(out.path(LOG_NAME)))
+    a = pick(_read(args, out, reading, [args.a]), args.root_a, args.a)
+    b = pick(_read(args, out, reading, [args.b]), args.root_b, args.b)
     run_geodesic(a, b, out, args)
-    out.print_summary()
+    _finish(out, reading)
 
 
 def cmd_demo(args) -> None:

@@ -21,6 +21,11 @@ def say(args, message: str) -> None:
         print(message, file=sys.stderr, flush=True)
 
 
+def warn(message: str) -> None:
+    """One warning line on stderr (shown even with --quiet)."""
+    print(f"{PROG}: warning: {message}", file=sys.stderr, flush=True)
+
+
 def fmt(x: float, digits: int = 4) -> str:
     return f"{float(x):.{digits}g}"
 

@@ -12,7 +12,7 @@ import numpy as np
 
 import rootshape_jax as rs
 
-from ._common import IMAGE_SUFFIXES, PAPER_TRAITS, RSML_SUFFIXES, CLIError
+from ._common import IMAGE_SUFFIXES, PAPER_TRAITS, RSML_SUFFIXES, CLIError, warn
 
 
 def files_in(folder: Path) -> list[Path]:
@@ -21,7 +21,40 @@ def files_in(folder: Path) -> list[Path]:
     )
 
 
-def read_file(path: Path, args) -> list:
+@dataclasses.dataclass
+class Reading:
+    """What reading the input files found: the terminal gets one line per problem file and a
+    summary; `log` keeps the full messages (written to the output folder's log file)."""
+
+    log_path: str = ""
+    files: int = 0
+    roots: int = 0
+    skipped: list[tuple[str, str]] = dataclasses.field(default_factory=list)  # (file, reason)
+    log: list[str] = dataclasses.field(default_factory=list)
+
+    def summary(self) -> str:
+        text = f"read {self.roots} root system(s) from {self.files} file(s)"
+        if self.skipped:
+            text += f"; skipped {len(self.skipped)}: " + ", ".join(f"{f} ({why})" for f, why in self.skipped)
+        return text + "."
+
+
+def short_reason(message: str, path: Path) -> str:
+    """The gist of an error or warning about `path`: its first clause, without the path."""
+    text = message.strip().splitlines()[0] if message.strip() else "unreadable"
+    for prefix in (f"{path}: ", f"{path.name}: "):
+        if text.startswith(prefix):
+            text = text[len(prefix):]
+    cut = min((i for i in (text.find(" ("), text.find(": "), text.find("; ")) if i > 0), default=len(text))
+    text = text[:cut].rstrip(".")
+    return text if len(text) <= 70 else text[:69] + "…"
+
+
+def _about(path: Path, message: str) -> str:
+    return message if message.startswith(str(path)) else f"{path}: {message}"
+
+
+def read_file(path: Path, args, reading: Reading | None = None) -> list:
     from rootshape_jax import io
 
     suffix = path.suffix.lower()
@@ -31,8 +64,14 @@ def read_file(path: Path, args) -> list:
             roots = io.read_rsml(path)
         if not roots:
             io.read_rsml(path, strict=True)  # raises the precise reason as one RSMLError
-        for w in caught:  # parts skipped in a file that is otherwise readable
-            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+        # Parts skipped in a file that is otherwise readable: one line here, all in the log.
+        for w in caught:
+            if reading is not None:
+                reading.log.append(f"warning: {_about(path, str(w.message))}")
+        if caught:
+            where = f" (details in {reading.log_path})" if reading is not None and reading.log_path else ""
+            warn(f"{path}: {short_reason(str(caught[0].message), path)}"
+                 + (f" and {len(caught) - 1} more warning(s)" if len(caught) > 1 else "") + where)
     elif suffix in IMAGE_SUFFIXES:
         pixel_size = getattr(args, "pixel_size", None)
         unit = getattr(args, "unit", None) or ("mm" if pixel_size else "pixel")
@@ -52,8 +91,9 @@ def read_file(path: Path, args) -> list:
     return out
 
 
-def expand(paths: Sequence[str]) -> list[Path]:
-    files: list[Path] = []
+def expand(paths: Sequence[str]) -> list[tuple[Path, bool]]:
+    """Every file to read, and whether it was found in a folder (then it may be skipped)."""
+    files: list[tuple[Path, bool]] = []
     for text in paths:
         p = Path(text)
         if not p.exists():
@@ -65,9 +105,9 @@ def expand(paths: Sequence[str]) -> list[Path]:
                     f"{text}: the folder contains no RSML files (.rsml) or images "
                     f"({', '.join(IMAGE_SUFFIXES)})."
                 )
-            files.extend(found)
+            files.extend((f, True) for f in found)
         else:
-            files.append(p)
+            files.append((p, False))
     return files
 
 
@@ -91,8 +131,13 @@ def unique_names(roots: list) -> list:
     return out
 
 
-def load_roots(args, *, paths: Sequence[str] | None = None) -> list:
-    """The roots named on the command line: files, folders, images, or --synthetic."""
+def load_roots(args, *, paths: Sequence[str] | None = None, reading: Reading | None = None) -> list:
+    """The roots named on the command line: files, folders, images, or --synthetic.
+
+    A file named on the command line must be readable. A file found in a folder that cannot be
+    read is skipped with one line on stderr (its full reason in `reading.log`), unless
+    ``args.strict``; the run fails only when nothing at all is readable.
+    """
     paths = list(args.inputs if paths is None else paths)
     synthetic = getattr(args, "synthetic", None)
     if paths and synthetic:
@@ -109,9 +154,25 @@ def load_roots(args, *, paths: Sequence[str] | None = None) -> list:
         raise CLIError(
             "no input: give RSML files, folders or images, or --synthetic N for example roots."
         )
+    reading = Reading() if reading is None else reading
     roots = []
-    for f in expand(paths):
-        roots.extend(read_file(f, args))
+    for f, in_folder in expand(paths):
+        try:
+            got = read_file(f, args, reading)
+        except (CLIError, rs.RootShapeError, OSError, ValueError) as e:
+            if not in_folder or getattr(args, "strict", False):
+                raise
+            why = short_reason(str(e), f)
+            reading.skipped.append((f.name, why))
+            reading.log.append(f"skipped: {_about(f, str(e))}")
+            warn(f"skipped {f}: {why}")
+            continue
+        reading.files += 1
+        reading.roots += len(got)
+        roots.extend(got)
+    if not roots:
+        skipped = ", ".join(f"{f} ({why})" for f, why in reading.skipped)
+        raise CLIError(f"no readable roots: every file was skipped: {skipped}. Fix or remove these files.")
     return unique_names(roots)
 
 

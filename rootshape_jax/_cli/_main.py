@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import sys
 import warnings
 from collections.abc import Sequence
 
 from ._common import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, PROG, CLIError
 from ._parser import build_parser
+from ._report import remove_pending
 
 
 def configure_jax(*, devices: int | None, float64: bool) -> None:
@@ -56,19 +58,56 @@ def _plain_warnings():
             warnings.showwarning = old
 
 
+def _end_process(code: int) -> None:
+    """End the process now, skipping the interpreter's shutdown.
+
+    After Ctrl-C, XLA may still be compiling on its own threads (KeyboardInterrupt comes out of
+    `backend.compile_and_load` while they run) or running host callbacks; Python's shutdown
+    then tears down objects those threads still use, which killed the process with SIGSEGV
+    (measured: 5 of 5 interrupts during compilation). Every file is complete or absent (atomic
+    writes), so skipping the shutdown loses nothing.
+    """
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(code)
+
+
+def _on_sigint(signum, frame) -> None:
+    """Ctrl-C when run as the program: remove half-written temporary files and end at once.
+
+    Raising KeyboardInterrupt is not enough: it can surface inside a garbage-collection
+    callback of JAX, where Python prints "Exception ignored" and the run goes on (measured).
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not interrupt the exit
+    remove_pending()
+    print(f"\n{PROG}: interrupted; every file written so far is complete.", file=sys.stderr)
+    _end_process(EXIT_INTERRUPTED)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command line with `argv` (default ``sys.argv[1:]``); returns the exit code."""
+    """Run the command line with `argv` (default ``sys.argv[1:]``); returns the exit code.
+
+    Run as the program (`argv` None: the ``rootshape`` script, ``python -m rootshape_jax``),
+    Ctrl-C ends the process at once with exit code 130 (`_on_sigint`); called with an `argv`
+    list (from Python) a KeyboardInterrupt returns 130 instead.
+    """
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
     except SystemExit as e:  # --help, --version, or a usage error (already printed)
         return int(e.code) if isinstance(e.code, int) else EXIT_USAGE
     configure_jax(devices=args.devices, float64=args.float64)
+    if argv is None:  # the program: Ctrl-C ends the process (`_on_sigint`)
+        with contextlib.suppress(ValueError):  # not the main thread: keep KeyboardInterrupt
+            signal.signal(signal.SIGINT, _on_sigint)
     try:
         with _plain_warnings():
             args.func(args)
     except KeyboardInterrupt:
-        print(f"{PROG}: interrupted.", file=sys.stderr)
+        print(f"{PROG}: interrupted; every file written so far is complete.", file=sys.stderr)
+        if argv is None:
+            _end_process(EXIT_INTERRUPTED)
         return EXIT_INTERRUPTED
     except Exception as e:  # noqa: BLE001 - every failure becomes one line unless --debug
         if args.debug:

@@ -91,9 +91,15 @@ def _add_common(p: argparse.ArgumentParser, *, inputs: bool = True, default_out:
                          help="length of one image pixel (e.g. 0.0423 for 600 dpi in mm); default: "
                               "keep pixels")
         img.add_argument("--unit", metavar="UNIT", help="unit of --pixel-size (default mm)")
+        g.add_argument("--strict", action="store_true",
+                       help="stop at the first unreadable file of a folder (default: skip it, "
+                            "name it, and go on with the others)")
     g = p.add_argument_group("analysis")
     g.add_argument("--out", default=default_out, metavar="DIR",
-                   help=f"folder for the results (created if needed; default {default_out})")
+                   help=f"folder for the results (created if needed; default {default_out}); a "
+                        "folder holding earlier results is refused unless --overwrite")
+    g.add_argument("--overwrite", action="store_true",
+                   help="replace the results of an earlier run in the --out folder")
     if inputs:
         g.add_argument("--samples", type=_positive_int, metavar="N",
                        help="use only N of the roots, evenly spread through the input order (faster)")

@@ -5,11 +5,14 @@ from __future__ import annotations
 import contextlib
 import csv
 import dataclasses
+import fnmatch
 import html
 import os
+import re
 import sys
+import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -33,19 +36,55 @@ class Section:
     notes: list[str] = dataclasses.field(default_factory=list)
 
 
+# Every name the command line writes (a folder holding any of them holds earlier results).
+OUTPUT_NAMES = (
+    "index.html", "rootshape.log", "traits.csv", "distances.csv", "distances.png",
+    "geodesic.png", "geodesic_step_*.rsml", "mean.rsml", "mean.png", "mean_energy.csv",
+    "mean_energy.png", "explained_variance.csv", "explained_variance.png", "modes.png",
+    "random_roots.rsml", "random_roots.csv", "random_roots.png", "regression_report.csv",
+    "predicted_roots.rsml", "predicted_roots.csv", "predicted_roots.png", "clusters.csv",
+    "dendrogram.png", "classification.csv",
+)
+LOG_NAME = "rootshape.log"
+
+
+def is_output_name(name: str) -> bool:
+    return any(fnmatch.fnmatchcase(name, pattern) for pattern in OUTPUT_NAMES)
+
+
 class Output:
-    """The output folder: writes files, remembers them with captions, times each step."""
+    """The output folder: writes files, remembers them with captions, times each step.
+
+    Files are written atomically (a temporary file in the folder, then `os.replace`), so an
+    interrupted or failed write leaves the earlier file intact and a symlink at the target is
+    replaced, never written through. A folder holding results of an earlier run is refused
+    unless `args.overwrite`.
+    """
 
     def __init__(self, folder: str | os.PathLike, args):
         self.folder = Path(folder)
+        self.overwrite = bool(getattr(args, "overwrite", False))
         if self.folder.exists() and not self.folder.is_dir():
             raise CLIError(f"--out {folder}: exists and is not a folder.")
+        if self.folder.is_dir() and not self.overwrite:
+            earlier = sorted(p.name for p in self.folder.iterdir() if is_output_name(p.name))
+            if earlier:
+                shown = ", ".join(earlier[:6]) + (f" and {len(earlier) - 6} more" if len(earlier) > 6 else "")
+                raise CLIError(
+                    f"--out {folder}: holds results of an earlier run ({shown}); give --overwrite "
+                    "to replace them, or choose another folder."
+                )
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
         except OSError as e:
             raise CLIError(f"--out {folder}: cannot create the output folder ({e.strerror}).") from None
         self.args = args
         self.sections: list[Section] = []
+        self.written: set[str] = set()
+        self.log: list[str] = []
+        mask = os.umask(0)
+        os.umask(mask)
+        self._mode = 0o666 & ~mask  # what a plainly created file would get
 
     @contextlib.contextmanager
     def step(self, title: str):
@@ -60,16 +99,39 @@ class Output:
     def path(self, name: str) -> Path:
         return self.folder / name
 
+    def write(self, name: str, write_to: Callable[[Path], object]) -> Path:
+        """Write file `name` atomically: ``write_to(temporary_path)``, then rename it."""
+        path = self.path(name)
+        existed = os.path.lexists(path)
+        if existed and not self.overwrite and name not in self.written:
+            raise CLIError(f"{path}: exists already (an earlier result); give --overwrite to replace it.")
+        fd, tmp = tempfile.mkstemp(dir=self.folder, prefix=f".{name}.", suffix=".tmp")
+        os.close(fd)
+        PENDING.add(tmp)
+        try:
+            os.chmod(tmp, self._mode)
+            write_to(Path(tmp))
+            os.replace(tmp, path)
+        except OSError as e:
+            kept = f"the earlier {name} is unchanged" if existed else "nothing was written"
+            raise CLIError(f"cannot write {path}: {os_reason(e)} ({kept}).") from None
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+            PENDING.discard(tmp)
+        self.written.add(name)
+        return path
+
     # Writers: each writes one file and lists it (with its caption) in `section`.
 
     def csv(self, section: Section, name: str, header: Sequence[str], rows: Sequence[Sequence],
             caption: str, *, table_html: str = "") -> Item:
-        write_csv(self.path(name), header, rows)
+        self.write(name, lambda p: write_csv(p, header, rows))
         return self.file(section, name, caption, "table", table_html)
 
     def figure(self, section: Section, fig, name: str, caption: str) -> Item:
         try:
-            fig.savefig(self.path(name), dpi=110)
+            self.write(name, lambda p: fig.savefig(p, dpi=110, format="png"))
         finally:
             close(fig)
         return self.file(section, name, caption, "figure")
@@ -78,8 +140,15 @@ class Output:
         from rootshape_jax.io import write_rsml
 
         unit = unit if unit not in (None, "pixel") else None
-        write_rsml(roots, self.path(name), unit=unit, resolution=1.0 if unit else None)
+        self.write(name, lambda p: write_rsml(roots, p, unit=unit, resolution=1.0 if unit else None))
         return None if section is None else self.file(section, name, caption)
+
+    def write_log(self) -> Path | None:
+        """Full details of skipped files and parts (the terminal shows one line per file)."""
+        if not self.log:
+            return None
+        text = "\n".join(self.log) + "\n"
+        return self.write(LOG_NAME, lambda p: p.write_text(text, encoding="utf-8"))
 
     def file(self, section: Section, name: str, caption: str, kind: str = "file", table_html: str = "") -> Item:
         item = Item(kind, name, caption, table_html)
@@ -98,25 +167,65 @@ class Output:
         print(f"Results are in {self.folder.resolve()}")
 
 
+# Temporary files being written, removed by the Ctrl-C handler before it ends the process.
+PENDING: set[str] = set()
+
+
+def remove_pending() -> None:
+    for tmp in list(PENDING):
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+
+
+def os_reason(e: OSError) -> str:
+    """`OSError.strerror`, also for an error built as ``OSError(errno.ENOSPC)``."""
+    code = e.errno if e.errno is not None else (e.args[0] if len(e.args) == 1 and isinstance(e.args[0], int) else None)
+    return e.strerror or (os.strerror(code) if code is not None else str(e) or type(e).__name__)
+
+
 def close(fig) -> None:
     if "matplotlib.pyplot" in sys.modules:
         sys.modules["matplotlib.pyplot"].close(fig)
 
 
 def write_csv(path: Path, header: Sequence[str], rows: Sequence[Sequence]) -> None:
-    with open(path, "w", newline="") as f:
+    with open(path, "w", newline="", encoding="utf-8") as f:
         w = csv.writer(f, lineterminator="\n")
-        w.writerow(header)
+        w.writerow([cell(h) for h in header])
         for row in rows:
             w.writerow([cell(v) for v in row])
 
 
+def write_dict_csv(path: Path, rows: Sequence[dict]) -> None:
+    """Rows of dicts (e.g. `rootshape_jax.traits`): columns in order of first appearance."""
+    columns: list[str] = []
+    for r in rows:
+        columns += [k for k in r if k not in columns]
+    write_csv(path, columns, [[r.get(k, "") for k in columns] for r in rows])
+
+
+# A text cell starting like a formula is run by spreadsheets (CSV injection); OWASP: prefix
+# it with a quote. Plain numbers such as -1.5 stay numbers.
+_FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+_PLAIN_NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?")
+
+
+def safe_text(text: str) -> str:
+    if text.startswith(_FORMULA_START) and not _PLAIN_NUMBER.fullmatch(text):
+        return "'" + text
+    return text
+
+
 def cell(v):
+    if v is None:
+        return ""
+    if isinstance(v, (bool, np.bool_)):
+        return str(bool(v))
     if isinstance(v, (float, np.floating)):
         return repr(float(v))
-    if isinstance(v, np.integer):
+    if isinstance(v, (int, np.integer)):
         return int(v)
-    return v
+    return safe_text(str(v))
 
 
 def html_table(header: Sequence[str], rows: Sequence[Sequence], max_rows: int = 20) -> str:
@@ -171,9 +280,8 @@ def write_index(out: Output, *, title: str, intro: Sequence[str], settings: Sequ
                 if item.html:
                     parts.append(item.html)
     parts.append("</body></html>")
-    path = out.path("index.html")
-    path.write_text("\n".join(parts), encoding="utf-8")
-    return path
+    text = "\n".join(parts)
+    return out.write("index.html", lambda p: p.write_text(text, encoding="utf-8"))
 
 
 def settings(args, pop) -> list[tuple[str, str]]:

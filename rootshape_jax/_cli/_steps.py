@@ -15,7 +15,7 @@ import rootshape_jax as rs
 
 from ._common import PAPER_TRAITS, fmt, make_weights, say
 from ._inputs import Population, common_unit, in_input_units, prepare, to_output_roots
-from ._report import Output, html_table
+from ._report import Output, html_table, write_dict_csv
 
 
 @dataclasses.dataclass
@@ -265,7 +265,7 @@ def run_traits(roots: list, out: Output, args) -> None:
             for key in ("condition", "unit", "source_file"):
                 if key in root.metadata:
                     r[key] = root.metadata[key]
-        rs.traits_to_csv(rows, out.path("traits.csv"))
+        out.write("traits.csv", lambda p: write_dict_csv(p, rows))
         show = ["name", "main_length", "n_laterals", "mean_lateral_length", "total_length", "depth", "width"]
         out.file(sec, "traits.csv", f"architecture traits of the {len(rows)} input roots (lengths in "
                  f"{common_unit(roots) or 'input units'})", "table",
