@@ -630,3 +630,37 @@ def test_ctrl_c_during_distances_exits_cleanly(tmp_path):
         assert "Traceback" not in err and "rootshape: interrupted" in err
         assert not (out / "distances.csv").exists()
         assert not [q for q in out.iterdir() if q.name.endswith(".tmp")]
+
+
+@pytest.mark.slow
+def test_store_resumes_after_ctrl_c(tmp_path):
+    """--store keeps the finished blocks of an interrupted run; the rerun computes only the
+    missing ones and the matrix equals the library's."""
+    pytest.importorskip("dask.distributed")
+    import signal
+    import time
+
+    store, out = tmp_path / "store", tmp_path / "o"
+    cmd = [sys.executable, "-m", "rootshape_jax", "distances", "--synthetic", "10", "--condition", "control",
+           "--condition", "drought", "--points", "16", "--laterals", "3", "--float64", "--quiet",
+           "--store", str(store), "--out", str(out)]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 600
+    while not list(store.glob("block_*.npz")) and p.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 130, err.decode(errors="replace")[-2000:]  # 190 pairs: 3 blocks of 64
+    kept = sorted(q.name for q in store.glob("block_*.npz"))
+    assert 1 <= len(kept) < 3, kept
+    assert not out.exists() or not (out / "distances.csv").exists()
+
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1200)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert f"{len(kept)} of 3 blocks of 64 pairs read from earlier runs, {3 - len(kept)} computed" in proc.stdout
+    names, D = read_matrix(out / "distances.csv")
+    roots = [r for c in ("control", "drought") for r in synthetic_roots(10, condition=c, seed=0)]
+    roots = [rs.limit_laterals(r, 3) for r in roots]
+    assert names == [r.name for r in roots]
+    ref = np.asarray(rs.pairwise_distances(rs.batch(roots, n_points=16, normalise_scale=True), progress=False))
+    np.testing.assert_allclose(D, ref, rtol=1e-6, atol=1e-9)

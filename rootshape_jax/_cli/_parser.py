@@ -123,6 +123,13 @@ def _add_common(p: argparse.ArgumentParser, *, inputs: bool = True, default_out:
     r.add_argument("--debug", action="store_true", help="show the full Python traceback on errors")
 
 
+def _add_store_option(p):
+    p.add_argument("--store", metavar="DIR",
+                   help="keep every finished block of distances in DIR; after an interruption, the "
+                        "same command with the same --store computes only the missing ones (needs "
+                        "Dask: pip install 'rootshape_jax[dask]')")
+
+
 def _add_mean_options(p):
     g = p.add_argument_group("mean root")
     g.add_argument("--max-steps", type=_positive_int, default=30, metavar="N",
@@ -186,6 +193,7 @@ def build_parser() -> argparse.ArgumentParser:
             "the more bending, stretching, growing and moving of laterals it takes to turn one "
             "root into the other. Writes distances.csv and a heat map distances.png.", cmd_distances)
     _add_common(p)
+    _add_store_option(p)
 
     p = add("geodesic", "optimal deformation of one root into another (PNG strip + RSML per step)",
             "The optimal (shortest) deformation of root A into root B: a strip of intermediate "
@@ -241,6 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
             "clusters.csv (cluster of each root). Synthetic roots also get a leave-one-out "
             "classification of their condition (classification.csv).", cmd_cluster)
     _add_common(p)
+    _add_store_option(p)
     _add_cluster_options(p)
 
     p = add("traits", "classical root traits (CSV)",
