@@ -26,7 +26,7 @@ test-slow: $(VENV)/.installed
 	$(PYTEST) -m slow || [ $$? -eq 5 ]  # 5: no slow test selected
 
 demo: $(VENV)/.installed
-	$(PY) -m rootshape_jax demo --out $(OUT)
+	$(PY) -m rootshape_jax demo --out $(OUT) --overwrite  # make demo regenerates its folder
 
 bench: $(VENV)/.installed
 	for b in curves trees stats assignment dask; do $(PY) benchmarks/bench_$$b.py || exit 1; done

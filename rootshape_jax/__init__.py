@@ -19,6 +19,7 @@ from ._errors import (
     RSMLWarning as RSMLWarning,
 )
 from ._root import Root as Root
+from ._root import limit_laterals as limit_laterals
 from ._curves import (
     curve_length as curve_length,
     l2_norm_squared as l2_norm_squared,
@@ -37,6 +38,7 @@ from ._tree import (
     to_srvf as to_srvf,
     unstack as unstack,
 )
+from ._tree import scale_tree as scale_tree
 from ._metric import (
     TERMS as TERMS,
     MetricTerms as MetricTerms,

@@ -264,3 +264,24 @@ class Root:
 
 def polyline_length(points: np.ndarray) -> float:
     return float(np.sum(np.linalg.norm(np.diff(points, axis=0), axis=1)))
+
+
+def limit_laterals(root: Root, n: int | None) -> Root:
+    """The root with only its `n` longest laterals, kept in their original order.
+
+    `n = None` (or a root with at most `n` laterals) returns `root` itself. Ties in length keep
+    the earlier lateral. `Root.children` (deeper topology) is sliced alongside the laterals.
+    """
+    if n is None:
+        return root
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+        raise ValueError(f"limit_laterals: n must be a whole number >= 0 or None, got {n!r}.")
+    if root.n_laterals <= n:
+        return root
+    keep = np.sort(np.argsort(-root.lateral_lengths, kind="stable")[: int(n)])
+    return dataclasses.replace(
+        root,
+        laterals=tuple(root.laterals[i] for i in keep),
+        attach=root.attach[keep],
+        children=tuple(root.children[i] for i in keep) if root.children else (),
+    )

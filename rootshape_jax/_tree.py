@@ -576,3 +576,27 @@ def check_compatible(a: RootTree | SRVFTree, b: RootTree | SRVFTree, what: str =
             f"{(b.n_points, b.capacity, b.dim)}. Build them in one call to batch() or pass the same "
             "n_points and max_laterals."
         )
+
+
+def scale_tree(tree: RootTree, scales) -> RootTree:
+    """A (batched) `RootTree` with each root scaled about its main-root base.
+
+    `scales` broadcasts to the tree's batch shape (one factor per root, or a scalar); factors
+    must be finite and positive. Attachment fractions, masks and every other field are kept.
+    """
+    if not isinstance(tree, RootTree):
+        raise TypeError(f"scale_tree: expected a RootTree, got {type(tree).__name__}.")
+    s = jnp.asarray(scales, dtype=tree.main.dtype)
+    try:
+        s = jnp.broadcast_to(s, tree.batch_shape)
+    except ValueError:
+        raise ValueError(
+            f"scale_tree: scales of shape {s.shape} do not match the tree's batch shape "
+            f"{tree.batch_shape}; give one factor per root."
+        ) from None
+    s = eqx.error_if(s, ~(jnp.isfinite(s) & (s > 0)), "scale_tree: scales must be finite and > 0.")
+    o = tree.main[..., :1, :]  # [*B, 1, d] main-root base
+    main = o + (tree.main - o) * s[..., None, None]
+    o_lat = o[..., None, :, :]
+    laterals = o_lat + (tree.laterals - o_lat) * s[..., None, None, None]
+    return eqx.tree_at(lambda t: (t.main, t.laterals), tree, (main, laterals))

@@ -227,7 +227,7 @@ def test_unknown_command(capsys):
 
 
 def test_limit_laterals_keeps_the_longest_in_order():
-    from rootshape_jax._cli import limit_laterals
+    from rootshape_jax import limit_laterals
 
     root = synthetic_roots(1, seed=3)[0]
     kept = limit_laterals(root, 3)
@@ -241,7 +241,7 @@ def test_limit_laterals_keeps_the_longest_in_order():
 
 
 def test_subsample_is_even_and_ordered():
-    from rootshape_jax._cli import subsample
+    from rootshape_jax._cli._inputs import subsample
 
     items = list(range(53))
     assert subsample(items, 6) == [0, 10, 21, 31, 42, 52]
@@ -250,7 +250,7 @@ def test_subsample_is_even_and_ordered():
 
 
 def test_scale_tree_scales_about_the_base():
-    from rootshape_jax._cli import scale_tree
+    from rootshape_jax import scale_tree
 
     tree = rs.batch(synthetic_roots(2, seed=0), n_points=20)
     scaled = scale_tree(tree, [2.0, 0.5])
@@ -258,6 +258,64 @@ def test_scale_tree_scales_about_the_base():
     np.testing.assert_allclose(np.asarray(scaled.main)[0], o[0] + 2.0 * (np.asarray(tree.main)[0] - o[0]))
     np.testing.assert_allclose(np.asarray(scaled.laterals)[1], o[1] + 0.5 * (np.asarray(tree.laterals)[1] - o[1]))
     np.testing.assert_array_equal(np.asarray(scaled.mask), np.asarray(tree.mask))
+
+
+def test_cluster_numbers_agree_in_csv_figure_and_table(tmp_path, monkeypatch):
+    """clusters.csv, the dendrogram's cluster rows (label, size, colour) and the HTML table all
+    number the clusters the same way (one `Clustering`)."""
+    import argparse
+
+    import matplotlib.colors as mcolors
+
+    import rootshape_jax.plot as rplot
+    from rootshape_jax._cli._inputs import prepare
+    from rootshape_jax._cli._report import Output
+    from rootshape_jax._cli._steps import Context, run_cluster
+
+    roots = [r for c in ("control", "drought", "high_nitrate") for r in synthetic_roots(4, condition=c, seed=5)]
+    args = argparse.Namespace(laterals=4, points=12, normalise_scale=True, clusters=3, linkage="average")
+    ctx = Context(prepare(roots, args))
+    # Distances between random points with three well-separated groups (no registration).
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(12, 3)) + np.repeat(np.array([[0, 0, 0], [9, 0, 0], [0, 9, 0]]), 4, axis=0)
+    x = x[rng.permutation(12)]
+    ctx.distances = np.linalg.norm(x[:, None] - x[None], axis=-1)
+
+    drawn = {}
+    original = rplot.plot_dendrogram
+
+    def spy(*a, **kw):
+        drawn["fig"], drawn["axes"] = original(*a, **kw)
+        return drawn["fig"], drawn["axes"]
+
+    monkeypatch.setattr(rplot, "plot_dendrogram", spy)
+    out = Output(tmp_path / "o", args)
+    run_cluster(ctx, out, args)
+
+    with open(tmp_path / "o" / "clusters.csv", newline="") as f:
+        csv_number = {r["root"]: int(r["cluster"]) for r in csv.DictReader(f)}
+    assert set(csv_number.values()) == {1, 2, 3}
+    seen = set()
+    for row in drawn["axes"]["roots"]:
+        label = row[0].get_ylabel()
+        m = re.fullmatch(r"cluster (\d+)\nn = (\d+)", label)
+        assert m, label
+        number, size = int(m.group(1)), int(m.group(2))
+        seen.add(number)
+        assert size == sum(v == number for v in csv_number.values())
+        for ax in row:  # every root drawn in this row is in this cluster in the CSV
+            assert csv_number[ax.get_title()] == number, (ax.get_title(), number)
+        assert mcolors.to_hex(row[0].yaxis.label.get_color()) == mcolors.to_hex(rplot.slot_color(number - 1))
+    assert seen == {1, 2, 3}
+    # The condition-by-cluster table on the page uses the same numbers.
+    table = out.sections[0].items[0].html
+    assert all(f"<th>cluster {g}</th>" in table for g in (1, 2, 3)) and "cluster 0" not in table
+    cond = {r.name: r.metadata["condition"] for r in ctx.pop.roots}
+    cells = re.findall(r"<tr><td>(\w+)</td>((?:<td>\d+</td>)+)</tr>", table)
+    for condition, counts in cells:
+        counts = [int(c) for c in re.findall(r"\d+", counts)]
+        assert counts == [sum(cond[n] == condition and csv_number[n] == g for n in csv_number) for g in (1, 2, 3)]
+    assert len(cells) == 3
 
 
 # --------------------------------------------------------------------------------------------
@@ -300,6 +358,10 @@ def test_demo_tiny_index_links_exist(tmp_path):
     linked = set(parser.links) | set(parser.images)
     steps = {n for n in written if n.startswith("geodesic_step_")}
     assert written - steps <= linked, written - linked
+    # Every file is one the overwrite check knows (a rerun into this folder is refused).
+    from rootshape_jax._cli._report import is_output_name
+
+    assert all(is_output_name(n) for n in written | {"index.html"}), written
     # Timings of every step are on the page.
     text = index.read_text(encoding="utf-8")
     for step in ("Distance matrix", "Mean root", "Modes of variation", "Clusters"):
@@ -326,7 +388,7 @@ def test_distances_match_the_library(rsml_files, tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert (out / "distances.png").read_bytes()[:4] == b"\x89PNG"
     names, D = read_matrix(out / "distances.csv")
-    from rootshape_jax._cli import limit_laterals
+    from rootshape_jax import limit_laterals
 
     roots = read_rsml(rsml_files / "control.rsml") + read_rsml(rsml_files / "drought.rsml")
     roots = [limit_laterals(r, 3) for r in roots]
@@ -352,3 +414,253 @@ def test_geodesic_end_to_end(rsml_files, tmp_path):
     assert steps[-1][0].main_length == pytest.approx(rb.main_length, rel=0.02)
     assert steps[0][0].metadata["unit"] == ra.metadata["unit"] == "mm"
     assert "elastic distance" in proc.stdout
+
+
+# --------------------------------------------------------------------------------------------
+# Reliability (issues 17 and 18): folders with bad files, earlier results, atomic writes,
+# CSV injection, Ctrl-C
+
+SHARED_RSML = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "rsml"
+
+
+@pytest.fixture
+def folder_with_bad_files(tmp_path) -> Path:
+    """Two good RSML files, one that is not XML, one without geometry, one partly bad."""
+    folder = tmp_path / "mixed"
+    folder.mkdir()
+    write_rsml(synthetic_roots(2, condition="control", seed=1), folder / "a_good.rsml")
+    (folder / "b_notxml.rsml").write_text("this is not xml")
+    (folder / "c_nogeom.rsml").write_text((DATA / "no_geometry.rsml").read_text())
+    (folder / "d_partly.rsml").write_text((DATA / "bad_roots.rsml").read_text())
+    write_rsml(synthetic_roots(1, condition="drought", seed=2), folder / "e_good.rsml")
+    return folder
+
+
+def test_folder_skips_unreadable_files_and_summarises(folder_with_bad_files, tmp_path):
+    out = tmp_path / "o"
+    proc = run_cli("traits", folder_with_bad_files, "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = proc.stderr.splitlines()
+    # One line per problem file, naming it with its reason.
+    assert len([ln for ln in lines if "b_notxml.rsml" in ln]) == 1
+    assert len([ln for ln in lines if "c_nogeom.rsml" in ln]) == 1
+    assert len([ln for ln in lines if "d_partly.rsml" in ln]) == 1
+    assert len(lines) == 3, proc.stderr
+    assert any("skipped" in ln and "b_notxml.rsml" in ln and "not well-formed XML" in ln for ln in lines)
+    # The summary ends the run: 2 + 2 (partly bad: ok1, ok2) + 1 roots from 3 files.
+    summary = proc.stdout.strip().splitlines()[-1]
+    assert summary == ("read 5 root system(s) from 3 file(s); skipped 2: b_notxml.rsml (not well-formed XML), "
+                       "c_nogeom.rsml (nothing readable)."), summary
+    with open(out / "traits.csv", newline="") as f:
+        assert len(list(csv.DictReader(f))) == 5
+    # Full detail goes to the log: every skipped part of the partly bad file, each skip reason.
+    log = (out / "rootshape.log").read_text()
+    assert "root id='nan'" in log and "root id='onlyspline'" in log
+    assert "b_notxml.rsml" in log and "c_nogeom.rsml" in log
+
+
+def test_strict_stops_at_first_bad_file(folder_with_bad_files, tmp_path):
+    proc = run_cli("traits", folder_with_bad_files, "--strict", "--out", tmp_path / "o")
+    assert_one_line_error(proc, "b_notxml.rsml", "not well-formed XML")
+
+
+def test_folder_of_only_bad_files_fails_naming_them(tmp_path):
+    folder = tmp_path / "bad"
+    folder.mkdir()
+    (folder / "x.rsml").write_text("nope")
+    (folder / "y.rsml").write_text("<rsml><metadata/></rsml>")
+    proc = run_cli("traits", folder, "--out", tmp_path / "o")
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 3 and lines[0].startswith("rootshape: warning: skipped") and "x.rsml" in lines[0]
+    assert lines[-1] == ("rootshape: error: no readable roots: every file was skipped: x.rsml (not well-formed "
+                         "XML), y.rsml (no <scene> element). Fix or remove these files.")
+
+
+@pytest.mark.skipif(not SHARED_RSML.is_dir(), reason="shared RSML data not present")
+def test_real_folder_with_a_file_without_geometry(tmp_path):
+    import shutil
+
+    folder = tmp_path / "smartroot"
+    shutil.copytree(SHARED_RSML / "smartroot", folder)
+    proc = run_cli("traits", folder, "--out", tmp_path / "o")
+    assert proc.returncode == 0, proc.stderr
+    warn = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    # maize.rsml (17 parts skipped) and root_ramifie.rsml, each summarised (no per-root detail).
+    assert len(warn) == 2 and not any("root id=" in ln for ln in warn), warn
+    assert any("root_ramifie.rsml" in ln and "skipped" in ln for ln in warn)
+    assert "skipped 1: root_ramifie.rsml (nothing readable)" in proc.stdout
+
+
+def test_earlier_results_are_not_overwritten(rsml_files, tmp_path):
+    out = tmp_path / "o"
+    assert run_cli("traits", rsml_files / "control.rsml", "--out", out).returncode == 0
+    before = (out / "traits.csv").read_bytes()
+    proc = run_cli("traits", rsml_files, "--out", out)
+    assert_one_line_error(proc, str(out), "traits.csv", "--overwrite")
+    assert (out / "traits.csv").read_bytes() == before
+    proc = run_cli("traits", rsml_files, "--out", out, "--overwrite")
+    assert proc.returncode == 0, proc.stderr
+    with open(out / "traits.csv", newline="") as f:
+        assert len(list(csv.DictReader(f))) == 4
+    assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]
+
+
+def _output(folder, *, overwrite):
+    import argparse
+
+    from rootshape_jax._cli._report import Output
+
+    return Output(folder, argparse.Namespace(overwrite=overwrite))
+
+
+def test_writes_replace_a_symlink_never_write_through_it(tmp_path):
+    from rootshape_jax._cli._common import CLIError
+
+    target = tmp_path / "precious.txt"
+    target.write_text("keep me")
+    folder = tmp_path / "o"
+    folder.mkdir()
+    (folder / "notes.txt").write_text("not a result")  # unrelated files do not block a run
+    (folder / "x.csv").symlink_to(target)
+    out = _output(folder, overwrite=False)
+    with pytest.raises(CLIError, match="x.csv"):
+        out.write("x.csv", lambda p: p.write_text("new"))
+    out = _output(folder, overwrite=True)
+    out.write("x.csv", lambda p: p.write_text("new"))
+    assert target.read_text() == "keep me"
+    assert not (folder / "x.csv").is_symlink() and (folder / "x.csv").read_text() == "new"
+    assert sorted(p.name for p in folder.iterdir()) == ["notes.txt", "x.csv"]
+
+
+def test_full_disk_names_the_file_and_keeps_the_earlier_one(rsml_files, tmp_path, monkeypatch, capsys):
+    import errno
+
+    import rootshape_jax._cli._report as report
+    from rootshape_jax._cli import main
+
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "traits.csv").write_text("earlier results\n")
+
+    class FullDisk:
+        def __init__(self, f, **kw):
+            pass
+
+        def writerow(self, row):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(report.csv, "writer", FullDisk)
+    assert main(["traits", str(rsml_files), "--out", str(out), "--overwrite", "--quiet"]) == 1
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith("rootshape: error: "), err
+    assert str(out / "traits.csv") in err[0] and "No space left on device" in err[0]
+    assert "earlier traits.csv is unchanged" in err[0]
+    assert (out / "traits.csv").read_text() == "earlier results\n"
+    assert sorted(p.name for p in out.iterdir()) == ["traits.csv"]  # no temporary file left
+    # The bare form OSError(errno.ENOSPC) is explained too.
+    monkeypatch.setattr(FullDisk, "writerow", lambda self, row: (_ for _ in ()).throw(OSError(errno.ENOSPC)))
+    assert main(["traits", str(rsml_files), "--out", str(out), "--overwrite", "--quiet"]) == 1
+    assert "No space left on device" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "text, expected",
+    [("=HYPERLINK(\"http://x\",\"y\")", "'=HYPERLINK(\"http://x\",\"y\")"), ("+1+2", "'+1+2"),
+     ("-2+3", "'-2+3"), ("@SUM(A1)", "'@SUM(A1)"), ("\tx", "'\tx"), ("\rx", "'\rx"),
+     ("-1.5", "-1.5"), ("-3", "-3"), ("+2e-3", "+2e-3"), ("plain", "plain"), ("a=b", "a=b")],
+)
+def test_csv_cells_are_escaped_like_owasp(text, expected):
+    from rootshape_jax._cli._report import cell
+
+    assert cell(text) == expected
+    assert cell(-1.5) == "-1.5" and cell(np.int64(-3)) == -3
+
+
+def test_formula_root_labels_are_escaped_in_csv(tmp_path):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    roots = synthetic_roots(2, seed=0)
+    import dataclasses
+
+    roots = [dataclasses.replace(roots[0], name='=HYPERLINK("http://evil","x")'),
+             dataclasses.replace(roots[1], name="-7")]
+    write_rsml(roots, folder / "f.rsml")
+    out = tmp_path / "o"
+    proc = run_cli("traits", folder, "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    with open(out / "traits.csv", newline="") as f:
+        names = [r["name"] for r in csv.DictReader(f)]
+    assert names == ['\'=HYPERLINK("http://evil","x")', "-7"]
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_distances_exits_cleanly(tmp_path):
+    """SIGINT while the distance matrix compiles or runs: exit code 130 every time, never a
+    death by signal (the old code died by SIGSEGV when interrupted during compilation)."""
+    import os
+    import random
+    import select
+    import signal
+    import time
+
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}  # compile for real
+    rng = random.Random(18)
+    for attempt in range(3):
+        out = tmp_path / f"o{attempt}"
+        p = subprocess.Popen(
+            [sys.executable, "-m", "rootshape_jax", "distances", "--synthetic", "4", "--condition",
+             "control", "--condition", "drought", "--points", "20", "--laterals", "3", "--out", str(out)],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+        )
+        seen, deadline = b"", time.monotonic() + 120
+        while b"/28 " not in seen and time.monotonic() < deadline:  # the progress bar is shown
+            if select.select([p.stderr], [], [], 1.0)[0]:
+                chunk = os.read(p.stderr.fileno(), 4096)
+                if not chunk:
+                    break
+                seen += chunk
+        assert b"/28 " in seen, seen.decode(errors="replace")
+        time.sleep(rng.uniform(1.0, 8.0))
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=120)
+        err = (seen + err).decode(errors="replace")
+        assert p.returncode == 130, (attempt, p.returncode, err[-2000:])
+        assert "Traceback" not in err and "rootshape: interrupted" in err
+        assert not (out / "distances.csv").exists()
+        assert not [q for q in out.iterdir() if q.name.endswith(".tmp")]
+
+
+@pytest.mark.slow
+def test_store_resumes_after_ctrl_c(tmp_path):
+    """--store keeps the finished blocks of an interrupted run; the rerun computes only the
+    missing ones and the matrix equals the library's."""
+    pytest.importorskip("dask.distributed")
+    import signal
+    import time
+
+    store, out = tmp_path / "store", tmp_path / "o"
+    cmd = [sys.executable, "-m", "rootshape_jax", "distances", "--synthetic", "10", "--condition", "control",
+           "--condition", "drought", "--points", "16", "--laterals", "3", "--float64", "--quiet",
+           "--store", str(store), "--out", str(out)]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 600
+    while not list(store.glob("block_*.npz")) and p.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 130, err.decode(errors="replace")[-2000:]  # 190 pairs: 3 blocks of 64
+    kept = sorted(q.name for q in store.glob("block_*.npz"))
+    assert 1 <= len(kept) < 3, kept
+    assert not out.exists() or not (out / "distances.csv").exists()
+
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1200)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert f"{len(kept)} of 3 blocks of 64 pairs read from earlier runs, {3 - len(kept)} computed" in proc.stdout
+    names, D = read_matrix(out / "distances.csv")
+    roots = [r for c in ("control", "drought") for r in synthetic_roots(10, condition=c, seed=0)]
+    roots = [rs.limit_laterals(r, 3) for r in roots]
+    assert names == [r.name for r in roots]
+    ref = np.asarray(rs.pairwise_distances(rs.batch(roots, n_points=16, normalise_scale=True), progress=False))
+    np.testing.assert_allclose(D, ref, rtol=1e-6, atol=1e-9)

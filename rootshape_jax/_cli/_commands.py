@@ -1,0 +1,146 @@
+"""The subcommands: load the roots, run the analysis steps in order, report."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from ._common import PAPER_TRAITS, say
+from ._inputs import Reading, load_roots, pick, prepare, read_requested, subsample
+from ._report import LOG_NAME, Output, settings, write_index
+from ._steps import (
+    Context,
+    run_cluster,
+    run_distances,
+    run_geodesic,
+    run_mean,
+    run_pca,
+    run_regress,
+    run_sample,
+    run_traits,
+)
+
+
+def _read(args, out: Output, reading: Reading, paths=None) -> list:
+    """The input roots; the details of any skipped file or part go to the log file at once."""
+    roots = load_roots(args, paths=paths, reading=reading)
+    out.log[:] = reading.log
+    out.write_log()
+    return roots
+
+
+def _finish(out: Output, reading: Reading) -> None:
+    out.print_summary()
+    if reading.files or reading.skipped:
+        print(reading.summary())
+
+
+def _pipeline(args, steps, *, min_roots: int = 2) -> None:
+    """Load and prepare the roots, run `steps` (each ``step(ctx, out, args)``) in order."""
+    out = Output(args.out, args)
+    reading = Reading(log_path=str(out.path(LOG_NAME)))
+    ctx = Context(prepare(_read(args, out, reading), args, min_roots=min_roots, samples=args.samples))
+    for step in steps:
+        step(ctx, out, args)
+    _finish(out, reading)
+
+
+def cmd_distances(args) -> None:
+    _pipeline(args, [run_distances])
+
+
+def cmd_mean(args) -> None:
+    _pipeline(args, [run_mean], min_roots=1)
+
+
+def cmd_pca(args) -> None:
+    _pipeline(args, [run_mean, run_pca])
+
+
+def cmd_sample(args) -> None:
+    _pipeline(args, [run_mean, run_pca, run_sample])
+
+
+def cmd_regress(args) -> None:
+    # Check the requested traits before the long computation.
+    args.requested_values = read_requested(args.requested) if args.requested else None
+    _pipeline(args, [run_mean, run_pca, run_regress], min_roots=len(PAPER_TRAITS) + 2)
+
+
+def cmd_cluster(args) -> None:
+    _pipeline(args, [run_distances, run_cluster])
+
+
+def cmd_traits(args) -> None:
+    out = Output(args.out, args)
+    reading = Reading(log_path=str(out.path(LOG_NAME)))
+    roots = subsample(_read(args, out, reading), args.samples)
+    run_traits(roots, out, args)
+    _finish(out, reading)
+
+
+def cmd_geodesic(args) -> None:
+    out = Output(args.out, args)
+    reading = Reading(log_path=str(out.path(LOG_NAME)))
+    a = pick(_read(args, out, reading, [args.a]), args.root_a, args.a)
+    b = pick(_read(args, out, reading, [args.b]), args.root_b, args.b)
+    run_geodesic(a, b, out, args)
+    _finish(out, reading)
+
+
+def cmd_demo(args) -> None:
+    from rootshape_jax.datasets import default_dataset
+
+    out = Output(args.out, args)
+    start = time.perf_counter()
+    all_roots = default_dataset()
+    ctx = Context(prepare(all_roots, args, min_roots=len(PAPER_TRAITS) + 2, samples=args.samples))
+    pop = ctx.pop
+    steps: list[tuple[str, Callable[[], None]]] = [
+        ("traits", lambda: run_traits(pop.roots, out, args)),
+        ("distances", lambda: run_distances(ctx, out, args)),
+        ("geodesic", lambda: run_geodesic(*_demo_pair(ctx), out, args)),
+        ("mean", lambda: run_mean(ctx, out, args)),
+        ("modes", lambda: run_pca(ctx, out, args)),
+        ("random roots", lambda: run_sample(ctx, out, args)),
+        ("regression", lambda: run_regress(ctx, out, args)),
+        ("clusters", lambda: run_cluster(ctx, out, args)),
+    ]
+    for i, (name, fn) in enumerate(steps, 1):
+        say(args, f"[{i}/{len(steps)}] {name}")
+        fn()
+    counts: dict[str, int] = {}
+    for c in pop.conditions or []:
+        counts[c] = counts.get(c, 0) + 1
+    intro = [
+        f"{len(pop.names)} synthetic root systems from the bundled data set "
+        f"({', '.join(f'{v} {k}' for k, v in counts.items())}), analysed with the elastic "
+        "shape metric of Wang et al. (main root, laterals and their positions; rotation, "
+        "re-parameterisation and lateral correspondence optimised for every pair).",
+        f"Each branch is resampled to T = {args.points} points"
+        + (" (the demo's reduced resolution, chosen so it runs in a few minutes on a 2-core "
+           "machine; use --points 100 for the library's usual resolution)" if args.points < 100 else "")
+        + (f"; {len(pop.names)} of the {len(all_roots)} roots used (--samples)" if len(pop.names) < len(all_roots) else "")
+        + ".",
+        f"Total time {time.perf_counter() - start:.0f} s, including compilation (see the timings).",
+    ]
+    write_index(out, title="rootshape demo", intro=intro, settings=settings(args, pop))
+    print(f"Open {out.path('index.html').resolve()} in a web browser.")
+    print(f"Results are in {out.folder.resolve()}")
+
+
+def _demo_pair(ctx: Context):
+    """The medoids (smallest sum of squared distances) of the first two conditions, or the
+    two farthest roots when there are no conditions."""
+    pop, D = ctx.pop, ctx.distances
+    groups = list(dict.fromkeys(pop.conditions or []))
+    if len(groups) >= 2:
+        pair = []
+        for g in groups[:2]:
+            idx = [i for i, c in enumerate(pop.conditions) if c == g]
+            pair.append(idx[int(np.argmin(np.sum(D[np.ix_(idx, idx)] ** 2, axis=1)))])
+    else:
+        pair = list(np.unravel_index(int(np.argmax(D)), D.shape))
+    return pop.roots[pair[0]], pop.roots[pair[1]]

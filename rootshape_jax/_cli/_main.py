@@ -1,0 +1,124 @@
+"""Entry point of ``rootshape``: JAX configuration, running a subcommand, errors as one line.
+
+This is the only module of the package allowed to change JAX's global configuration
+(DESIGN.md §8, §10): it asks for one XLA CPU device per core before JAX starts and turns on
+float64 on request.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import sys
+import warnings
+from collections.abc import Sequence
+
+from ._common import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, PROG, CLIError
+from ._parser import build_parser
+from ._report import remove_pending
+
+
+def configure_jax(*, devices: int | None, float64: bool) -> None:
+    """One XLA CPU device per core (so batches run on every core) and optional float64.
+
+    The device count can only be set before JAX has started; when it has already started
+    (e.g. `main` called from a running Python session) the current devices are kept.
+    """
+    import jax
+
+    n = (os.cpu_count() or 1) if devices is None else devices
+    with contextlib.suppress(RuntimeError):
+        jax.config.update("jax_num_cpu_devices", int(n))
+    if float64:
+        jax.config.update("jax_enable_x64", True)
+
+
+def one_line(e: BaseException) -> str:
+    text = str(e).strip() or type(e).__name__
+    return text.splitlines()[0]
+
+
+@contextlib.contextmanager
+def _plain_warnings():
+    """Library warnings (e.g. skipped parts of an RSML file) as one line each, no source."""
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"{PROG}: warning: {one_line(message) if isinstance(message, Warning) else message}",
+              file=sys.stderr)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        warnings.simplefilter("ignore", FutureWarning)
+        old = warnings.showwarning
+        warnings.showwarning = show
+        try:
+            yield
+        finally:
+            warnings.showwarning = old
+
+
+def _end_process(code: int) -> None:
+    """End the process now, skipping the interpreter's shutdown.
+
+    After Ctrl-C, XLA may still be compiling on its own threads (KeyboardInterrupt comes out of
+    `backend.compile_and_load` while they run) or running host callbacks; Python's shutdown
+    then tears down objects those threads still use, which killed the process with SIGSEGV
+    (measured: 5 of 5 interrupts during compilation). Every file is complete or absent (atomic
+    writes), so skipping the shutdown loses nothing.
+    """
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(code)
+
+
+def _on_sigint(signum, frame) -> None:
+    """Ctrl-C when run as the program: remove half-written temporary files and end at once.
+
+    Raising KeyboardInterrupt is not enough: it can surface inside a garbage-collection
+    callback of JAX, where Python prints "Exception ignored" and the run goes on (measured).
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not interrupt the exit
+    remove_pending()
+    print(f"\n{PROG}: interrupted; every file written so far is complete.", file=sys.stderr)
+    _end_process(EXIT_INTERRUPTED)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line with `argv` (default ``sys.argv[1:]``); returns the exit code.
+
+    Run as the program (`argv` None: the ``rootshape`` script, ``python -m rootshape_jax``),
+    Ctrl-C ends the process at once with exit code 130 (`_on_sigint`); called with an `argv`
+    list (from Python) a KeyboardInterrupt returns 130 instead.
+    """
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:  # --help, --version, or a usage error (already printed)
+        return int(e.code) if isinstance(e.code, int) else EXIT_USAGE
+    configure_jax(devices=args.devices, float64=args.float64)
+    if argv is None:  # the program: Ctrl-C ends the process (`_on_sigint`)
+        with contextlib.suppress(ValueError):  # not the main thread: keep KeyboardInterrupt
+            signal.signal(signal.SIGINT, _on_sigint)
+    try:
+        with _plain_warnings():
+            args.func(args)
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted; every file written so far is complete.", file=sys.stderr)
+        if argv is None:
+            _end_process(EXIT_INTERRUPTED)
+        return EXIT_INTERRUPTED
+    except Exception as e:  # noqa: BLE001 - every failure becomes one line unless --debug
+        if args.debug:
+            raise
+        import rootshape_jax as rs
+
+        known = (CLIError, rs.RootShapeError, ValueError, TypeError, OSError)
+        if isinstance(e, known):
+            print(f"{PROG}: error: {one_line(e)}", file=sys.stderr)
+        else:
+            print(f"{PROG}: error: {type(e).__name__}: {one_line(e)} (this looks like a bug; "
+                  "run again with --debug and report the traceback)", file=sys.stderr)
+        return EXIT_ERROR
+    return EXIT_OK

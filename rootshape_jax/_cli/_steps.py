@@ -1,0 +1,323 @@
+"""The analyses, each writing its tables and figures into the output folder.
+
+Every ``run_*`` step takes the shared `Context` (so the demo computes the distances and the
+mean once) and adds one section to the report.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from collections.abc import Sequence
+
+import numpy as np
+
+import rootshape_jax as rs
+
+from ._common import PAPER_TRAITS, CLIError, fmt, make_weights, say
+from ._inputs import Population, common_unit, in_input_units, prepare, to_output_roots
+from ._report import Output, html_table, write_dict_csv
+
+
+@dataclasses.dataclass
+class Context:
+    """Results carried from one step to the next (the demo reuses them)."""
+
+    pop: Population
+    distances: np.ndarray | None = None
+    mean: object = None  # KarcherMean
+    pca: object = None  # TangentPCA
+
+
+# Pairs per stored block with --store: at most this much work is lost to an interruption.
+STORE_BLOCK = 64
+
+
+@contextlib.contextmanager
+def _local_client(store):
+    """With --store, an in-process Dask client, so the library's resumable block store is used
+    (it saves each finished block atomically and a rerun computes only the missing ones)."""
+    if not store:
+        yield None
+        return
+    try:
+        from dask.distributed import Client
+    except ImportError:
+        raise CLIError("--store needs Dask: pip install 'rootshape_jax[dask]'.") from None
+    with Client(processes=False, n_workers=1, threads_per_worker=1, dashboard_address=None) as client:
+        yield client
+
+
+def run_distances(ctx: Context, out: Output, args) -> None:
+    from rootshape_jax.plot import plot_distance_matrix
+
+    pop = ctx.pop
+    with out.step("Distance matrix") as sec:
+        n = len(pop.names)
+        say(args, f"Registering every pair of {n} roots ({n * (n - 1) // 2} pairs)...")
+        store = getattr(args, "store", None)
+        with _local_client(store) as client:
+            D, stats = rs.pairwise_distances(
+                pop.tree, weights=make_weights(args), progress=not args.quiet, return_stats=True,
+                client=client, store=store, block_size=STORE_BLOCK if store else None,
+            )
+        D = np.asarray(D, dtype=np.float64)
+        ctx.distances = D
+        out.csv(sec, "distances.csv", ["root"] + pop.names, [[n] + list(row) for n, row in zip(pop.names, D)],
+                f"elastic distance between every pair of roots ({len(D)} × {len(D)})")
+        fig, _ = plot_distance_matrix(D, labels=pop.names)
+        out.figure(sec, fig, "distances.png", "heat map of the distance matrix, rows ordered by hierarchical clustering")
+        done = stats.get("lateral_dp")
+        skipped = stats.get("lateral_skipped", stats.get("lateral_pruned"))
+        note = f"{len(D) * (len(D) - 1) // 2} pairs registered"
+        if done is not None and skipped is not None:
+            note += (f"; {done} lateral-pair alignments computed, {skipped} skipped by an exact "
+                     "bound (they could not change the result)")
+        if store:
+            note += (f"; --store {store}: {stats['blocks_from_store']} of {stats['blocks']} blocks "
+                     f"of {STORE_BLOCK} pairs read from earlier runs, {stats['blocks_computed']} computed")
+        sec.notes.append(note + ".")
+
+
+def run_mean(ctx: Context, out: Output, args) -> None:
+    import optimistix as optx
+
+    from rootshape_jax.plot import plot_energy_trace, plot_mean
+
+    pop = ctx.pop
+    with out.step("Mean root (Karcher mean)") as sec:
+        say(args, f"Fitting the mean root of {len(pop.names)} roots (each step registers every root "
+                  "onto the current mean)...")
+        km = rs.karcher_mean(
+            pop.tree, weights=make_weights(args), distances=ctx.distances, max_steps=args.max_steps,
+            throw=False,
+        )
+        ctx.mean = km
+        trace = np.asarray(km.energy_trace, dtype=np.float64)
+        mean_roots = to_output_roots(in_input_units(rs.stack([km.mean]), pop), pop, ["mean"])
+        out.rsml(sec, mean_roots, "mean.rsml", "the mean root (RSML)", unit=pop.unit)
+        out.csv(sec, "mean_energy.csv", ["step", "energy"], list(enumerate(trace)),
+                "Karcher energy F(μ) after each step")
+        fig, _ = plot_mean(pop.tree, km.mean, title=f"Mean of {len(pop.names)} roots")
+        out.figure(sec, fig, "mean.png", "input roots (left) and their mean root (right)")
+        fig, _ = plot_energy_trace(trace)
+        out.figure(sec, fig, "mean_energy.png", "mean squared distance to the mean at each solver step (must fall)")
+        n_drop = int(np.sum(np.asarray(km.dropped)))
+        sec.notes.append(
+            f"{int(km.steps)} steps, final energy {fmt(trace[-1])} (start {fmt(trace[0])}); "
+            f"started from root {pop.names[km.init_index]!r} (the medoid); {n_drop} near-empty "
+            f"lateral slots dropped; mean has {int(np.sum(np.asarray(km.mean.mask)))} laterals."
+        )
+        if not bool(np.asarray(km.result == optx.RESULTS.successful)):
+            sec.notes.append(f"the solver stopped at the step limit ({args.max_steps}) before converging.")
+
+
+def run_pca(ctx: Context, out: Output, args) -> None:
+    from rootshape_jax.plot import plot_explained_variance, plot_modes
+
+    with out.step("Modes of variation (tangent PCA)") as sec:
+        pc = rs.tangent_pca(ctx.mean)
+        ctx.pca = pc
+        eig = np.asarray(pc.eigenvalues, dtype=np.float64)
+        ratio = np.asarray(pc.explained_variance_ratio, dtype=np.float64)
+        rows = [[i + 1, eig[i], ratio[i], float(np.sum(ratio[: i + 1]))] for i in range(len(eig))]
+        header = ["component", "variance", "explained_ratio", "cumulative_ratio"]
+        out.csv(sec, "explained_variance.csv", header, rows, "variance explained by each principal component",
+                table_html=html_table(header, rows, max_rows=8))
+        fig, _ = plot_explained_variance(eig)
+        out.figure(sec, fig, "explained_variance.png", "variance explained per component and cumulated")
+        n_modes = max(1, min(args.modes, len(eig)))
+        alphas = [-2.0, -1.0, 0.0, 1.0, 2.0]
+        trees = rs.modes(pc, alphas, component=list(range(n_modes)))
+        fig, _ = plot_modes(trees, alphas, explained=ratio[:n_modes])
+        out.figure(sec, fig, "modes.png",
+                   f"first {n_modes} modes: mean ± 1 and 2 standard deviations along each component")
+        sec.notes.append(
+            f"{pc.n_components} components explain {100 * pc.variance:.0f} % of the variance "
+            f"(first: {100 * ratio[0]:.1f} %)."
+        )
+
+
+def run_sample(ctx: Context, out: Output, args) -> None:
+    import jax
+
+    from rootshape_jax.plot import plot_samples_by_distance
+
+    pop, pc = ctx.pop, ctx.pca
+    with out.step("Random roots from the fitted model") as sec:
+        n, m = args.n, pc.n_components
+        # Random coefficients b ~ N(0, I) (as `rootshape_jax.sample`), kept so that each root's
+        # distance to the mean in the model, sqrt(sum_i sigma_i b_i^2), needs no registration.
+        key = jax.random.key(args.seed)
+        if args.truncate is None:
+            b = jax.random.normal(key, (n, m), pc.mean.q0.dtype)
+        else:
+            b = jax.random.truncated_normal(key, -args.truncate, args.truncate, (n, m), pc.mean.q0.dtype)
+        trees = rs.reconstruct(pc, b)
+        sigma = np.asarray(pc.eigenvalues, np.float64)[:m]
+        d = np.sqrt(np.sum(np.asarray(b, np.float64) ** 2 * sigma, axis=1))
+        names = [f"random_{i:03d}" for i in range(n)]
+        roots = to_output_roots(in_input_units(trees, pop), pop, names)
+        out.rsml(sec, roots, "random_roots.rsml", f"{n} random roots (RSML)", unit=pop.unit)
+        out.csv(sec, "random_roots.csv", ["root", "model_distance_to_mean"], list(zip(names, d)),
+                "distance of each random root to the mean in the PCA model")
+        fig, _ = plot_samples_by_distance(trees, d, n_groups=min(3, n))
+        out.figure(sec, fig, "random_roots.png",
+                   "random roots, in rows of increasing distance to the mean (in the PCA model)")
+        sec.notes.append(
+            f"coefficients drawn from N(0, 1) on the {m} kept components"
+            + (f", truncated to ±{args.truncate}" if args.truncate else "") + f", seed {args.seed}; "
+            "the distance to the mean is measured in the model, sqrt(Σ σ_i b_i²)."
+        )
+
+
+def trait_matrix(roots, names: Sequence[str] = PAPER_TRAITS) -> np.ndarray:
+    return np.array([[float(r[k]) for k in names] for r in rs.traits(roots)], dtype=np.float64)
+
+
+def run_regress(ctx: Context, out: Output, args) -> None:
+    from rootshape_jax.plot import plot_regression_sweep
+
+    pop = ctx.pop
+    with out.step("Roots predicted from traits (regression)") as sec:
+        # Traits in the input's units, measured on the roots as read. With scale normalisation
+        # the model predicts the shape, and each predicted root is scaled to its requested
+        # main-root length (so that trait is matched exactly by construction).
+        P = trait_matrix(pop.roots)
+        reg = rs.TraitRegression.fit(ctx.pca, None, traits=(), covariates=P, covariate_names=PAPER_TRAITS)
+
+        def predict(values: np.ndarray, names: list[str]):
+            trees = reg.synthesize(values)
+            if pop.normalised:
+                lengths = np.linalg.norm(np.diff(np.asarray(trees.main, np.float64), axis=1), axis=-1).sum(-1)
+                trees = rs.scale_tree(trees, values[:, 0] / np.maximum(lengths, 1e-12))
+            return trees, to_output_roots(trees, pop, names)
+
+        # How well the model reproduces the training roots' own traits.
+        _, fitted = predict(P, [f"fit_{i}" for i in range(len(P))])
+        got = trait_matrix(fitted)
+        report = []
+        for j, name in enumerate(PAPER_TRAITS):
+            y, yhat = P[:, j], got[:, j]
+            ss = float(np.sum((y - y.mean()) ** 2))
+            r2 = 1.0 - float(np.sum((yhat - y) ** 2)) / ss if ss > 0 else float("nan")
+            rel = float(np.mean(np.abs(yhat - y) / np.maximum(np.abs(y), 1e-12)))
+            report.append([name, r2, rel])
+        header = ["trait", "r2_requested_vs_measured", "mean_relative_error"]
+        out.csv(sec, "regression_report.csv", header, report,
+                "traits requested (those of the input roots) vs traits measured on the predicted roots",
+                table_html=html_table(header, report))
+
+        if getattr(args, "requested_values", None) is not None:
+            values, vary = args.requested_values, None
+        else:
+            # Sweep one trait from its 10th to its 90th percentile, the others at their median.
+            vary = PAPER_TRAITS.index(args.vary)
+            values = np.tile(np.median(P, axis=0), (5, 1))
+            values[:, vary] = np.percentile(P[:, vary], [10, 30, 50, 70, 90])
+        names = [f"predicted_{i:03d}" for i in range(len(values))]
+        trees, roots = predict(values, names)
+        out.rsml(sec, roots, "predicted_roots.rsml", f"{len(roots)} roots predicted from requested traits (RSML)",
+                 unit=pop.unit)
+        measured = trait_matrix(roots)
+        rows = [[n] + list(v) + list(m) for n, v, m in zip(names, values, measured)]
+        header = ["root"] + [f"requested_{k}" for k in PAPER_TRAITS] + [f"measured_{k}" for k in PAPER_TRAITS]
+        out.csv(sec, "predicted_roots.csv", header, rows, "requested and measured traits of each predicted root")
+        k = 0 if vary is None else vary
+        fig, _ = plot_regression_sweep(
+            trees, values[:, k], trait_name=PAPER_TRAITS[k].replace("_", " "), unit=pop.unit,
+            measured=measured[:, k],
+        )
+        what = "requested" if vary is None else f"{PAPER_TRAITS[k].replace('_', ' ')} varied, other traits at their median"
+        out.figure(sec, fig, "predicted_roots.png", f"roots predicted from traits ({what}); measured value below")
+        if pop.normalised:
+            sec.notes.append(
+                "shapes were compared at equal main-root length; each predicted root is scaled to its "
+                "requested main-root length, so that trait matches by construction."
+            )
+
+
+def cluster_number(label: int) -> int:
+    """The number a cluster has in every output: 1, 2, ... left to right in the dendrogram,
+    as `rootshape_jax.plot.plot_dendrogram` labels and colours them (`Clustering.labels` + 1)."""
+    return int(label) + 1
+
+
+def run_cluster(ctx: Context, out: Output, args) -> None:
+    from rootshape_jax.plot import plot_dendrogram
+
+    pop = ctx.pop
+    with out.step("Clusters and classification") as sec:
+        D = ctx.distances
+        known = sorted(set(pop.conditions)) if pop.conditions else []
+        k = args.clusters or (len(known) if len(known) >= 2 else 2)
+        k = min(k, len(pop.names))
+        # One clustering for the CSV, the table and the figure: the figure is drawn from its
+        # linkage with its number of clusters, so leaf order and cluster numbers are the same.
+        cl = rs.cluster(D, n_clusters=k, method=args.linkage)
+        numbers = [cluster_number(c) for c in cl.labels]
+        header = ["root", "cluster"] + (["condition"] if pop.conditions else [])
+        rows = [[n, c] + ([pop.conditions[i]] if pop.conditions else []) for i, (n, c) in enumerate(zip(pop.names, numbers))]
+        item = out.csv(sec, "clusters.csv", header, rows,
+                       f"cluster of each root ({cl.n_clusters} clusters, {args.linkage} linkage; numbered "
+                       "left to right in the dendrogram)")
+        fig, _ = plot_dendrogram(cl.linkage, labels=pop.names, n_clusters=cl.n_clusters, roots=pop.tree)
+        out.figure(sec, fig, "dendrogram.png", "dendrogram of the distance matrix, coloured by cluster, with members of each cluster")
+        if len(known) >= 2:
+            # Which conditions ended up in which cluster (the CSV has the same per root).
+            cond, num = np.asarray(pop.conditions), np.asarray(numbers)
+            groups = [cluster_number(g) for g in range(cl.n_clusters)]
+            table = [[c] + [int(np.sum((cond == c) & (num == g))) for g in groups] for c in known]
+            item.html = html_table(["condition"] + [f"cluster {g}" for g in groups], table)
+            acc_rows = []
+            for rule, label in (("nearest_neighbour", "nearest neighbour"), ("nearest_mean", "nearest class mean")):
+                res = rs.loo_accuracy(D, np.asarray(pop.conditions), rule=rule)
+                acc_rows.append([label, res["accuracy"], int(np.sum(res["correct"])), len(pop.names)])
+            header = ["rule", "accuracy", "correct", "roots"]
+            out.csv(sec, "classification.csv", header, acc_rows,
+                    f"leave-one-out classification of the conditions ({', '.join(known)}) from distances alone",
+                    table_html=html_table(header, acc_rows))
+            sec.notes.append(
+                "classification accuracy (leave-one-out): "
+                + "; ".join(f"{r[0]} {100 * r[1]:.0f} %" for r in acc_rows)
+                + f" (chance ≈ {100 / len(known):.0f} %)."
+            )
+
+
+def run_traits(roots: list, out: Output, args) -> None:
+    with out.step("Root traits") as sec:
+        rows = rs.traits(roots)
+        for r, root in zip(rows, roots):
+            for key in ("condition", "unit", "source_file"):
+                if key in root.metadata:
+                    r[key] = root.metadata[key]
+        out.write("traits.csv", lambda p: write_dict_csv(p, rows))
+        show = ["name", "main_length", "n_laterals", "mean_lateral_length", "total_length", "depth", "width"]
+        out.file(sec, "traits.csv", f"architecture traits of the {len(rows)} input roots (lengths in "
+                 f"{common_unit(roots) or 'input units'})", "table",
+                 html_table(show, [[r[k] for k in show] for r in rows], max_rows=10))
+
+
+def run_geodesic(a_root, b_root, out: Output, args) -> None:
+    from rootshape_jax.plot import plot_geodesic
+
+    pop = prepare([a_root, b_root], args, min_roots=2)
+    pair = pop.roots
+    with out.step("Geodesic (optimal deformation)") as sec:
+        a, b = rs.unstack(pop.tree)
+        reg = rs.register(a, b, weights=make_weights(args))
+        path = rs.geodesic(a, b, n_steps=args.steps, weights=make_weights(args), registration=reg)
+        taus = np.linspace(0.0, 1.0, args.steps)
+        la, lb = (r.main_length for r in pair)
+        # Back to the input's units, the size changing along the path.
+        path_out = rs.scale_tree(path, [(1 - t) * la + t * lb for t in taus]) if pop.normalised else path
+        names = [f"step_{i:02d}" for i in range(args.steps)]
+        for i, r in enumerate(to_output_roots(path_out, pop, names)):
+            out.rsml(None, [r], f"geodesic_step_{i:02d}.rsml", "", unit=pop.unit)
+        out.file(sec, "geodesic_step_00.rsml",
+                 f"each step of the deformation as RSML: geodesic_step_00.rsml … geodesic_step_{args.steps - 1:02d}.rsml")
+        fig, _ = plot_geodesic(path, title=f"{pair[0].name} → {pair[1].name}: optimal deformation "
+                                           "(colour = corresponding lateral)")
+        out.figure(sec, fig, "geodesic.png", f"optimal deformation of {pair[0].name} into {pair[1].name}, "
+                   "one colour per matched lateral")
+        sec.notes.append(f"elastic distance {pair[0].name} → {pair[1].name}: {fmt(float(reg.distance))}.")
