@@ -33,8 +33,7 @@ def fmt(x: float, digits: int = 4) -> str:
 def make_weights(args):
     import rootshape_jax as rs
 
-    main, lateral, position = args.weights
-    return rs.Weights(main=main, lateral=lateral, position=position)
+    return rs.Weights(*args.weights)  # one value per term, in the order of rs.TERMS
 
 
 def version() -> str:

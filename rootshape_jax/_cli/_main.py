@@ -1,7 +1,7 @@
 """Entry point of ``rootshape``: JAX configuration, running a subcommand, errors as one line.
 
 This is the only module of the package allowed to change JAX's global configuration
-(DESIGN.md §8, §10): it asks for one XLA CPU device per core before JAX starts and turns on
+(docs/design.md §8, §10): it asks for one XLA CPU device per core before JAX starts and turns on
 float64 on request.
 """
 

@@ -46,16 +46,23 @@ def _positive_float(text: str) -> float:
 
 
 def _weights(text: str):
+    """One non-negative number per metric term, in the order of `rootshape_jax.TERMS`; terms left
+    out keep their default (so the paper's three values still work)."""
+    import rootshape_jax as rs
+
+    names = [t.name for t in rs.TERMS]
     parts = text.replace(";", ",").split(",")
     try:
         values = [float(p) for p in parts]
     except ValueError:
         values = []
-    if len(values) != 3 or not all(math.isfinite(v) and v >= 0 for v in values) or sum(values) == 0:
+    ok = 3 <= len(values) <= len(names) and all(math.isfinite(v) and v >= 0 for v in values) and sum(values) > 0
+    if not ok:
         raise argparse.ArgumentTypeError(
-            f"expected three non-negative numbers main,lateral,position (e.g. 0.02,1,1), got {text!r}"
+            f"expected {len(names) - 1} or {len(names)} non-negative numbers {','.join(names)} "
+            f"(e.g. 0.02,1,1 or 0.02,1,1,0.5), got {text!r}"
         )
-    return tuple(values)
+    return tuple(values) + tuple(t.default_weight for t in rs.TERMS[len(values):])
 
 
 _DESCRIPTION = """\
@@ -107,9 +114,10 @@ def _add_common(p: argparse.ArgumentParser, *, inputs: bool = True, default_out:
                    help="keep at most the N longest laterals of each root (faster; default: all)")
     g.add_argument("--points", type=_points, default=100, metavar="T",
                    help="points per root branch after resampling (default 100; 50 is faster)")
-    g.add_argument("--weights", type=_weights, default=(0.02, 1.0, 1.0), metavar="M,L,P",
-                   help="importance of main-root shape, lateral shape and lateral positions in "
-                        "the distance (default 0.02,1,1 as in the paper)")
+    g.add_argument("--weights", type=_weights, default=(0.02, 1.0, 1.0, 0.0), metavar="M,L,P[,R]",
+                   help="importance of main-root shape, lateral shape, lateral positions and (R) "
+                        "radius along the roots, where the files give diameters, in the distance "
+                        "(default 0.02,1,1,0: the paper's; R > 0 compares thickness too)")
     g.add_argument("--normalise-scale", dest="normalise_scale", action=argparse.BooleanOptionalAction,
                    default=True,
                    help="scale every root to the same main-root length, so only shape counts "

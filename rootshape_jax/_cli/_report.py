@@ -288,6 +288,8 @@ def settings(args, pop) -> list[tuple[str, str]]:
     """The settings table of index.html."""
     import jax
 
+    import rootshape_jax as rs
+
     w = args.weights
     return [
         ("roots", str(len(pop.names))),
@@ -295,7 +297,7 @@ def settings(args, pop) -> list[tuple[str, str]]:
         ("lateral slots (K)", str(int(pop.tree.capacity))),
         ("most laterals of a root", str(max(r.n_laterals for r in pop.roots))),
         ("scale normalised", "yes (every main root scaled to length 1)" if pop.normalised else "no"),
-        ("weights main, lateral, position", f"{w[0]:g}, {w[1]:g}, {w[2]:g}"),
+        ("weights " + ", ".join(t.name for t in rs.TERMS), ", ".join(f"{v:g}" for v in w)),
         ("precision", jax.numpy.zeros(()).dtype.name),
         ("devices", f"{len(jax.devices())} × {jax.devices()[0].platform.upper()}"),
         ("rootshape_jax / jax", f"{version()} / {jax.__version__}"),

@@ -6,7 +6,6 @@ mean once) and adds one section to the report.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 from collections.abc import Sequence
 
@@ -33,21 +32,6 @@ class Context:
 STORE_BLOCK = 64
 
 
-@contextlib.contextmanager
-def _local_client(store):
-    """With --store, an in-process Dask client, so the library's resumable block store is used
-    (it saves each finished block atomically and a rerun computes only the missing ones)."""
-    if not store:
-        yield None
-        return
-    try:
-        from dask.distributed import Client
-    except ImportError:
-        raise CLIError("--store needs Dask: pip install 'rootshape_jax[dask]'.") from None
-    with Client(processes=False, n_workers=1, threads_per_worker=1, dashboard_address=None) as client:
-        yield client
-
-
 def run_distances(ctx: Context, out: Output, args) -> None:
     from rootshape_jax.plot import plot_distance_matrix
 
@@ -56,11 +40,11 @@ def run_distances(ctx: Context, out: Output, args) -> None:
         n = len(pop.names)
         say(args, f"Registering every pair of {n} roots ({n * (n - 1) // 2} pairs)...")
         store = getattr(args, "store", None)
-        with _local_client(store) as client:
-            D, stats = rs.pairwise_distances(
-                pop.tree, weights=make_weights(args), progress=not args.quiet, return_stats=True,
-                client=client, store=store, block_size=STORE_BLOCK if store else None,
-            )
+        # With --store every finished block is saved atomically; a rerun computes only the rest.
+        D, stats = rs.pairwise_distances(
+            pop.tree, weights=make_weights(args), progress=not args.quiet, return_stats=True,
+            store=store, block_size=STORE_BLOCK if store else None,
+        )
         D = np.asarray(D, dtype=np.float64)
         ctx.distances = D
         out.csv(sec, "distances.csv", ["root"] + pop.names, [[n] + list(row) for n, row in zip(pop.names, D)],
