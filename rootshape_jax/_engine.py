@@ -35,7 +35,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ._assignment import linear_assignment
 from ._curves import l2_norm_squared, safe_norm, safe_normalise, safe_sqrt, tiny
 from ._devices import split_over_devices
-from ._metric import MetricTerms, Weights, level_weight, pair_costs, preshape_terms
+from ._metric import TERMS, MetricTerms, Weights, level_weight, pair_costs, preshape_terms
 from ._rotation import optimal_rotation
 from ._tree import SRVFTree
 from ._warp import apply_warp_srvf, dp_warp
@@ -259,6 +259,7 @@ class Prepared(eqx.Module):
 
     a: SRVFTree
     b: SRVFTree
+    weights: Weights
     lam_main: Array
     lam_lateral: Array
     La: Array  # [B, K] lateral lengths ||q||² of a (0 for nulls)
@@ -285,7 +286,7 @@ def prepare(a: SRVFTree, b: SRVFTree, weights: Weights) -> Prepared:
         jnp.where(b.mask[:, None, :], (lam_s * Lb)[:, None, :], 0.0),
     )
     fixed = pair_costs(weights, a, b).astype(dtype)
-    return Prepared(a, b, lam_m, lam_s, La, Lb, fixed, others, both, direction_cone(a.q), direction_cone(b.q))
+    return Prepared(a, b, weights, lam_m, lam_s, La, Lb, fixed, others, both, direction_cone(a.q), direction_cone(b.q))
 
 
 def lower_bounds(p: Prepared, O: Float[Array, "B d d"]) -> Float[Array, "B K K"]:
@@ -296,8 +297,9 @@ def lower_bounds(p: Prepared, O: Float[Array, "B d d"]) -> Float[Array, "B K K"]
     interpolation of values of qb, so its direction lies in the convex cone (half-angle < 90°)
     holding b's directions; with qa's cone, the angle between the two cones caps the cosine:
     ``<qa, w> ≤ max(cos φ, 0) √(La Lb)``, where ``φ = angle(axes) − half_a − half_b``. With
-    φ ≤ 0 this is plain Cauchy–Schwarz. The DP-free pair costs (`Prepared.fixed`) are exact,
-    and null costs are exact. So every entry is at most the true cost, and an assignment that
+    φ ≤ 0 this is plain Cauchy–Schwarz. Each metric term turns this bound of the branch energy
+    into its share of the pair's cost (`MetricTerm.pair_lower_bound`: λ times it for the
+    lateral DP terms, the exact DP-free cost for the others), and null costs are exact. So every entry is at most the true cost, and an assignment that
     is optimal with bounds in place of unknown costs, and picks only known ones, is optimal for
     the true costs (`lazy_assignment`).
     """
@@ -313,8 +315,11 @@ def lower_bounds(p: Prepared, O: Float[Array, "B d d"]) -> Float[Array, "B K K"]
     convex = (half_a[:, :, None] < jnp.pi / 2) & (half_b[:, None, :] < jnp.pi / 2)
     cos_cap = jnp.where(convex, jnp.clip(jnp.cos(jnp.maximum(phi, 0.0)), 0.0, 1.0), 1.0)
     sqrt_LaLb = jnp.sqrt(p.La)[:, :, None] * jnp.sqrt(p.Lb)[:, None, :]
-    lower = p.lam_lateral * jnp.maximum(p.La[:, :, None] + p.Lb[:, None, :] - 2 * cos_cap * sqrt_LaLb, 0.0)
-    return jnp.where(p.both, lower + p.fixed, p.others)
+    dp_bound = jnp.maximum(p.La[:, :, None] + p.Lb[:, None, :] - 2 * cos_cap * sqrt_LaLb, 0.0)
+    lower = 0.0
+    for term in TERMS:  # each term's share: λ·dp_bound for the lateral DP terms, exact otherwise
+        lower = lower + term.pair_lower_bound(p.weights, p.a, p.b, dp_bound)
+    return jnp.where(p.both, lower, p.others)
 
 
 def run_dp_slabs(need, pair_of, E, G=None, *, neighbourhood: int, dp_batch_size: int):

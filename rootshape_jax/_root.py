@@ -270,7 +270,8 @@ def limit_laterals(root: Root, n: int | None) -> Root:
     """The root with only its `n` longest laterals, kept in their original order.
 
     `n = None` (or a root with at most `n` laterals) returns `root` itself. Ties in length keep
-    the earlier lateral. `Root.children` (deeper topology) is sliced alongside the laterals.
+    the earlier lateral. `Root.children` (deeper topology) and radii are sliced alongside the
+    laterals.
     """
     if n is None:
         return root
@@ -279,9 +280,4 @@ def limit_laterals(root: Root, n: int | None) -> Root:
     if root.n_laterals <= n:
         return root
     keep = np.sort(np.argsort(-root.lateral_lengths, kind="stable")[: int(n)])
-    return dataclasses.replace(
-        root,
-        laterals=tuple(root.laterals[i] for i in keep),
-        attach=root.attach[keep],
-        children=tuple(root.children[i] for i in keep) if root.children else (),
-    )
+    return root.select_laterals(keep)

@@ -9,7 +9,8 @@ object that says, for its own part of the metric:
   registration solves one DP per branch pair and weights its energy by the sum of the
   weights of the terms at that level;
 - `pair_cost`: the part of a lateral pair's cost that needs no DP (exact, so it is also its
-  own pruning lower bound), or None;
+  own pruning lower bound), or None; `pair_lower_bound`: its share of the DP-free lower bound
+  of a lateral pair's cost that lets registration skip DPs exactly;
 - `tangent_block`: the block of the tangent space (``"q0"``, ``"q"``, ``"s"``) it whitens,
   with ``√λ`` (times the trapezoid weights for the L2 blocks), or None.
 
@@ -50,6 +51,16 @@ class MetricTerm:
         """DP-free part of the cost of matching real lateral i of a with real lateral j of b
         (exact: it is its own lower bound when pruning)."""
         return None
+
+    def pair_lower_bound(self, weights: Weights, a: SRVFTree, b: SRVFTree, dp_bound: Array):
+        """This term's share of a lower bound of a lateral pair's cost, without any DP, given
+        `dp_bound`, a DP-free lower bound of the lateral branch energy ``||qa − w||²`` (see
+        `_engine.lower_bounds`): λ times it for a term weighting the lateral DPs, the exact
+        DP-free cost for the others, 0 when the term has no part in lateral pair costs."""
+        if self.dp_level == "lateral":
+            return weights[self.name] * dp_bound
+        cost = self.pair_cost(weights, a, b)
+        return 0.0 if cost is None else cost
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}()"

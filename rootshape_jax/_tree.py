@@ -582,7 +582,8 @@ def scale_tree(tree: RootTree, scales) -> RootTree:
     """A (batched) `RootTree` with each root scaled about its main-root base.
 
     `scales` broadcasts to the tree's batch shape (one factor per root, or a scalar); factors
-    must be finite and positive. Attachment fractions, masks and every other field are kept.
+    must be finite and positive; radii, when present, scale too. Attachment fractions and masks
+    are kept.
     """
     if not isinstance(tree, RootTree):
         raise TypeError(f"scale_tree: expected a RootTree, got {type(tree).__name__}.")
@@ -599,4 +600,8 @@ def scale_tree(tree: RootTree, scales) -> RootTree:
     main = o + (tree.main - o) * s[..., None, None]
     o_lat = o[..., None, :, :]
     laterals = o_lat + (tree.laterals - o_lat) * s[..., None, None, None]
-    return eqx.tree_at(lambda t: (t.main, t.laterals), tree, (main, laterals))
+    out = eqx.tree_at(lambda t: (t.main, t.laterals), tree, (main, laterals))
+    if tree.main_radius is not None:  # radii are lengths: they scale with the coordinates
+        radii = (tree.main_radius * s[..., None], tree.lateral_radius * s[..., None, None])
+        out = eqx.tree_at(lambda t: (t.main_radius, t.lateral_radius), out, radii)
+    return out

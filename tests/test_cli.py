@@ -8,6 +8,7 @@ they are marked slow.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import re
 import subprocess
 import sys
@@ -664,3 +665,33 @@ def test_store_resumes_after_ctrl_c(tmp_path):
     assert names == [r.name for r in roots]
     ref = np.asarray(rs.pairwise_distances(rs.batch(roots, n_points=16, normalise_scale=True), progress=False))
     np.testing.assert_allclose(D, ref, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_thickness_weight_from_the_command_line(tmp_path):
+    """--weights takes a fourth value, the thickness weight: with diameters in the files the CSV
+    matrix is the library's with Weights(..., thickness=λr), and it differs from λr = 0."""
+    rng = np.random.default_rng(4)
+    roots = []
+    for i, r in enumerate(synthetic_roots(3, condition="control", seed=2)):
+        taper = lambda pts, r0: r0 * (1.2 - np.linspace(0, 1, len(pts)))  # noqa: E731
+        roots.append(dataclasses.replace(
+            r, main_radius=taper(r.main, 0.5 + 0.2 * i),
+            lateral_radii=tuple(taper(lat, 0.2 + 0.1 * rng.random()) for lat in r.laterals),
+        ))
+    write_rsml(roots, tmp_path / "thick.rsml")
+    mats = {}
+    for w in ("0.02,1,1,0.5", "0.02,1,1"):
+        out = tmp_path / w.replace(",", "_")
+        proc = run_cli("distances", tmp_path / "thick.rsml", "--points", 24, "--laterals", 3, "--weights", w,
+                       "--float64", "--quiet", "--out", out)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        mats[w] = read_matrix(out / "distances.csv")[1]
+    from rootshape_jax import limit_laterals
+
+    back = [limit_laterals(r, 3) for r in read_rsml(tmp_path / "thick.rsml")]
+    tree = rs.batch(back, n_points=24, normalise_scale=True)
+    assert tree.main_radius is not None
+    ref = np.asarray(rs.pairwise_distances(tree, weights=rs.Weights(0.02, 1, 1, 0.5), progress=False))
+    np.testing.assert_allclose(mats["0.02,1,1,0.5"], ref, rtol=1e-6, atol=1e-9)
+    assert not np.allclose(mats["0.02,1,1,0.5"], mats["0.02,1,1"])
