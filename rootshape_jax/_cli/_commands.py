@@ -25,10 +25,11 @@ from ._steps import (
 
 def _read(args, out: Output, reading: Reading, paths=None) -> list:
     """The input roots; the details of any skipped file or part go to the log file at once."""
-    roots = load_roots(args, paths=paths, reading=reading)
-    out.log[:] = reading.log
-    out.write_log()
-    return roots
+    try:
+        return load_roots(args, paths=paths, reading=reading)
+    finally:  # also when a file stops the run: the warnings so far point to the log
+        out.log[:] = reading.log
+        out.write_log()
 
 
 def _finish(out: Output, reading: Reading) -> None:

@@ -65,6 +65,10 @@ def read_file(path: Path, args, reading: Reading | None = None) -> list:
         if not roots:
             io.read_rsml(path, strict=True)  # raises the precise reason as one RSMLError
         # Parts skipped in a file that is otherwise readable: one line here, all in the log.
+        others = [w for w in caught if not issubclass(w.category, rs.RSMLWarning)]
+        caught = [w for w in caught if issubclass(w.category, rs.RSMLWarning)]
+        for w in others:
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
         for w in caught:
             if reading is not None:
                 reading.log.append(f"warning: {_about(path, str(w.message))}")
