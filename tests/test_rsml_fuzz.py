@@ -237,3 +237,48 @@ def test_fuzz_read_rsml():
 @pytest.mark.slow
 def test_fuzz_read_rsml_long():
     _fuzz(real=True, n=20000)
+
+
+def test_cli_on_a_folder_of_mutated_files_keeps_going_and_summarises(tmp_path):
+    """`rootshape traits FOLDER` on seeded mutations of real-format files: exit 0, no traceback,
+    every bad file named once, a summary line, and the readable roots' traits written."""
+    import random
+    import subprocess
+    import sys
+
+    from rootshape_jax.datasets import synthetic_roots
+    from rootshape_jax.io import write_rsml
+
+    folder = tmp_path / "mutated"
+    folder.mkdir()
+    good = tmp_path / "good.rsml"
+    write_rsml(synthetic_roots(2, seed=3), good)
+    data = good.read_bytes()
+    rng = random.Random(0)
+    kinds = ["delete", "insert", "bytes", "truncate", "drop_tag", "duplicate_tag", "number"]
+    for k in range(12):
+        muts = []
+        for _ in range(rng.randint(1, 3)):
+            kind = rng.choice(kinds)
+            arg = {"delete": rng.randint(1, 200), "insert": b"<root>", "bytes": bytes([rng.randrange(256)]),
+                   "truncate": b"", "drop_tag": b"", "duplicate_tag": rng.randint(1, 3),
+                   "number": rng.choice([b"nan", b"1e300", b"-", b"7"])}[kind]
+            muts.append((kind, rng.random(), arg))
+        (folder / f"m{k:02d}.rsml").write_bytes(_mutate(data, muts))
+    (folder / "z_good.rsml").write_bytes(data)
+    out = tmp_path / "o"
+    proc = subprocess.run([sys.executable, "-m", "rootshape_jax", "traits", str(folder), "--out", str(out)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr
+    summary = proc.stdout.strip().splitlines()[-1]
+    import re as _re
+
+    m = _re.match(r"read (\d+) root system\(s\) from (\d+) file\(s\)(?:; skipped (\d+): (.*))?", summary)
+    assert m, summary
+    n_read, n_skipped = int(m.group(2)), int(m.group(3) or 0)
+    assert n_read + n_skipped == 13 and n_read >= 1, summary
+    # Each problem file is named on one stderr line at most.
+    for k in range(12):
+        assert len([ln for ln in proc.stderr.splitlines() if f"m{k:02d}.rsml" in ln]) <= 1
+    assert (out / "traits.csv").exists()
