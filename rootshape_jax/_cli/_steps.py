@@ -74,7 +74,7 @@ def run_mean(ctx: Context, out: Output, args) -> None:
                   "onto the current mean)...")
         km = rs.karcher_mean(
             pop.tree, weights=make_weights(args), distances=ctx.distances, max_steps=args.max_steps,
-            throw=False,
+            throw=False, progress=not args.quiet,
         )
         ctx.mean = km
         trace = np.asarray(km.energy_trace, dtype=np.float64)
