@@ -572,7 +572,7 @@ def roots_from_image(
       `high`. Lower values keep fainter roots and more clutter.
     - `close_gaps`: radius (px) of a morphological closing of the mask; 0 disables.
     - `bridge_gaps`: largest gap (px) bridged between skeleton pieces along a tip's direction;
-      None (default) is ``max(15, 3 × root_width)``; 0 disables.
+      None (default) is ``max(20, 4 × root_width)``; 0 disables.
     - `min_object_size`: connected foreground objects smaller than this (px) are removed.
     - `max_hole_size`: background holes up to this size (px) inside roots are filled.
     - `min_root_length`: roots whose main path is shorter (px) are dropped.
@@ -633,7 +633,7 @@ def roots_from_image(
     if not (0 < low <= high):
         raise ValueError(f"sensitivity must be (low, high) with 0 < low <= high, got {sensitivity!r}.")
     if bridge_gaps is None:
-        bridge_gaps = max(15.0, 3.0 * float(root_width))
+        bridge_gaps = max(20.0, 4.0 * float(root_width))
 
     r0 = c0 = 0
     if roi is not None:  # crop first: a photograph's full-size float copy is large
