@@ -64,7 +64,7 @@ def run_one(fn, kind, img, rsml, *, elastic):
     from rootshape_jax.io import compare_to_tracing, read_rsml, total_length
 
     traced = read_rsml(rsml)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -72,7 +72,7 @@ def run_one(fn, kind, img, rsml, *, elastic):
         err = None
     except Exception as e:  # reported as a failed row
         ex, err = [], f"{type(e).__name__}: {e}"
-    seconds = time.perf_counter() - t0
+    seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
     cmp = compare_to_tracing(ex, traced, elastic=elastic and bool(ex))
     ed = [p.elastic_distance for p in cmp.plants]
     lat_e = sum(r.n_laterals for r in ex)
@@ -92,8 +92,34 @@ def run_one(fn, kind, img, rsml, *, elastic):
         "lateral_count_error": abs(lat_e - lat_t) / lat_t if lat_t else float("nan"),
         "elastic_distance_mean": float(np.mean(ed)) if ed and elastic else float("nan"),
         "seconds": seconds,
+        "cpu_seconds": cpu,
+        "recall_8px": cmp.recall,
+        "precision_8px": cmp.precision,
+        "traced_overlap_5px": traced_overlap(traced),
         "error": err,
     }
+
+
+def traced_overlap(traced, radius=5.0, skip=16.0):
+    """Fraction of the traced length lying within `radius` px of another traced branch
+    (ignoring each lateral's first `skip` px, its junction): roots traced separately where
+    they touch, which a skeleton of the photograph shows as one line."""
+    from scipy.spatial import cKDTree
+
+    from rootshape_jax.io._compare import sample_branches
+
+    branches = [b for r in traced for b in (r.main, *r.laterals)]
+    pts = [sample_branches([type(traced[0])(main=b)], 2.0) for b in branches]
+    lab = np.concatenate([np.full(len(p), i) for i, p in enumerate(pts)])
+    allp = np.concatenate(pts)
+    tree = cKDTree(allp)
+    shared = total = 0
+    for i, p in enumerate(pts):
+        q = p[int(skip / 2) :] if i else p
+        for near in tree.query_ball_point(q, radius):
+            total += 1
+            shared += bool(np.any(lab[near] != i))
+    return shared / max(total, 1)
 
 
 def targets(rows):
@@ -110,13 +136,14 @@ def targets(rows):
         "laterals_within_30pct": f"{lat30}/{n}",
         "laterals_within_30pct_pass": lat30 >= 0.7 * n,
         "max_seconds_2500x1900": max((r["seconds"] for r in osr), default=float("nan")),
+        "max_cpu_seconds_2500x1900": max((r["cpu_seconds"] for r in osr), default=float("nan")),
         "speed_pass": max((r["seconds"] for r in osr), default=0.0) <= 10.0,
     }
 
 
 def table(rows, base=None) -> str:
-    head = "| image | plants (ex/tr) | total-length ratio | laterals (ex/tr) | elastic dist. | s |"
-    sep = "|---|---:|---:|---:|---:|---:|"
+    head = "| image | plants (ex/tr) | total-length ratio | laterals (ex/tr) | elastic dist. | s (CPU s) | recall / precision @8 px | traced overlap |"
+    sep = "|---|---:|---:|---:|---:|---:|---:|---:|"
     if base:
         head += " baseline plants | baseline total ratio | baseline laterals | baseline s |"
         sep += "---:|---:|---:|---:|"
@@ -124,7 +151,8 @@ def table(rows, base=None) -> str:
     for k, r in enumerate(rows):
         line = (
             f"| {r['image']} | {r['plants_extracted']}/{r['plants_traced']} | {r['total_length_ratio']:.2f} | "
-            f"{r['laterals_extracted']}/{r['laterals_traced']} | {r['elastic_distance_mean']:.3f} | {r['seconds']:.1f} |"
+            f"{r['laterals_extracted']}/{r['laterals_traced']} | {r['elastic_distance_mean']:.3f} | {r['seconds']:.1f} ({r['cpu_seconds']:.1f}) | "
+            f"{r['recall_8px']:.2f} / {r['precision_8px']:.2f} | {r['traced_overlap_5px']:.2f} |"
         )
         if base:
             b = base[k]

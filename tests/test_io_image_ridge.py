@@ -194,6 +194,21 @@ def test_compare_identical_matches_and_scores_one():
         assert p.laterals_extracted == p.laterals_traced
         assert p.elastic_distance == pytest.approx(0.0, abs=1e-3)
     assert cmp.total_length_ratio == pytest.approx(1.0)
+    assert cmp.recall == cmp.precision == 1.0
+
+
+def test_compare_coverage_against_bruteforce():
+    # recall / precision against a double loop over the sampled points.
+    from rootshape_jax.io._compare import sample_branches
+
+    traced = [_root(100), _root(300)]
+    ex = [Root(main=traced[0].main + [5.0, 0.0], laterals=traced[0].laterals[:1], attach=traced[0].attach[:1])]
+    cmp = compare_to_tracing(ex, traced, elastic=False, tolerance=8.0)
+    pe, pt = sample_branches(ex, 2.0), sample_branches(traced, 2.0)
+    d = np.sqrt(((pt[:, None, :] - pe[None, :, :]) ** 2).sum(-1))
+    assert cmp.recall == pytest.approx(np.mean(d.min(axis=1) <= 8.0))
+    assert cmp.precision == pytest.approx(np.mean(d.min(axis=0) <= 8.0))
+    assert 0.2 < cmp.recall < 0.6 and cmp.precision > 0.9
 
 
 def test_compare_ratios_unmatched_and_distance_grows():

@@ -45,6 +45,9 @@ class TracingComparison:
     unmatched_extracted: tuple[int, ...]
     unmatched_traced: tuple[int, ...]
     total_length_ratio: float  # all extracted plants' length / all traced plants' length
+    recall: float  # fraction of the traced length within `tolerance` of the extraction
+    precision: float  # fraction of the extracted length within `tolerance` of the tracing
+    tolerance: float
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -61,6 +64,7 @@ def compare_to_tracing(
     elastic: bool = True,
     n_points: int = 64,
     max_base_distance: float | None = None,
+    tolerance: float = 8.0,
 ) -> TracingComparison:
     """Match extracted plants to traced plants and score each pair.
 
@@ -74,6 +78,10 @@ def compare_to_tracing(
     - `max_base_distance`: plants are matched by their bases (the start of the main root) with
       an optimal assignment; a pair further apart than this is left unmatched. Default: half
       the traced main root's length.
+    - `tolerance`: distance (same unit as the roots) for `recall` and `precision`: the
+      fractions of traced (resp. extracted) length, sampled every ``tolerance / 4``, that lie
+      within `tolerance` of the other set. Unlike length ratios they do not depend on
+      whether touching roots are counted once or twice.
 
     **Returns** a `TracingComparison` whose plants are in traced order.
     """
@@ -112,6 +120,7 @@ def compare_to_tracing(
         )
     matched_e = {p.extracted for p in plants}
     matched_t = {p.traced for p in plants}
+    recall, precision = _coverage(extracted, traced, float(tolerance))
     return TracingComparison(
         plants=tuple(plants),
         n_extracted=len(extracted),
@@ -119,7 +128,33 @@ def compare_to_tracing(
         unmatched_extracted=tuple(i for i in range(len(extracted)) if i not in matched_e),
         unmatched_traced=tuple(j for j in range(len(traced)) if j not in matched_t),
         total_length_ratio=float(overall),
+        recall=recall,
+        precision=precision,
+        tolerance=float(tolerance),
     )
+
+
+def sample_branches(roots: Sequence[Root], step: float) -> np.ndarray:
+    """Points every `step` along every branch (main and laterals) of `roots`, as (n, 2)."""
+    out = [np.zeros((0, 2))]
+    for r in roots:
+        for b in (r.main, *r.laterals):
+            b = np.asarray(b, dtype=np.float64)[:, :2]
+            cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(b, axis=0), axis=1))])
+            s = np.arange(0.0, cum[-1] + 1e-12, step)
+            out.append(np.stack([np.interp(s, cum, b[:, 0]), np.interp(s, cum, b[:, 1])], axis=1))
+    return np.concatenate(out)
+
+
+def _coverage(extracted, traced, tol: float) -> tuple[float, float]:
+    from scipy.spatial import cKDTree
+
+    pe, pt = sample_branches(extracted, tol / 4), sample_branches(traced, tol / 4)
+    if len(pe) == 0 or len(pt) == 0:
+        return 0.0, 0.0
+    recall = float(np.mean(cKDTree(pe).query(pt)[0] <= tol))
+    precision = float(np.mean(cKDTree(pt).query(pe)[0] <= tol))
+    return recall, precision
 
 
 def _elastic(a: Root, b: Root, n_points: int) -> float:

@@ -92,6 +92,25 @@ def _threshold(gray: np.ndarray, threshold: Any, source: str) -> float:
     return t
 
 
+def _banded(fn, mask: np.ndarray, size: int) -> np.ndarray:
+    """Apply a size filter in row bands with a margin of `size` rows.
+
+    Exact for `_remove_small` and `_fill_small_holes`: a connected set that reaches from a
+    band's interior to its padded edge spans at least `size` rows, so it has at least `size`
+    pixels in the padded band and is kept (resp. not filled), as it would be on the full image.
+    Saves the full-size int32 label image of large scans.
+    """
+    H = mask.shape[0]
+    if H <= 2 * _BAND:
+        return fn(mask, size)
+    out = np.empty_like(mask)
+    for r0 in range(0, H, _BAND):
+        r1 = min(r0 + _BAND, H)
+        p0, p1 = max(r0 - size - 1, 0), min(r1 + size + 1, H)
+        out[r0:r1] = fn(mask[p0:p1], size)[r0 - p0 : r1 - p0]
+    return out
+
+
 def _remove_small(mask: np.ndarray, min_size: int) -> np.ndarray:
     if min_size <= 1:
         return mask
@@ -226,16 +245,21 @@ def ridge_filter(gray: np.ndarray, sigmas: Sequence[float], *, edge_weight: floa
             b_all.append(b[inner].ravel())
             d_all.append(d[inner].ravel())
         stats.append((_robust_stats(np.concatenate(b_all)), _robust_stats(np.concatenate(d_all))))
-    bright = np.full((H, W), -np.inf, dtype=np.float32)
-    dark = np.full((H, W), -np.inf, dtype=np.float32)
+    # float16 output: z-scores compared with thresholds of a few units; halves the memory.
+    bright = np.empty((H, W), dtype=np.float16)
+    dark = np.empty((H, W), dtype=np.float16)
     for r0 in range(0, H, _BAND):
         r1 = min(r0 + _BAND, H)
         p0, p1 = max(r0 - pad, 0), min(r1 + pad, H)
         block = gray[p0:p1]
+        zb = np.full((r1 - r0, W), -np.inf, dtype=np.float32)
+        zd = np.full((r1 - r0, W), -np.inf, dtype=np.float32)
         for s, ((mb, sb), (md, sd)) in zip(sigmas, stats):
             b, d = _ridge_measures(block, s, edge_weight)
-            np.maximum(bright[r0:r1], (b[r0 - p0 : r1 - p0] - mb) / np.float32(sb), out=bright[r0:r1])
-            np.maximum(dark[r0:r1], (d[r0 - p0 : r1 - p0] - md) / np.float32(sd), out=dark[r0:r1])
+            np.maximum(zb, (b[r0 - p0 : r1 - p0] - mb) / np.float32(sb), out=zb)
+            np.maximum(zd, (d[r0 - p0 : r1 - p0] - md) / np.float32(sd), out=zd)
+        bright[r0:r1] = np.clip(zb, -6e4, 6e4)
+        dark[r0:r1] = np.clip(zd, -6e4, 6e4)
     return bright, dark
 
 
@@ -251,9 +275,9 @@ def _hysteresis(z: np.ndarray, low: float, high: float) -> np.ndarray:
 
 
 def halfwidth_map(mask: np.ndarray) -> np.ndarray:
-    """Euclidean distance to the background (float32), computed in row bands with a margin."""
+    """Euclidean distance to the background (float16), computed in row bands with a margin."""
     H = mask.shape[0]
-    out = np.empty(mask.shape, dtype=np.float32)
+    out = np.empty(mask.shape, dtype=np.float16)  # widths of a few px: float16 halves the memory
     margin = 64  # roots wider than 128 px would be under-measured near band edges only
     for r0 in range(0, H, _BAND):
         r1 = min(r0 + _BAND, H)
@@ -311,40 +335,36 @@ def bridge_skeleton_gaps(skel: np.ndarray, *, max_gap: float, direction_length: 
 
     if max_gap <= 0 or not skel.any():
         return skel, 0
-    lab, n = ndi.label(skel, structure=np.ones((3, 3), bool))
+    # Pieces and tips from the pixel graph (no full-size label image).
+    pts, graph = skeleton_graph(skel)
+    n, lab = csgraph.connected_components(graph, directed=False)
     if n < 2:
         return skel, 0
-    nb = ndi.convolve(skel.astype(np.uint8), np.ones((3, 3), np.uint8), mode="constant") - 1
-    tips = np.argwhere(skel & (nb == 1))
-    pts = np.argwhere(skel)
+    degree = np.diff(graph.indptr)
     tree = cKDTree(pts)
     cand = []
-    for tip in tips:
-        own = lab[tip[0], tip[1]]
-        near = pts[tree.query_ball_point(tip, direction_length)]
-        near = near[lab[near[:, 0], near[:, 1]] == own]
-        back = near.mean(axis=0)
-        v = tip - back
+    for t in np.nonzero(degree == 1)[0]:
+        tip = pts[t]
+        own = lab[t]
+        near = np.asarray(tree.query_ball_point(tip, direction_length), dtype=np.int64)
+        near = near[lab[near] == own]
+        v = tip - pts[near].mean(axis=0)
         nv = float(np.hypot(*v))
         if nv < 1e-9:
             continue
         v = v / nv
-        idx = tree.query_ball_point(tip, max_gap)
-        if not idx:
+        idx = np.asarray(tree.query_ball_point(tip, max_gap), dtype=np.int64)
+        idx = idx[lab[idx] != own]
+        if idx.size == 0:
             continue
-        q = pts[idx]
-        other = lab[q[:, 0], q[:, 1]] != own
-        q = q[other]
-        if q.size == 0:
-            continue
-        w = q - tip
+        w = pts[idx] - tip
         dist = np.hypot(w[:, 0], w[:, 1])
         cos = (w @ v) / np.maximum(dist, 1e-9)
         ok = cos >= math.cos(math.radians(45))
         if not ok.any():
             continue
         k = int(np.argmin(np.where(ok, dist, np.inf)))
-        cand.append((float(dist[k]), own, int(lab[q[k, 0], q[k, 1]]), tuple(tip), tuple(q[k])))
+        cand.append((float(dist[k]), int(own), int(lab[idx[k]]), tuple(tip), tuple(pts[idx[k]])))
     parent = list(range(n + 1))
 
     def find(a):
@@ -385,19 +405,20 @@ def skeleton_graph(skeleton: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
     """
     rc = np.argwhere(skeleton)
     n = rc.shape[0]
-    index = np.full(skeleton.shape, -1, dtype=np.int64)
-    index[rc[:, 0], rc[:, 1]] = np.arange(n)
-    rows, cols, vals = [], [], []
     H, W = skeleton.shape
+    # Neighbours by binary search in the sorted linear indices (argwhere is in raster order):
+    # no full-size index image, which would cost 8 bytes per pixel of a large scan.
+    lin = rc[:, 0].astype(np.int64) * W + rc[:, 1]
+    rows, cols, vals = [], [], []
     for dr, dc, w in _OFFSETS:
         r2, c2 = rc[:, 0] + dr, rc[:, 1] + dc
         ok = (r2 >= 0) & (r2 < H) & (c2 >= 0) & (c2 < W)
-        j = np.full(n, -1, dtype=np.int64)
-        j[ok] = index[r2[ok], c2[ok]]
-        has = j >= 0
+        target = r2.astype(np.int64) * W + c2
+        pos = np.minimum(np.searchsorted(lin, target), max(n - 1, 0))
+        has = ok & (lin[pos] == target) if n else ok
         i = np.nonzero(has)[0]
         rows.append(i)
-        cols.append(j[has])
+        cols.append(pos[has])
         vals.append(np.full(i.shape[0], w))
     r = np.concatenate(rows)
     c = np.concatenate(cols)
@@ -476,6 +497,17 @@ def _base_nodes(base: Any, rc: np.ndarray, comp: np.ndarray, eligible: np.ndarra
         node = int(cand[np.argmin(d2)])
         out.append((int(comp[node]), node))
     return out
+
+
+def _contrast_to_background(gray: np.ndarray, pix: np.ndarray, sigma: float) -> np.ndarray:
+    """gray − (Gaussian-smoothed gray) at the pixels `pix`, smoothing only their bounding box."""
+    m = int(math.ceil(4 * sigma))
+    r0, c0 = np.maximum(pix.min(axis=0) - m, 0)
+    r1, c1 = np.minimum(pix.max(axis=0) + m + 1, gray.shape)
+    crop = gray[r0:r1, c0:c1]
+    bg = ndi.gaussian_filter(crop, sigma, mode="nearest")
+    rr, cc = pix[:, 0] - r0, pix[:, 1] - c0
+    return crop[rr, cc] - bg[rr, cc]
 
 
 def _plant_checks(nodes, rc, sub, base_local, gray, halfwidth, axis_sign):
@@ -691,8 +723,10 @@ def roots_from_image(
             raise ImageError(f"{source}: the image is uniform; it contains no root.")
         sigmas = _ridge_sigmas(root_width)
         z_bright, z_dark = ridge_filter(gray, sigmas)
-        masks = {True: _hysteresis(z_dark, low, high), False: _hysteresis(z_bright, low, high)}
-        del z_bright, z_dark
+        masks = {True: _hysteresis(z_dark, low, high)}
+        del z_dark
+        masks[False] = _hysteresis(z_bright, low, high)
+        del z_bright
         t = "ridge"
 
     opts = dict(
@@ -707,19 +741,17 @@ def roots_from_image(
         # than the local background they are. Counting line pixels alone does not decide it: a
         # dark root has bright flanks on both sides, and rims and labels have both polarities.
         choices = [bool(invert)] if invert is not None else [True, False]
-        local_bg = ndi.gaussian_filter(gray, 2.0 * float(root_width), mode="nearest") if invert is None else None
         best = None
         for dark in choices:
             traced = _trace(masks.pop(dark), gray, **opts)
             score = 0.0
-            if local_bg is not None:
+            if len(choices) > 1:
                 for cand in traced[0]:
-                    pix = traced[1][cand[0]]
-                    diff = gray[pix[:, 0], pix[:, 1]] - local_bg[pix[:, 0], pix[:, 1]]
+                    diff = _contrast_to_background(gray, traced[1][cand[0]], 2.0 * float(root_width))
                     score += float(np.sum(-diff if dark else diff))
             if best is None or score > best[0]:
                 best = (score, dark, traced)
-        del local_bg
+            del traced
         _, roots_dark, (candidates, rc, halfwidth, why) = best
     else:
         candidates, rc, halfwidth, why = _trace(mask, gray, **opts)
@@ -794,8 +826,8 @@ def _trace(mask, gray, *, close_gaps, max_hole_size, min_object_size, spur_facto
 
     c0, r0 = offset
     mask = _close(mask, int(close_gaps))
-    mask = _fill_small_holes(mask, int(max_hole_size))
-    mask = _remove_small(mask, int(min_object_size))
+    mask = _banded(_fill_small_holes, mask, int(max_hole_size))
+    mask = _banded(_remove_small, mask, int(min_object_size))
     if not mask.any():
         return [], None, None, "after segmentation and removing small objects the mask is empty"
     halfwidth = halfwidth_map(mask)
