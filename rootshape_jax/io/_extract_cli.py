@@ -70,15 +70,15 @@ def draw_overlay(image_path: Path, roots: Sequence[Root], out_png: Path, *, trac
     ax.set_xlim(-0.5, W - 0.5)
     ax.set_ylim(H - 0.5, -0.5)
     ax.axis("off")
-    for r in tracing:
-        for br in (r.main, *r.laterals):
-            ax.plot(br[:, 0], br[:, 1], "--", color="white", lw=0.8, alpha=0.9)
     for k, r in enumerate(roots):
         c = _COLOURS[k % len(_COLOURS)]
-        ax.plot(r.main[:, 0] * scale, r.main[:, 1] * scale, "-", color=c, lw=1.6)
+        ax.plot(r.main[:, 0] * scale, r.main[:, 1] * scale, "-", color=c, lw=0.7)
         for lat in r.laterals:
-            ax.plot(lat[:, 0] * scale, lat[:, 1] * scale, "-", color=c, lw=0.9)
-        ax.plot(r.main[0, 0] * scale, r.main[0, 1] * scale, "o", color=c, ms=4)
+            ax.plot(lat[:, 0] * scale, lat[:, 1] * scale, "-", color=c, lw=0.45)
+        ax.plot(r.main[0, 0] * scale, r.main[0, 1] * scale, "o", color=c, ms=2.5)
+    for r in tracing:  # on top, dashed, so both stay visible
+        for br in (r.main, *r.laterals):
+            ax.plot(br[:, 0], br[:, 1], "--", color="white", lw=0.5, alpha=0.9)
     fig.savefig(out_png)
     plt.close(fig)
 
