@@ -87,13 +87,22 @@ def test_gaps_are_bridged(gap):
     assert parts[0].main_length < 0.85 * polyline_length(main)
 
 
-def test_plate_with_rim_label_and_edge_gives_one_root_per_seedling():
-    # Three seedlings on a "plate": a closed rim around them, a thick handwritten-like label
-    # scribble at the bottom, a lighting step edge, and speckles. Exactly three plants come
-    # back, left to right.
+_RIMS = {
+    "closed": [[40, 40], [520, 40], [520, 560], [40, 560], [40, 40]],
+    "open_bottom": [[40, 560], [40, 40], [520, 40], [520, 560]],  # a U upside down
+    "corner": [[40, 560], [40, 40], [520, 40]],
+    "one_side": [[40, 40], [40, 560]],  # a broken rim: one straight side left
+}
+
+
+@pytest.mark.parametrize("rim_shape", list(_RIMS))
+def test_plate_with_rim_label_and_edge_gives_one_root_per_seedling(rim_shape):
+    # Three seedlings on a "plate": a rim around them (whole or broken), a thick
+    # handwritten-like label scribble at the bottom, a lighting step edge, and speckles.
+    # Exactly three plants come back, left to right.
     H, W = 600, 560
     seedlings = [_seedling(s, x0=x, y0=80, length=330, n_lat=2) for s, x in zip((1, 2, 3), (140, 280, 420))]
-    rim = np.array([[40, 40], [520, 40], [520, 560], [40, 560], [40, 40]], float)
+    rim = np.array(_RIMS[rim_shape], float)
     rim = np.concatenate([np.linspace(p, q, 200) for p, q in zip(rim[:-1], rim[1:])])
     label = np.array([[200 + 8 * k, 520 + 10 * (k % 2)] for k in range(12)], float)
     polys = [p for m, ls in seedlings for p in (m, *ls)]

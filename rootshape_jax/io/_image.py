@@ -559,6 +559,21 @@ def _plant_checks(nodes, rc, sub, base_local, gray, halfwidth, axis_sign):
     margin = max(10.0, 0.05 * min(H, W))
     d_border = np.minimum(np.minimum(pix[:, 0], H - 1 - pix[:, 0]), np.minimum(pix[:, 1], W - 1 - pix[:, 1]))
     border = bool(np.mean(d_border < margin) > 0.5)
+    # Open frame: the sides of a plate rim or tray (an L, a U) run along the piece's bounding
+    # box, whereas a root system's main root crosses the inside of its box. Only for pieces
+    # wide and tall compared with a root.
+    bh, bw = r1 - r0, c1 - c0
+    if min(bh, bw) >= 20 * max(hw, 1.0):
+        tol = max(3.0 * hw + 3.0, 0.05 * min(bh, bw))
+        d_box = np.minimum(np.minimum(pix[:, 0] - r0, r1 - 1 - pix[:, 0]), np.minimum(pix[:, 1] - c0, c1 - 1 - pix[:, 1]))
+        frame = frame or bool(np.mean(d_box <= tol) >= 0.9)
+    # Ruler-straight: an unbranched long line that never leaves its chord by more than a
+    # couple of pixels is an edge of the set-up (a rim side, a ruler), not a grown root.
+    if length >= 100 and len(path) >= 2:
+        a, b = path[0], path[-1]
+        u = (b - a) / max(float(np.hypot(*(b - a))), 1e-12)
+        dev = np.abs((path[:, 0] - a[0]) * u[1] - (path[:, 1] - a[1]) * u[0])
+        frame = frame or bool(dev.max() <= max(2.0, 0.004 * length) and nodes.size <= 1.2 * len(path))
     return dict(length=length, heading=heading, frame=frame, edge=edge, border=border, tip=tip, dist=dist, pred=pred)
 
 
@@ -625,7 +640,8 @@ def roots_from_image(
       (and than `min_lateral_length`) are pruned before the graph is analysed.
     - `min_plant_fraction`: with a string `base`, a piece is a plant only if its main root is at
       least this fraction of the longest plant's; together with the frame test (a closed outline
-      such as a plate rim), the edge test (a line along a step edge such as the border of a
+      such as a plate rim, or an open one whose pieces run along their bounding box, or a
+      ruler-straight unbranched line), the edge test (a line along a step edge such as the border of a
       paper sheet), the border test (most of it within 5 % of the image border) and the
       direction test (at least 60 % of the main root heads away from the base side, within
       60°), this drops labels, rims and debris; a shorter piece close to a longer plant and
