@@ -217,6 +217,65 @@ def _robust_stats(x: np.ndarray) -> tuple[float, float]:
 def ridge_filter(gray: np.ndarray, sigmas: Sequence[float], *, edge_weight: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """Line strength of bright and of dark lines, in units of the background's noise.
 
+    Returns ``(bright, dark)`` float16 maps: the maximum over `sigmas` of the standardised
+    line measure (see `_ridge_measures`). Scales up to 3 px are computed on the image itself;
+    larger ones on a block-averaged copy (by 2 for σ up to 6, by 4 up to 12, ...), where they
+    are 1.5–3 px again, and the result is repeated back to full size: wide roots cost no more
+    than thin ones.
+    """
+    groups: dict[int, list[float]] = {}
+    for s in sigmas:
+        f = 1
+        while s / f > 3.0 + 1e-9:
+            f *= 2
+        groups.setdefault(f, []).append(float(s) / f)
+    H, W = gray.shape
+    bright = dark = None
+    for f in sorted(groups):
+        if f == 1:
+            zb, zd = _ridge_filter_direct(gray, groups[f], edge_weight=edge_weight)
+        else:
+            if min(H, W) // f < 8:
+                continue
+            small = _block_mean(gray, f)
+            zb, zd = _ridge_filter_direct(small, groups[f], edge_weight=edge_weight)
+            del small
+            zb, zd = _repeat_to(zb, f, (H, W)), _repeat_to(zd, f, (H, W))
+        if bright is None:
+            bright, dark = zb, zd
+        else:
+            np.maximum(bright, zb, out=bright)
+            np.maximum(dark, zd, out=dark)
+        del zb, zd
+    return bright, dark
+
+
+def _block_mean(a: np.ndarray, f: int) -> np.ndarray:
+    """Mean over f × f blocks (the last partial row/column of blocks uses its own pixels)."""
+    H, W = a.shape
+    Hf, Wf = -(-H // f), -(-W // f)
+    out = np.zeros((Hf, Wf), dtype=np.float32)
+    for r0 in range(0, H, _BAND):  # in bands: no full-size float copy
+        block = a[r0 : r0 + _BAND]
+        h = block.shape[0]
+        padded = np.pad(block, ((0, (-h) % f), (0, (-W) % f)), mode="edge")
+        out[r0 // f : r0 // f + padded.shape[0] // f] = padded.reshape(padded.shape[0] // f, f, Wf, f).mean(axis=(1, 3))
+    return out
+
+
+def _repeat_to(a: np.ndarray, f: int, shape: tuple[int, int]) -> np.ndarray:
+    H, W = shape
+    out = np.empty(shape, dtype=a.dtype)
+    for r0 in range(0, H, _BAND):
+        r1 = min(r0 + _BAND, H)
+        rows = a[np.arange(r0, r1) // f]
+        out[r0:r1] = np.repeat(rows, f, axis=1)[:, :W]
+    return out
+
+
+def _ridge_filter_direct(gray: np.ndarray, sigmas: Sequence[float], *, edge_weight: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """`ridge_filter` at the image's own resolution.
+
     For each scale the measure of `_ridge_measures` is standardised by its median and MAD over
     the image (estimated on up to 16 sample tiles), and the maximum over scales is kept, so a
     value of 5 means "5 noise standard deviations above the typical background". Computed in
@@ -623,8 +682,10 @@ def roots_from_image(
     - `roi`: ``(top, bottom, left, right)`` pixel bounds of the region to analyse; coordinates
       stay in the full image's frame.
     - `background`: threshold mode only: Gaussian sigma (px) of a background subtracted first.
-    - `root_width`: widest root expected, in px (default 6); sets the ridge filter's scales
-      (σ from 1 to ``root_width / 2``).
+    - `root_width`: widest root expected, in px (default 6, for seedlings photographed at
+      2–12 megapixels); sets the ridge filter's scales (σ from 1 to ``root_width / 2``; scales
+      above 3 run on a block-averaged image, so wide roots are cheap). Raise it for scans of
+      thick roots: on the real photographs, scales beyond the roots' width pick up clutter.
     - `sensitivity`: ``(low, high)`` hysteresis thresholds of the ridge strength in noise
       standard deviations: a pixel is root if it is above `low` and connected to a pixel above
       `high`. Lower values keep fainter roots and more clutter.
@@ -929,10 +990,15 @@ def _trace(mask, gray, *, close_gaps, max_hole_size, min_object_size, spur_facto
 
 
 def _ridge_sigmas(root_width: float) -> tuple[float, ...]:
-    """Scales 1, 2, 3, ... up to root_width / 2 (a line of width w responds best at σ ≈ w / 2√3)."""
+    """Scales 1, 2, 3, then 4, 6, 8, 12, 16, ... up to root_width / 2 (a bar of width w gives
+    its strongest centre response near σ ≈ w / 2√3, and still a single ridge up to σ ≈ w / 2)."""
     top = max(1.0, float(root_width) / 2.0)
-    n = max(1, int(math.floor(top)))
-    return tuple(float(s) for s in np.linspace(1.0, top, n)) if n > 1 else (1.0,)
+    out = [s for s in (1.0, 2.0, 3.0) if s <= top + 1e-9]
+    s = 4.0
+    while s <= top + 1e-9:
+        out.append(s)
+        s = s * 1.5 if s * 1.5 == int(s * 1.5) else s * 4 / 3
+    return tuple(out) if out else (1.0,)
 
 
 def _refine_junction(main, cum, k, lat, hw):
