@@ -318,3 +318,18 @@ def test_run_extract_writes_rsml_and_overlay_and_skips_bad(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(FileNotFoundError, match="no image files"):
         run_extract([tmp_path / "empty"], out, progress=False)
+
+
+def test_bad_options_name_the_option():
+    img = np.full((40, 40), 0.5)
+    img[5:35, 20] = 0.1
+    for kw, word in (
+        (dict(sensitivity=(6.0, 2.0)), "sensitivity"),
+        (dict(root_width=0), "root_width"),
+        (dict(bridge_gaps=-1), "bridge_gaps"),
+        (dict(spur_factor=float("nan")), "spur_factor"),
+        (dict(min_plant_fraction=2.0), "min_plant_fraction"),
+        (dict(pixels_per_mm=10.0, pixel_size=0.1, unit="mm"), "pixels_per_mm"),
+    ):
+        with pytest.raises(ValueError, match=word):
+            roots_from_image(img, **kw)

@@ -697,8 +697,8 @@ def roots_from_image(
     - `min_root_length`: roots whose main path is shorter (px) are dropped.
     - `min_lateral_length`: side branches shorter than this (px, measured from the edge of the
       main root) are ignored.
-    - `spur_factor`: skeleton end branches shorter than ``spur_factor ×`` the local half-width
-      (and than `min_lateral_length`) are pruned before the graph is analysed.
+    - `spur_factor`: skeleton end branches shorter than the larger of ``spur_factor ×`` the
+      local half-width and `min_lateral_length` are pruned before the graph is analysed.
     - `min_plant_fraction`: with a string `base`, a piece is a plant only if its main root is at
       least this fraction of the longest plant's; together with the frame test (a closed outline
       such as a plate rim, or an open one whose pieces run along their bounding box, or a
@@ -756,6 +756,11 @@ def roots_from_image(
         raise ValueError(f"sensitivity must be (low, high) with 0 < low <= high, got {sensitivity!r}.")
     if bridge_gaps is None:
         bridge_gaps = max(20.0, 4.0 * float(root_width))
+    for opt, val in (("bridge_gaps", bridge_gaps), ("spur_factor", spur_factor)):
+        if not (math.isfinite(val) and val >= 0):
+            raise ValueError(f"{opt} must be a non-negative number, got {val!r}.")
+    if not (0.0 <= min_plant_fraction <= 1.0):
+        raise ValueError(f"min_plant_fraction must lie in [0, 1], got {min_plant_fraction!r}.")
 
     r0 = c0 = 0
     if roi is not None:  # crop first: a photograph's full-size float copy is large
@@ -923,7 +928,7 @@ def _trace(mask, gray, *, close_gaps, max_hole_size, min_object_size, spur_facto
     halfwidth = halfwidth_map(mask)
     skel = skeletonize(mask)
     del mask
-    skel = prune_spurs(skel, halfwidth, factor=float(spur_factor), min_length=min(float(min_lateral_length), 1e9))
+    skel = prune_spurs(skel, halfwidth, factor=float(spur_factor), min_length=float(min_lateral_length))
     skel, _ = bridge_skeleton_gaps(skel, max_gap=float(bridge_gaps), direction_length=max(6.0, 2.0 * float(root_width)))
     rc, graph = skeleton_graph(skel)
     del skel
