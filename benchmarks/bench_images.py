@@ -175,7 +175,7 @@ def main():
 
     # Warm-up: skan compiles its numba kernels on first use.
     yy, xx = np.mgrid[:120, :120]
-    roots_from_image(np.where(np.abs(xx - 60) < 3, 0.2, 0.8) + 0.0 * yy)
+    roots_from_image(np.where(np.abs(xx - 60 - 8 * np.sin(yy / 15)) < 3, 0.2, 0.8))
     todo = [p for p in pairs() if not args.only or any(o in p[1].name for o in args.only)]
     rows = [run_one(roots_from_image, k, i, r, elastic=not args.no_elastic) for k, i, r in tqdm(todo, desc="new")]
     base = None

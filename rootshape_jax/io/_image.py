@@ -597,24 +597,29 @@ def _plant_checks(nodes, rc, sub, base_local, gray, halfwidth, axis_sign):
     frame = enclosed > 0.5 * crop.size and crop.size > 400
     # Edge: a ridge found along a step edge has one side bright and one dark, so the ring
     # around it is bimodal (wide interquartile range) compared with the line's own contrast.
+    # The ring is sampled around up to 2,000 skeleton pixels at 16 angles and two radii (memory
+    # bounded for any size of piece), keeping samples farther than the root's width from it.
+    from scipy.spatial import cKDTree
+
     hw = float(np.median(halfwidth[pix[:, 0], pix[:, 1]]))
-    m = int(math.ceil(3 * hw + 8))
-    R0, C0 = max(r0 - m, 0), max(c0 - m, 0)
-    R1, C1 = min(r1 + m, gray.shape[0]), min(c1 + m, gray.shape[1])
-    core = np.zeros((R1 - R0, C1 - C0), bool)
-    core[pix[:, 0] - R0, pix[:, 1] - C0] = True
-    step = max(1, nodes.size // 4000)  # dilating a long skeleton: sample it, same statistics
-    near = ndi.distance_transform_edt(~core)
-    ring = (near > hw + 2) & (near <= 3 * hw + 6)
-    g = gray[R0:R1, C0:C1]
-    ring_v = g[ring][::step]
+    step = max(1, nodes.size // 2000)
+    centres = pix[::step].astype(np.float64)
+    ang = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+    offs = np.concatenate([r * np.stack([np.sin(ang), np.cos(ang)], axis=1) for r in (2 * hw + 4, 3 * hw + 6)])
+    samples = np.round((centres[:, None, :] + offs[None, :, :]).reshape(-1, 2)).astype(np.int64)
+    H, W = gray.shape
+    inside = (samples[:, 0] >= 0) & (samples[:, 0] < H) & (samples[:, 1] >= 0) & (samples[:, 1] < W)
+    samples = samples[inside]
+    if samples.size:
+        far = cKDTree(pix).query(samples)[0] > hw + 2
+        samples = samples[far]
+    ring_v = gray[samples[:, 0], samples[:, 1]].astype(np.float64)
     line_v = gray[pix[::step, 0], pix[::step, 1]]
     q25, q50, q75 = np.percentile(ring_v, [25, 50, 75]) if ring_v.size else (0.0, 0.0, 0.0)
     contrast = abs(float(np.median(line_v)) - float(q50))
     edge = float(q75 - q25) > 1.0 * contrast
     # Border: the edge of a sheet, tray or scanner bed runs along the image border; a plant
     # is photographed inside the frame.
-    H, W = gray.shape
     margin = max(10.0, 0.05 * min(H, W))
     d_border = np.minimum(np.minimum(pix[:, 0], H - 1 - pix[:, 0]), np.minimum(pix[:, 1], W - 1 - pix[:, 1]))
     border = bool(np.mean(d_border < margin) > 0.5)
@@ -626,9 +631,11 @@ def _plant_checks(nodes, rc, sub, base_local, gray, halfwidth, axis_sign):
         tol = max(3.0 * hw + 3.0, 0.05 * min(bh, bw))
         d_box = np.minimum(np.minimum(pix[:, 0] - r0, r1 - 1 - pix[:, 0]), np.minimum(pix[:, 1] - c0, c1 - 1 - pix[:, 1]))
         frame = frame or bool(np.mean(d_box <= tol) >= 0.9)
-    # Ruler-straight: an unbranched long line that never leaves its chord by more than a
-    # couple of pixels is an edge of the set-up (a rim side, a ruler), not a grown root.
-    if length >= 100 and len(path) >= 2:
+    # Ruler-straight: an unbranched line of 300 px or more that never leaves its chord by
+    # more than a couple of pixels is an edge of the set-up (a rim side, a ruler), not a grown
+    # root (roots wave: the plate's seedlings and the paper-grown taproots leave their chords
+    # by 5 px and more).
+    if length >= 300 and len(path) >= 2:
         a, b = path[0], path[-1]
         u = (b - a) / max(float(np.hypot(*(b - a))), 1e-12)
         dev = np.abs((path[:, 0] - a[0]) * u[1] - (path[:, 1] - a[1]) * u[0])
