@@ -704,8 +704,9 @@ def roots_from_image(
     - `min_root_length`: roots whose main path is shorter (px) are dropped.
     - `min_lateral_length`: side branches shorter than this (px, measured from the edge of the
       main root) are ignored.
-    - `spur_factor`: skeleton end branches shorter than the larger of ``spur_factor ×`` the
-      local half-width and `min_lateral_length` are pruned before the graph is analysed.
+    - `spur_factor`: ridge mode: skeleton end branches shorter than the larger of
+      ``spur_factor ×`` the local half-width and `min_lateral_length` are pruned before the
+      graph is analysed (a threshold or a binary mask keeps its skeleton unpruned).
     - `min_plant_fraction`: with a string `base`, a piece is a plant only if its main root is at
       least this fraction of the longest plant's; together with the frame test (a closed outline
       such as a plate rim, or an open one whose pieces run along their bounding box, or a
@@ -856,7 +857,9 @@ def roots_from_image(
             del traced
         _, roots_dark, (candidates, rc, halfwidth, why) = best
     else:
-        candidates, rc, halfwidth, why = _trace(mask, gray, **opts)
+        # A global threshold or a given binary mask keeps its skeleton as it is (the
+        # behaviour before the ridge filter): no spur pruning.
+        candidates, rc, halfwidth, why = _trace(mask, gray, **{**opts, "spur_factor": None})
         del mask
     if not candidates:
         raise ImageError(_no_root_message(source, threshold, t, roots_dark, why))
@@ -935,7 +938,8 @@ def _trace(mask, gray, *, close_gaps, max_hole_size, min_object_size, spur_facto
     halfwidth = halfwidth_map(mask)
     skel = skeletonize(mask)
     del mask
-    skel = prune_spurs(skel, halfwidth, factor=float(spur_factor), min_length=float(min_lateral_length))
+    if spur_factor is not None:
+        skel = prune_spurs(skel, halfwidth, factor=float(spur_factor), min_length=float(min_lateral_length))
     skel, _ = bridge_skeleton_gaps(skel, max_gap=float(bridge_gaps), direction_length=max(6.0, 2.0 * float(root_width)))
     rc, graph = skeleton_graph(skel)
     del skel
