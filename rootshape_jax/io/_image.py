@@ -1,4 +1,5 @@
-"""Root systems from a scanned image: threshold → clean → skeleton → graph → longest paths.
+"""Root systems from a scanned image or photograph: ridge filter (or threshold) → clean →
+skeleton → spur pruning (skan) → gap bridging → plants → graph → longest paths.
 
 Coordinates: the image is indexed ``(row, col)``; every returned `Root` is in ``(x, y)`` with
 ``x = col`` and ``y = row`` — so **y points down**, as in the image (a root growing down the
