@@ -84,8 +84,9 @@ def test_small_gap_is_bridged_and_matters():
     (r,) = roots_from_image(img)
     assert r.main_length == pytest.approx(polyline_length(main), rel=0.05)
     assert r.n_laterals == 3
-    # Without gap closing the root falls apart at the gap.
-    parts = roots_from_image(img, close_gaps=0)
+    # Without gap closing a global threshold splits the root at the gap (the ridge filter's
+    # smoothing already spans a 3-px gap; wider gaps are tested in test_io_image_ridge.py).
+    parts = roots_from_image(img, threshold="otsu", close_gaps=0, bridge_gaps=0, min_plant_fraction=0)
     assert len(parts) == 2
     assert max(p.main_length for p in parts) < 0.9 * polyline_length(main)
 
@@ -101,8 +102,11 @@ def test_polarity_colour_binary_and_path_inputs(tmp_path):
     assert r_light.metadata["roots_dark"] is False
     assert r_light.main_length == pytest.approx(ref.main_length, rel=0.01)
     assert r_light.n_laterals == ref.n_laterals == 3
-    # Forcing the wrong polarity finds the background, not the root.
-    wrong = roots_from_image(light, invert=True)
+    # Forcing the wrong polarity does not find the root: no root at all, or other shapes.
+    try:
+        wrong = roots_from_image(light, invert=True)
+    except ImageError:
+        wrong = []
     assert all(w.n_laterals != 3 or abs(w.main_length - ref.main_length) > 20 for w in wrong)
     # RGB: roots drawn in brown on a pale background.
     rgb = np.stack([dark * 0.9, dark * 0.8, dark * 0.7], axis=-1)
@@ -159,8 +163,14 @@ def test_roi_and_pixel_size_keep_full_frame_coordinates():
     img, _ = render_root_image([main, *lats], shape=(400, 300), seed=4)
     (full,) = roots_from_image(img)
     (crop,) = roots_from_image(img, roi=(5, 395, 40, 280))
-    np.testing.assert_allclose(crop.main[0], full.main[0], atol=1e-9)
-    assert crop.main_length == pytest.approx(full.main_length, rel=1e-9)
+    # The ridge filter's noise statistics come from the analysed region, so the crop's mask
+    # can differ by a pixel here and there; a global threshold on a binary mask is exact.
+    np.testing.assert_allclose(crop.main[0], full.main[0], atol=1.0)
+    assert crop.main_length == pytest.approx(full.main_length, rel=1e-3)
+    (full_b,) = roots_from_image(img < 0.55)
+    (crop_b,) = roots_from_image(img < 0.55, roi=(5, 395, 40, 280))
+    np.testing.assert_allclose(crop_b.main[0], full_b.main[0], atol=1e-9)
+    assert crop_b.main_length == pytest.approx(full_b.main_length, rel=1e-9)
     (mm,) = roots_from_image(img, pixel_size=0.1, unit="mm")
     np.testing.assert_allclose(mm.main, full.main * 0.1, rtol=1e-12)
     assert mm.metadata["unit"] == "mm" and mm.metadata["resolution"] == pytest.approx(10.0)

@@ -1,4 +1,5 @@
-"""Root systems from a scanned image: threshold → clean → skeleton → graph → longest paths.
+"""Root systems from a scanned image or photograph: ridge filter (or threshold) → clean →
+skeleton → spur pruning (skan) → gap bridging → plants → graph → longest paths.
 
 Coordinates: the image is indexed ``(row, col)``; every returned `Root` is in ``(x, y)`` with
 ``x = col`` and ``y = row`` — so **y points down**, as in the image (a root growing down the
@@ -92,6 +93,25 @@ def _threshold(gray: np.ndarray, threshold: Any, source: str) -> float:
     return t
 
 
+def _banded(fn, mask: np.ndarray, size: int) -> np.ndarray:
+    """Apply a size filter in row bands with a margin of `size` rows.
+
+    Exact for `_remove_small` and `_fill_small_holes`: a connected set that reaches from a
+    band's interior to its padded edge spans at least `size` rows, so it has at least `size`
+    pixels in the padded band and is kept (resp. not filled), as it would be on the full image.
+    Saves the full-size int32 label image of large scans.
+    """
+    H = mask.shape[0]
+    if H <= 2 * _BAND:
+        return fn(mask, size)
+    out = np.empty_like(mask)
+    for r0 in range(0, H, _BAND):
+        r1 = min(r0 + _BAND, H)
+        p0, p1 = max(r0 - size - 1, 0), min(r1 + size + 1, H)
+        out[r0:r1] = fn(mask[p0:p1], size)[r0 - p0 : r1 - p0]
+    return out
+
+
 def _remove_small(mask: np.ndarray, min_size: int) -> np.ndarray:
     if min_size <= 1:
         return mask
@@ -129,13 +149,315 @@ def _close(mask: np.ndarray, radius: int) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------
+# Ridge (line) filter: multi-scale Hessian, tiled so that large scans stay within memory.
+
+_LUMA = np.array([0.2125, 0.7154, 0.0721], dtype=np.float32)
+_BAND = 1024  # rows per tile of the ridge filter and the distance transform
+
+
+def gray_float32(arr: np.ndarray, source: str) -> np.ndarray:
+    """Luminance in [0, 1] as float32, converted in row bands (no full float64 copy)."""
+    if arr.dtype.kind not in "fiu" or arr.dtype == bool:
+        raise ImageError(f"{source}: pixels must be numbers, got dtype {arr.dtype}.")
+    if arr.ndim == 3 and arr.shape[-1] == 1:
+        arr = arr[..., 0]
+    if not (arr.ndim == 2 or (arr.ndim == 3 and arr.shape[-1] in (3, 4))):
+        raise ImageError(
+            f"{source}: expected a 2D grayscale/binary image or an (H, W, 3|4) colour image, "
+            f"got shape {arr.shape}."
+        )
+    if min(arr.shape[:2]) < 3:
+        raise ImageError(f"{source}: image of shape {arr.shape} is too small.")
+    scale = 1.0
+    if arr.dtype.kind in "iu":
+        info = np.iinfo(arr.dtype)
+        scale = 1.0 / float(info.max) if info.min == 0 else 1.0 / float(info.max - info.min)
+    out = np.empty(arr.shape[:2], dtype=np.float32)
+    for r0 in range(0, arr.shape[0], _BAND):
+        block = arr[r0 : r0 + _BAND]
+        if block.ndim == 3:
+            block = block[..., :3].astype(np.float32) @ _LUMA
+        out[r0 : r0 + _BAND] = block.astype(np.float32) * np.float32(scale)
+    if not np.all(np.isfinite(out)):
+        raise ImageError(f"{source}: image contains NaN or inf pixels.")
+    return out
+
+
+def _ridge_measures(g: np.ndarray, sigma: float, edge_weight: float) -> tuple[np.ndarray, np.ndarray]:
+    """Scale-normalised line measures (bright lines, dark lines) of a float32 patch.
+
+    With Hessian eigenvalues l1 >= l2, a bright line has l2 << 0 and l1 ~ 0; a dark line
+    l1 >> 0 and l2 ~ 0. The measure ``-l2 - max(l1, 0)`` (resp. ``l1 + min(l2, 0)``) is
+    Sato's: curvature of the other sign (a saddle, a line of the other polarity) is
+    penalised, curvature of the same sign is not, so junctions, where a lateral meets its
+    parent and both directions curve, are kept. A step
+    edge also has a one-sided second derivative; at its peak the σ-scaled gradient equals the
+    σ²-scaled curvature, so subtracting ``edge_weight · σ |∇g|`` suppresses edges (the rim of a
+    paper sheet, a shadow) while the centre of a line, where the gradient vanishes, keeps its value.
+    """
+    f = lambda order: ndi.gaussian_filter(g, sigma, order=order, mode="nearest")  # noqa: E731
+    hrr, hcc, hrc = f((2, 0)), f((0, 2)), f((1, 1))
+    half_tr = 0.5 * (hrr + hcc)
+    d = np.sqrt((0.5 * (hrr - hcc)) ** 2 + hrc**2)
+    del hrr, hcc, hrc
+    l1, l2 = half_tr + d, half_tr - d
+    del half_tr, d
+    s2 = np.float32(sigma * sigma)
+    grad = np.float32(edge_weight * sigma) * np.hypot(f((1, 0)), f((0, 1)))
+    bright = s2 * (-l2 - np.maximum(l1, 0)) - grad
+    dark = s2 * (l1 + np.minimum(l2, 0)) - grad
+    return bright, dark
+
+
+def _robust_stats(x: np.ndarray) -> tuple[float, float]:
+    med = float(np.median(x))
+    mad = 1.4826 * float(np.median(np.abs(x - med)))
+    return med, max(mad, 1e-12)
+
+
+def ridge_filter(gray: np.ndarray, sigmas: Sequence[float], *, edge_weight: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Line strength of bright and of dark lines, in units of the background's noise.
+
+    Returns ``(bright, dark)`` float16 maps: the maximum over `sigmas` of the standardised
+    line measure (see `_ridge_measures`). Scales up to 3 px are computed on the image itself;
+    larger ones on a block-averaged copy (by 2 for σ up to 6, by 4 up to 12, ...), where they
+    are 1.5–3 px again, and the result is repeated back to full size: wide roots cost no more
+    than thin ones.
+    """
+    groups: dict[int, list[float]] = {}
+    for s in sigmas:
+        f = 1
+        while s / f > 3.0 + 1e-9:
+            f *= 2
+        groups.setdefault(f, []).append(float(s) / f)
+    H, W = gray.shape
+    bright = dark = None
+    for f in sorted(groups):
+        if f == 1:
+            zb, zd = _ridge_filter_direct(gray, groups[f], edge_weight=edge_weight)
+        else:
+            if min(H, W) // f < 8:
+                continue
+            small = _block_mean(gray, f)
+            zb, zd = _ridge_filter_direct(small, groups[f], edge_weight=edge_weight)
+            del small
+            zb, zd = _repeat_to(zb, f, (H, W)), _repeat_to(zd, f, (H, W))
+        if bright is None:
+            bright, dark = zb, zd
+        else:
+            np.maximum(bright, zb, out=bright)
+            np.maximum(dark, zd, out=dark)
+        del zb, zd
+    return bright, dark
+
+
+def _block_mean(a: np.ndarray, f: int) -> np.ndarray:
+    """Mean over f × f blocks (the last partial row/column of blocks uses its own pixels)."""
+    H, W = a.shape
+    Hf, Wf = -(-H // f), -(-W // f)
+    out = np.zeros((Hf, Wf), dtype=np.float32)
+    for r0 in range(0, H, _BAND):  # in bands: no full-size float copy
+        block = a[r0 : r0 + _BAND]
+        h = block.shape[0]
+        padded = np.pad(block, ((0, (-h) % f), (0, (-W) % f)), mode="edge")
+        out[r0 // f : r0 // f + padded.shape[0] // f] = padded.reshape(padded.shape[0] // f, f, Wf, f).mean(axis=(1, 3))
+    return out
+
+
+def _repeat_to(a: np.ndarray, f: int, shape: tuple[int, int]) -> np.ndarray:
+    H, W = shape
+    out = np.empty(shape, dtype=a.dtype)
+    for r0 in range(0, H, _BAND):
+        r1 = min(r0 + _BAND, H)
+        rows = a[np.arange(r0, r1) // f]
+        out[r0:r1] = np.repeat(rows, f, axis=1)[:, :W]
+    return out
+
+
+def _ridge_filter_direct(gray: np.ndarray, sigmas: Sequence[float], *, edge_weight: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """`ridge_filter` at the image's own resolution.
+
+    For each scale the measure of `_ridge_measures` is standardised by its median and MAD over
+    the image (estimated on up to 16 sample tiles), and the maximum over scales is kept, so a
+    value of 5 means "5 noise standard deviations above the typical background". Computed in
+    row bands with a margin of 4σ, so memory stays at a few float32 copies of the image.
+    """
+    H, W = gray.shape
+    pad = int(math.ceil(4 * max(sigmas))) + 2
+    # Noise statistics per scale from sample tiles (the whole image when small).
+    tiles = []
+    if H * W <= 1024 * 1024:
+        tiles.append((slice(0, H), slice(0, W)))
+    else:
+        for fr in np.linspace(0, 1, 4):
+            for fc in np.linspace(0, 1, 4):
+                r = int(fr * max(H - 256, 0))
+                c = int(fc * max(W - 256, 0))
+                tiles.append((slice(r, r + 256), slice(c, c + 256)))
+    stats = []
+    for s in sigmas:
+        b_all, d_all = [], []
+        for rs, cs in tiles:
+            r0, r1 = max(rs.start - pad, 0), min(rs.stop + pad, H)
+            c0, c1 = max(cs.start - pad, 0), min(cs.stop + pad, W)
+            b, d = _ridge_measures(gray[r0:r1, c0:c1], s, edge_weight)
+            inner = (slice(rs.start - r0, rs.stop - r0), slice(cs.start - c0, cs.stop - c0))
+            b_all.append(b[inner].ravel())
+            d_all.append(d[inner].ravel())
+        stats.append((_robust_stats(np.concatenate(b_all)), _robust_stats(np.concatenate(d_all))))
+    # float16 output: z-scores compared with thresholds of a few units; halves the memory.
+    bright = np.empty((H, W), dtype=np.float16)
+    dark = np.empty((H, W), dtype=np.float16)
+    for r0 in range(0, H, _BAND):
+        r1 = min(r0 + _BAND, H)
+        p0, p1 = max(r0 - pad, 0), min(r1 + pad, H)
+        block = gray[p0:p1]
+        zb = np.full((r1 - r0, W), -np.inf, dtype=np.float32)
+        zd = np.full((r1 - r0, W), -np.inf, dtype=np.float32)
+        for s, ((mb, sb), (md, sd)) in zip(sigmas, stats):
+            b, d = _ridge_measures(block, s, edge_weight)
+            np.maximum(zb, (b[r0 - p0 : r1 - p0] - mb) / np.float32(sb), out=zb)
+            np.maximum(zd, (d[r0 - p0 : r1 - p0] - md) / np.float32(sd), out=zd)
+        bright[r0:r1] = np.clip(zb, -6e4, 6e4)
+        dark[r0:r1] = np.clip(zd, -6e4, 6e4)
+    return bright, dark
+
+
+def _hysteresis(z: np.ndarray, low: float, high: float) -> np.ndarray:
+    """Pixels above `low` connected (8-neighbours) to a pixel above `high`."""
+    lab, n = ndi.label(z > low, structure=np.ones((3, 3), bool))
+    if n == 0:
+        return np.zeros(z.shape, bool)
+    strong = np.zeros(n + 1, bool)
+    strong[np.unique(lab[z > high])] = True
+    strong[0] = False
+    return strong[lab]
+
+
+def halfwidth_map(mask: np.ndarray) -> np.ndarray:
+    """Euclidean distance to the background (float16), computed in row bands with a margin."""
+    H = mask.shape[0]
+    out = np.empty(mask.shape, dtype=np.float16)  # widths of a few px: float16 halves the memory
+    margin = 64  # roots wider than 128 px would be under-measured near band edges only
+    for r0 in range(0, H, _BAND):
+        r1 = min(r0 + _BAND, H)
+        p0, p1 = max(r0 - margin, 0), min(r1 + margin, H)
+        out[r0:r1] = ndi.distance_transform_edt(mask[p0:p1])[r0 - p0 : r1 - p0]
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Skeleton clean-up: spur pruning (skan) and gap bridging.
+
+
+def prune_spurs(skel: np.ndarray, halfwidth: np.ndarray, *, factor: float, min_length: float) -> np.ndarray:
+    """Remove end branches shorter than ``max(min_length, factor × local half-width)``.
+
+    The skeleton graph comes from `skan`; an end branch (junction to tip, or an isolated
+    segment) is a spur when it is short compared with the width of the root it sticks out of:
+    skeletonising a thick root leaves such whiskers at bumps and junctions.
+    """
+    from skan.csr import Skeleton, summarize
+
+    if not skel.any():
+        return skel
+    sk = Skeleton(skel)
+    df = summarize(sk, separator="_")
+    src = df[["image_coord_src_0", "image_coord_src_1"]].to_numpy().astype(np.int64)
+    dst = df[["image_coord_dst_0", "image_coord_dst_1"]].to_numpy().astype(np.int64)
+    hw = np.maximum(halfwidth[src[:, 0], src[:, 1]], halfwidth[dst[:, 0], dst[:, 1]])
+    limit = np.maximum(min_length, factor * hw)
+    spur = (df["branch_type"].to_numpy() <= 1) & (df["branch_distance"].to_numpy() < limit)
+    if not spur.any():
+        return skel
+    out = skel.copy()
+    for i in np.nonzero(spur)[0]:
+        ids = sk.path(int(i))
+        ids = ids[sk.degrees[ids] <= 2]  # keep the junction pixels
+        rc = np.round(sk.coordinates[ids]).astype(np.int64)
+        out[rc[:, 0], rc[:, 1]] = False
+    from skimage.morphology import skeletonize
+
+    return skeletonize(out)
+
+
+def bridge_skeleton_gaps(skel: np.ndarray, *, max_gap: float, direction_length: float) -> tuple[np.ndarray, int]:
+    """Join skeleton pieces across small gaps: each tip reaches forward to another piece.
+
+    For every tip (a pixel with one neighbour) the direction of its last `direction_length`
+    pixels is extended; the nearest pixel of a *different* piece within `max_gap` px and within
+    45° of that direction is joined by a straight line. Gaps are closed shortest first and only
+    between pieces not yet connected (a spanning forest), so no loops are made.
+    Returns (skeleton, number of bridges).
+    """
+    from scipy.spatial import cKDTree
+    from skimage.draw import line
+
+    if max_gap <= 0 or not skel.any():
+        return skel, 0
+    # Pieces and tips from the pixel graph (no full-size label image).
+    pts, graph = skeleton_graph(skel)
+    n, lab = csgraph.connected_components(graph, directed=False)
+    if n < 2:
+        return skel, 0
+    degree = np.diff(graph.indptr)
+    tree = cKDTree(pts)
+    cand = []
+    for t in np.nonzero(degree == 1)[0]:
+        tip = pts[t]
+        own = lab[t]
+        near = np.asarray(tree.query_ball_point(tip, direction_length), dtype=np.int64)
+        near = near[lab[near] == own]
+        v = tip - pts[near].mean(axis=0)
+        nv = float(np.hypot(*v))
+        if nv < 1e-9:
+            continue
+        v = v / nv
+        idx = np.asarray(tree.query_ball_point(tip, max_gap), dtype=np.int64)
+        idx = idx[lab[idx] != own]
+        if idx.size == 0:
+            continue
+        w = pts[idx] - tip
+        dist = np.hypot(w[:, 0], w[:, 1])
+        cos = (w @ v) / np.maximum(dist, 1e-9)
+        ok = cos >= math.cos(math.radians(45))
+        if not ok.any():
+            continue
+        k = int(np.argmin(np.where(ok, dist, np.inf)))
+        cand.append((float(dist[k]), int(own), int(lab[idx[k]]), tuple(tip), tuple(pts[idx[k]])))
+    parent = list(range(n + 1))
+
+    def find(a):
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    out = skel.copy()
+    made = 0
+    for _, a, b, p, q in sorted(cand):
+        ra, rb = find(a), find(b)
+        if ra == rb:
+            continue
+        parent[ra] = rb
+        rr, cc = line(p[0], p[1], q[0], q[1])
+        out[rr, cc] = True
+        made += 1
+    return out, made
+
+
+# --------------------------------------------------------------------------------------------
 # Skeleton → graph → paths.
 
 _OFFSETS = ((0, 1, 1.0), (1, -1, math.sqrt(2.0)), (1, 0, 1.0), (1, 1, math.sqrt(2.0)))
 
 
 def skeleton_graph(skeleton: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
-    """Pixels of a boolean skeleton and their 8-adjacency graph.
+    """Pixels of a boolean skeleton and their full 8-adjacency graph.
+
+    (`skan`'s pixel graph drops the diagonal edges of 2 × 2 blocks; the full graph keeps
+    every 8-neighbour, so path lengths match a plain Dijkstra on the pixel grid. `skan` builds
+    the branch graph used for spur pruning, `prune_spurs`.)
 
     Returns ``(rc, graph)``: ``rc`` the (n, 2) ``(row, col)`` of the skeleton pixels and
     ``graph`` a symmetric sparse (n, n) matrix with weight 1 between 4-neighbours and √2
@@ -143,19 +465,20 @@ def skeleton_graph(skeleton: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
     """
     rc = np.argwhere(skeleton)
     n = rc.shape[0]
-    index = np.full(skeleton.shape, -1, dtype=np.int64)
-    index[rc[:, 0], rc[:, 1]] = np.arange(n)
-    rows, cols, vals = [], [], []
     H, W = skeleton.shape
+    # Neighbours by binary search in the sorted linear indices (argwhere is in raster order):
+    # no full-size index image, which would cost 8 bytes per pixel of a large scan.
+    lin = rc[:, 0].astype(np.int64) * W + rc[:, 1]
+    rows, cols, vals = [], [], []
     for dr, dc, w in _OFFSETS:
         r2, c2 = rc[:, 0] + dr, rc[:, 1] + dc
         ok = (r2 >= 0) & (r2 < H) & (c2 >= 0) & (c2 < W)
-        j = np.full(n, -1, dtype=np.int64)
-        j[ok] = index[r2[ok], c2[ok]]
-        has = j >= 0
+        target = r2.astype(np.int64) * W + c2
+        pos = np.minimum(np.searchsorted(lin, target), max(n - 1, 0))
+        has = ok & (lin[pos] == target) if n else ok
         i = np.nonzero(has)[0]
         rows.append(i)
-        cols.append(j[has])
+        cols.append(pos[has])
         vals.append(np.full(i.shape[0], w))
     r = np.concatenate(rows)
     c = np.concatenate(cols)
@@ -236,6 +559,91 @@ def _base_nodes(base: Any, rc: np.ndarray, comp: np.ndarray, eligible: np.ndarra
     return out
 
 
+def _contrast_to_background(gray: np.ndarray, pix: np.ndarray, sigma: float) -> np.ndarray:
+    """gray − (Gaussian-smoothed gray) at the pixels `pix`, smoothing only their bounding box."""
+    m = int(math.ceil(4 * sigma))
+    r0, c0 = np.maximum(pix.min(axis=0) - m, 0)
+    r1, c1 = np.minimum(pix.max(axis=0) + m + 1, gray.shape)
+    crop = gray[r0:r1, c0:c1]
+    bg = ndi.gaussian_filter(crop, sigma, mode="nearest")
+    rr, cc = pix[:, 0] - r0, pix[:, 1] - c0
+    return crop[rr, cc] - bg[rr, cc]
+
+
+def _plant_checks(nodes, rc, sub, base_local, gray, halfwidth, axis_sign):
+    """Measures used to tell a plant from clutter: main path, frame, edge and direction."""
+    dist, pred = csgraph.dijkstra(sub, directed=False, indices=base_local, return_predecessors=True)
+    tip = int(np.argmax(np.where(np.isfinite(dist), dist, -1)))
+    length = float(dist[tip])
+    pix = rc[nodes]
+    axis, sign = axis_sign
+    # Growth direction: roots photographed upright grow away from the base side (gravitropism),
+    # so most of a main root heads that way (measured ≥ 92 % on the real photographs), while a
+    # plate rim, a ruler or a label stroke runs sideways for much of its length. Directions over
+    # 10-px chords so the pixel staircase does not matter.
+    path = pix[_path_to(pred, tip)].astype(np.float64)
+    k = min(10, len(path) - 1)
+    if k >= 1:
+        chord = path[k:] - path[:-k]
+        clen = np.hypot(chord[:, 0], chord[:, 1])
+        heading = float(np.sum(clen[sign * chord[:, axis] >= 0.5 * clen]) / max(float(np.sum(clen)), 1e-12))
+    else:
+        heading = 0.0
+    # Frame: a closed outline (plate rim, tray edge) encloses most of its bounding box.
+    r0, c0 = pix.min(axis=0)
+    r1, c1 = pix.max(axis=0) + 1
+    crop = np.zeros((r1 - r0, c1 - c0), bool)
+    crop[pix[:, 0] - r0, pix[:, 1] - c0] = True
+    enclosed = int(ndi.binary_fill_holes(crop).sum() - nodes.size)
+    frame = enclosed > 0.5 * crop.size and crop.size > 400
+    # Edge: a ridge found along a step edge has one side bright and one dark, so the ring
+    # around it is bimodal (wide interquartile range) compared with the line's own contrast.
+    # The ring is sampled around up to 2,000 skeleton pixels at 16 angles and two radii (memory
+    # bounded for any size of piece), keeping samples farther than the root's width from it.
+    from scipy.spatial import cKDTree
+
+    hw = float(np.median(halfwidth[pix[:, 0], pix[:, 1]]))
+    step = max(1, nodes.size // 2000)
+    centres = pix[::step].astype(np.float64)
+    ang = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+    offs = np.concatenate([r * np.stack([np.sin(ang), np.cos(ang)], axis=1) for r in (2 * hw + 4, 3 * hw + 6)])
+    samples = np.round((centres[:, None, :] + offs[None, :, :]).reshape(-1, 2)).astype(np.int64)
+    H, W = gray.shape
+    inside = (samples[:, 0] >= 0) & (samples[:, 0] < H) & (samples[:, 1] >= 0) & (samples[:, 1] < W)
+    samples = samples[inside]
+    if samples.size:
+        far = cKDTree(pix).query(samples)[0] > hw + 2
+        samples = samples[far]
+    ring_v = gray[samples[:, 0], samples[:, 1]].astype(np.float64)
+    line_v = gray[pix[::step, 0], pix[::step, 1]]
+    q25, q50, q75 = np.percentile(ring_v, [25, 50, 75]) if ring_v.size else (0.0, 0.0, 0.0)
+    contrast = abs(float(np.median(line_v)) - float(q50))
+    edge = float(q75 - q25) > 1.0 * contrast
+    # Border: the edge of a sheet, tray or scanner bed runs along the image border; a plant
+    # is photographed inside the frame.
+    margin = max(10.0, 0.05 * min(H, W))
+    d_border = np.minimum(np.minimum(pix[:, 0], H - 1 - pix[:, 0]), np.minimum(pix[:, 1], W - 1 - pix[:, 1]))
+    border = bool(np.mean(d_border < margin) > 0.5)
+    # Open frame: the sides of a plate rim or tray (an L, a U) run along the piece's bounding
+    # box, whereas a root system's main root crosses the inside of its box. Only for pieces
+    # wide and tall compared with a root.
+    bh, bw = r1 - r0, c1 - c0
+    if min(bh, bw) >= 20 * max(hw, 1.0):
+        tol = max(3.0 * hw + 3.0, 0.05 * min(bh, bw))
+        d_box = np.minimum(np.minimum(pix[:, 0] - r0, r1 - 1 - pix[:, 0]), np.minimum(pix[:, 1] - c0, c1 - 1 - pix[:, 1]))
+        frame = frame or bool(np.mean(d_box <= tol) >= 0.9)
+    # Ruler-straight: an unbranched line of 300 px or more that never leaves its chord by
+    # more than a couple of pixels is an edge of the set-up (a rim side, a ruler), not a grown
+    # root (roots wave: the plate's seedlings and the paper-grown taproots leave their chords
+    # by 5 px and more).
+    if length >= 300 and len(path) >= 2:
+        a, b = path[0], path[-1]
+        u = (b - a) / max(float(np.hypot(*(b - a))), 1e-12)
+        dev = np.abs((path[:, 0] - a[0]) * u[1] - (path[:, 1] - a[1]) * u[0])
+        frame = frame or bool(dev.max() <= max(2.0, 0.004 * length) and nodes.size <= 1.2 * len(path))
+    return dict(length=length, heading=heading, frame=frame, edge=edge, border=border, tip=tip, dist=dist, pred=pred)
+
+
 def roots_from_image(
     image: Any,
     *,
@@ -244,73 +652,101 @@ def roots_from_image(
     base: str | Sequence[float] | np.ndarray = "top",
     roi: tuple[int, int, int, int] | None = None,
     background: float | None = None,
+    root_width: float = 6.0,
+    sensitivity: tuple[float, float] = (2.0, 6.0),
     close_gaps: int = 2,
+    bridge_gaps: float | None = None,
     min_object_size: int = 64,
     max_hole_size: int = 16,
     min_root_length: float = 20.0,
     min_lateral_length: float = 10.0,
+    spur_factor: float = 4.0,
+    min_plant_fraction: float = 0.2,
     smooth: float = 2.0,
     spacing: float | None = 2.0,
     refine_junctions: bool = True,
+    pixels_per_mm: float | None = None,
     pixel_size: float | None = None,
     unit: str = "pixel",
 ) -> list[Root]:
-    """Extract root systems (main root + first-order laterals) from a scanned image.
+    """Extract root systems (main root + first-order laterals) from a scanned image or photograph.
 
     **Arguments**
 
     - `image`: a path, or an array: 2D grayscale, 2D binary (bool, or two values), or
-      (H, W, 3|4) colour (converted to gray; alpha ignored).
-    - `threshold`: None or ``"otsu"`` (default), ``"li"``, ``"triangle"``, ``"yen"``,
-      ``"isodata"``, ``"mean"`` (scikit-image's methods), or a number in the gray scale
-      (integer images are scaled to [0, 1]; after `background` subtraction the scale is
-      centred on 0). Ignored for binary images.
+      (H, W, 3|4) colour (converted to luminance; alpha ignored).
+    - `threshold`: None (default) segments with a multi-scale ridge (line) filter, which keeps
+      thin faint laterals and ignores smooth lighting changes and edges. A number or one of
+      ``"otsu"``, ``"li"``, ``"triangle"``, ``"yen"``, ``"isodata"``, ``"mean"`` instead uses
+      a global threshold of the gray values (the old behaviour, for clean flat-bed scans of
+      thick roots). Ignored for binary images.
     - `invert`: True if roots are darker than the background, False if brighter, None (default)
-      to decide automatically: roots are the minority class (fewer pixels) after thresholding.
-    - `base`: where each root starts: ``"top"`` (default; the top-most skeleton pixel of each
-      connected root), ``"bottom"``, ``"left"``, ``"right"``, or an ``(x, y)`` point / an
+      to decide automatically (ridge mode: the polarity with more strong line pixels; threshold
+      mode: roots are the minority class).
+    - `base`: where each root starts: ``"top"`` (default; roots grow down from the top-most
+      pixel of each plant), ``"bottom"``, ``"left"``, ``"right"``, or an ``(x, y)`` point / an
       ``(n, 2)`` array of points in image ``(x = col, y = row)`` coordinates — then one root per
-      point, from the skeleton pixel nearest to it.
-    - `roi`: ``(top, bottom, left, right)`` pixel bounds of the region to analyse (rows
-      ``top:bottom``, columns ``left:right``); coordinates stay in the full image's frame.
-    - `background`: None (default) or a Gaussian sigma in pixels: the smoothed image is
-      subtracted first, which flattens uneven lighting (useful for thin roots on photographed
-      plates; combine with ``threshold="triangle"``).
-    - `close_gaps`: radius (px) of a morphological closing that bridges small gaps (≈ up to
-      2 × radius px) in a root; 0 disables.
+      point, from the skeleton pixel nearest to it (no plant selection).
+    - `roi`: ``(top, bottom, left, right)`` pixel bounds of the region to analyse; coordinates
+      stay in the full image's frame.
+    - `background`: threshold mode only: Gaussian sigma (px) of a background subtracted first.
+    - `root_width`: widest root expected, in px (default 6, for seedlings photographed at
+      2–12 megapixels); sets the ridge filter's scales (σ from 1 to ``root_width / 2``; scales
+      above 3 run on a block-averaged image, so wide roots are cheap). Raise it for scans of
+      thick roots: on the real photographs, scales beyond the roots' width pick up clutter.
+    - `sensitivity`: ``(low, high)`` hysteresis thresholds of the ridge strength in noise
+      standard deviations: a pixel is root if it is above `low` and connected to a pixel above
+      `high`. Lower values keep fainter roots and more clutter.
+    - `close_gaps`: radius (px) of a morphological closing of the mask; 0 disables.
+    - `bridge_gaps`: largest gap (px) bridged between skeleton pieces along a tip's direction;
+      None (default) is ``max(20, 4 × root_width)``; 0 disables.
     - `min_object_size`: connected foreground objects smaller than this (px) are removed.
     - `max_hole_size`: background holes up to this size (px) inside roots are filled.
     - `min_root_length`: roots whose main path is shorter (px) are dropped.
     - `min_lateral_length`: side branches shorter than this (px, measured from the edge of the
-      main root, i.e. path length minus the main root's local half-width) are spurs, ignored.
-    - `smooth`: Gaussian sigma (in path pixels) that smooths the pixel staircase of each path
-      (end points are kept fixed); 0 disables.
+      main root) are ignored.
+    - `spur_factor`: ridge mode: skeleton end branches shorter than the larger of
+      ``spur_factor ×`` the local half-width and `min_lateral_length` are pruned before the
+      graph is analysed (a threshold or a binary mask keeps its skeleton unpruned).
+    - `min_plant_fraction`: with a string `base`, a piece is a plant only if its main root is at
+      least this fraction of the longest plant's; together with the frame test (a closed outline
+      such as a plate rim, or an open one whose pieces run along their bounding box, or a
+      ruler-straight unbranched line), the edge test (a line along a step edge such as the border of a
+      paper sheet), the border test (most of it within 5 % of the image border) and the
+      direction test (at least 60 % of the main root heads away from the base side, within
+      60°), this drops labels, rims and debris; a shorter piece close to a longer plant and
+      mostly inside its bounding box is a broken-off part of it and is dropped too.
+    - `smooth`: Gaussian sigma (in path pixels) that smooths the pixel staircase of each path.
     - `spacing`: resample every branch uniformly at this arc-length spacing (px); None keeps
       one point per skeleton pixel.
-    - `refine_junctions`: where a thick lateral meets the main root, the skeleton junction
-      slides downstream (a few px, more at acute angles); if True (default) each lateral's
-      direction beyond the junction zone is extended back to the main root, which becomes its
-      attachment point, and its start is made straight. False keeps the raw skeleton junction.
-    - `pixel_size`, `unit`: multiply coordinates by `pixel_size` and record `unit` (e.g.
-      ``pixel_size=0.05, unit="mm"``); default pixels.
+    - `refine_junctions`: extend each lateral's direction back to the main root to place its
+      attachment (the skeleton junction of a thick lateral slides downstream).
+    - `pixels_per_mm`: the image's scale; coordinates are then in mm. Or `pixel_size` with
+      `unit` (e.g. ``pixel_size=0.05, unit="mm"``). Default: pixels.
 
-    **Pipeline**: gray → optional background subtraction → threshold → closing → fill small
-    holes → remove small objects → skeletonize (scikit-image) → 8-connected pixel graph
-    (weights 1 and √2) → per connected component: main root = longest shortest path from the
-    base; every subtree hanging off the main path gives one lateral = its longest path from
-    the main path (only first-order laterals; a lateral crossing another merges with it).
-    Attachment fractions come from where each lateral leaves the main path, and each lateral
-    starts exactly on the main root.
+    **Pipeline** (ridge mode): luminance → multi-scale Hessian line filter for both polarities
+    (`ridge_filter`) → polarity → hysteresis → closing, hole filling, small-object removal →
+    skeleton (scikit-image) → spur pruning on the `skan` skeleton graph → gap bridging →
+    8-connected pixel graph (`skan`) → plants (connected pieces passing the tests above) →
+    main root = longest shortest path from the base; every side subtree gives one lateral =
+    its longest path from the main root.
 
-    **Returns** one `Root` per connected root sorted by base position (x, then y) — or one
-    per base point, in the points' order — in ``(x, y)`` coordinates with **x = column, y = row (y points down)**.
-    ``metadata`` holds ``source``, ``unit``, ``threshold``, ``roots_dark``, ``base_xy``,
-    ``component_pixels``, ``y_axis = "down"`` (and ``resolution`` = 1 / pixel_size).
+    **Returns** one `Root` per plant sorted by base position (x, then y) — or one per base
+    point, in the points' order — in ``(x, y)`` coordinates with **x = column, y = row (y points
+    down)**. ``metadata`` holds ``source``, ``unit``, ``threshold``, ``roots_dark``,
+    ``base_xy``, ``component_pixels``, ``y_axis = "down"`` (and ``resolution`` = 1 / pixel_size).
 
-    Raises `ImageError` when the image is unusable or contains no root.
+    Raises `ImageError` (naming the file) when the image is unreadable, uniform, pure noise or
+    contains no elongated structure.
     """
     if isinstance(base, str) and base.lower() not in ("top", "bottom", "left", "right"):
         raise ValueError(f"base must be 'top', 'bottom', 'left', 'right' or (x, y) point(s), got {base!r}.")
+    if pixels_per_mm is not None:
+        if pixel_size is not None:
+            raise ValueError("give pixels_per_mm or pixel_size, not both.")
+        if not (math.isfinite(pixels_per_mm) and pixels_per_mm > 0):
+            raise ValueError(f"pixels_per_mm must be a positive number, got {pixels_per_mm!r}.")
+        pixel_size, unit = 1.0 / float(pixels_per_mm), "mm"
     arr, stem = _load(image)
     source = str(image) if isinstance(image, (str, os.PathLike)) else "array"
     if arr.size == 0:
@@ -322,6 +758,18 @@ def roots_from_image(
     for opt, val in (("close_gaps", close_gaps), ("min_object_size", min_object_size), ("max_hole_size", max_hole_size)):
         if int(val) != val or val < 0:
             raise ValueError(f"{opt} must be a non-negative integer, got {val!r}.")
+    if not (root_width > 0):
+        raise ValueError(f"root_width must be a positive number of pixels, got {root_width!r}.")
+    low, high = (float(v) for v in sensitivity)
+    if not (0 < low <= high):
+        raise ValueError(f"sensitivity must be (low, high) with 0 < low <= high, got {sensitivity!r}.")
+    if bridge_gaps is None:
+        bridge_gaps = max(20.0, 4.0 * float(root_width))
+    for opt, val in (("bridge_gaps", bridge_gaps), ("spur_factor", spur_factor)):
+        if not (math.isfinite(val) and val >= 0):
+            raise ValueError(f"{opt} must be a non-negative number, got {val!r}.")
+    if not (0.0 <= min_plant_fraction <= 1.0):
+        raise ValueError(f"min_plant_fraction must lie in [0, 1], got {min_plant_fraction!r}.")
 
     r0 = c0 = 0
     if roi is not None:  # crop first: a photograph's full-size float copy is large
@@ -335,60 +783,91 @@ def roots_from_image(
             raise ImageError(f"{source}: roi {roi} leaves no usable region of the {H}x{W} image.")
         arr = arr[top:bottom, left:right]
         r0, c0 = top, left
-    gray = _to_gray(arr, source)
 
     # Binary input (bool, or only two grey values): no thresholding.
-    step = max(1, gray.shape[0] // 256)
-    is_binary = gray.dtype == bool or (
-        np.unique(gray[::step]).size <= 2 and np.unique(gray).size <= 2
-    )
+    if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
+        raise ImageError(f"{source}: image contains NaN or inf pixels.")
+    is_binary = arr.dtype == bool
+    if not is_binary and arr.ndim == 2 and arr.dtype.kind in "fiu":
+        step = max(1, arr.shape[0] // 256)
+        is_binary = np.unique(arr[::step]).size <= 2 and np.unique(arr).size <= 2
     if is_binary:
-        values = np.unique(gray)
+        if arr.ndim != 2:
+            raise ImageError(f"{source}: a binary image must be 2D, got shape {arr.shape}.")
+        if min(arr.shape) < 3:
+            raise ImageError(f"{source}: image of shape {arr.shape} is too small.")
+        values = np.unique(arr)
         if values.size < 2:
             raise ImageError(f"{source}: the image is uniform (single value); it contains no root.")
-        bright = gray > values[0]
-        t = float(values[0])
-    else:
+        bright = arr > values[0]
+        t: float | str = float(values[0])
+        roots_dark = bool(bright.mean() > 0.5) if invert is None else bool(invert)
+        mask = ~bright if roots_dark else bright
+        gray = (~mask).astype(np.float32)  # for the plant tests: roots 0 on background 1
+        del bright
+    elif threshold is not None:
+        gray64 = _to_gray(arr, source)
+        gray = gray64.astype(np.float32)
         if background is not None:
             if not (background > 0):
                 raise ValueError(f"background must be a positive Gaussian sigma (px), got {background!r}.")
-            gray = gray - ndi.gaussian_filter(gray, float(background), mode="nearest")
-        if float(gray.max() - gray.min()) <= 1e-12 * max(1.0, float(np.abs(gray).max())):
+            gray64 = gray64 - ndi.gaussian_filter(gray64, float(background), mode="nearest")
+        if float(gray64.max() - gray64.min()) <= 1e-12 * max(1.0, float(np.abs(gray64).max())):
             raise ImageError(f"{source}: the image is uniform; it contains no root.")
-        t = _threshold(gray, threshold, source)
-        bright = gray > t
-    roots_dark = bool(bright.mean() > 0.5) if invert is None else bool(invert)
-    mask = ~bright if roots_dark else bright
+        t = _threshold(gray64, threshold, source)
+        bright = gray64 > t
+        del gray64
+        roots_dark = bool(bright.mean() > 0.5) if invert is None else bool(invert)
+        mask = ~bright if roots_dark else bright
+        del bright
+    else:
+        gray = gray_float32(arr, source)
+        del arr
+        if float(gray.max() - gray.min()) <= 1e-6:
+            raise ImageError(f"{source}: the image is uniform; it contains no root.")
+        sigmas = _ridge_sigmas(root_width)
+        z_bright, z_dark = ridge_filter(gray, sigmas)
+        masks = {True: _hysteresis(z_dark, low, high)}
+        del z_dark
+        masks[False] = _hysteresis(z_bright, low, high)
+        del z_bright
+        t = "ridge"
 
-    mask = _close(mask, int(close_gaps))
-    mask = _fill_small_holes(mask, int(max_hole_size))
-    mask = _remove_small(mask, int(min_object_size))
-    if not mask.any():
-        raise ImageError(_no_root_message(source, threshold, t, roots_dark, "after thresholding and removing small objects the mask is empty"))
-
-    from skimage.morphology import skeletonize
-
-    skel = skeletonize(mask)
-    halfwidth = ndi.distance_transform_edt(mask)
-    rc, graph = skeleton_graph(skel)
-    n_comp, comp = csgraph.connected_components(graph, directed=False)
-    sizes = np.bincount(comp, minlength=n_comp)
-    # A path of length L has at least L / sqrt(2) + 1 pixels.
-    eligible = np.nonzero(sizes >= max(2, min_root_length / math.sqrt(2.0)))[0]
-    if eligible.size == 0:
-        raise ImageError(_no_root_message(source, threshold, t, roots_dark, f"no skeleton reaches min_root_length={min_root_length} px"))
+    opts = dict(
+        close_gaps=int(close_gaps), max_hole_size=int(max_hole_size), min_object_size=int(min_object_size),
+        spur_factor=float(spur_factor), min_lateral_length=float(min_lateral_length),
+        bridge_gaps=float(bridge_gaps), root_width=float(root_width), min_root_length=float(min_root_length),
+        min_plant_fraction=float(min_plant_fraction), base=base, offset=(c0, r0),
+    )
+    if t == "ridge":
+        # Polarity: when not given, trace both and keep the one whose accepted plants carry
+        # more contrast: the sum over their skeleton pixels of how much darker (or brighter)
+        # than the local background they are. Counting line pixels alone does not decide it: a
+        # dark root has bright flanks on both sides, and rims and labels have both polarities.
+        choices = [bool(invert)] if invert is not None else [True, False]
+        best = None
+        for dark in choices:
+            traced = _trace(masks.pop(dark), gray, **opts)
+            score = 0.0
+            if len(choices) > 1:
+                for cand in traced[0]:
+                    diff = _contrast_to_background(gray, traced[1][cand[0]], 2.0 * float(root_width))
+                    score += float(np.sum(-diff if dark else diff))
+            if best is None or score > best[0]:
+                best = (score, dark, traced)
+            del traced
+        _, roots_dark, (candidates, rc, halfwidth, why) = best
+    else:
+        # A global threshold or a given binary mask keeps its skeleton as it is (the
+        # behaviour before the ridge filter): no spur pruning.
+        candidates, rc, halfwidth, why = _trace(mask, gray, **{**opts, "spur_factor": None})
+        del mask
+    if not candidates:
+        raise ImageError(_no_root_message(source, threshold, t, roots_dark, why))
 
     scale = 1.0 if pixel_size is None else float(pixel_size)
     results = []
-    for c, base_node in _base_nodes(base, rc, comp, eligible, (c0, r0)):
-        nodes = np.nonzero(comp == c)[0]
-        sub = graph[nodes][:, nodes]
-        local = {int(g): k for k, g in enumerate(nodes)}
-        b = local[base_node]
-        dist, pred = csgraph.dijkstra(sub, directed=False, indices=b, return_predecessors=True)
-        tip = int(np.argmax(np.where(np.isfinite(dist), dist, -1)))
-        if dist[tip] < min_root_length:
-            continue
+    for nodes, sub, b, base_node, pred, tip, _ in candidates:
         main_idx = _path_to(pred, tip)
         lat_paths = _lateral_paths(sub, main_idx, halfwidth, rc[nodes], min_lateral_length)
         xy = rc[nodes][:, ::-1].astype(np.float64) + np.array([c0, r0], dtype=np.float64)
@@ -437,11 +916,106 @@ def roots_from_image(
                 ),
             )
         )
-    if not results:
-        raise ImageError(_no_root_message(source, threshold, t, roots_dark, f"no main path reaches min_root_length={min_root_length} px"))
     if isinstance(base, str):  # base points keep the caller's order
         results.sort(key=lambda item: item[0])
     return [Root(name=f"{stem}/{k + 1}", **kw) for k, (_, kw) in enumerate(results)]
+
+
+def _trace(mask, gray, *, close_gaps, max_hole_size, min_object_size, spur_factor, min_lateral_length,
+           bridge_gaps, root_width, min_root_length, min_plant_fraction, base, offset):
+    """Mask → cleaned skeleton → graph → accepted plants.
+
+    Returns (candidates, rc, halfwidth, why): candidates are (nodes, subgraph, base index,
+    base node, predecessors, tip, main length); `why` says what was missing when none is found.
+    """
+    from skimage.morphology import skeletonize
+
+    c0, r0 = offset
+    mask = _close(mask, int(close_gaps))
+    mask = _banded(_fill_small_holes, mask, int(max_hole_size))
+    mask = _banded(_remove_small, mask, int(min_object_size))
+    if not mask.any():
+        return [], None, None, "after segmentation and removing small objects the mask is empty"
+    halfwidth = halfwidth_map(mask)
+    skel = skeletonize(mask)
+    del mask
+    if spur_factor is not None:
+        skel = prune_spurs(skel, halfwidth, factor=float(spur_factor), min_length=float(min_lateral_length))
+    skel, _ = bridge_skeleton_gaps(skel, max_gap=float(bridge_gaps), direction_length=max(6.0, 2.0 * float(root_width)))
+    rc, graph = skeleton_graph(skel)
+    del skel
+    n_comp, comp = csgraph.connected_components(graph, directed=False)
+    sizes = np.bincount(comp, minlength=n_comp)
+    # A path of length L has at least L / sqrt(2) + 1 pixels.
+    eligible = np.nonzero(sizes >= max(2, min_root_length / math.sqrt(2.0)))[0]
+    if eligible.size == 0:
+        return [], rc, halfwidth, f"no skeleton reaches min_root_length={min_root_length} px"
+
+    auto_base = isinstance(base, str)
+    axis_sign = {"top": (0, 1), "bottom": (0, -1), "left": (1, 1), "right": (1, -1)}[base.lower()] if auto_base else None
+    candidates = []
+    for c, base_node in _base_nodes(base, rc, comp, eligible, (c0, r0)):
+        nodes = np.nonzero(comp == c)[0]
+        sub = graph[nodes][:, nodes]
+        local = {int(g): k for k, g in enumerate(nodes)}
+        b = local[base_node]
+        if auto_base:
+            chk = _plant_checks(nodes, rc, sub, b, gray, halfwidth, axis_sign)
+            if chk["frame"] or chk["edge"] or chk["border"] or chk["heading"] < 0.6:
+                continue
+            dist, pred, tip = chk["dist"], chk["pred"], chk["tip"]
+        else:
+            dist, pred = csgraph.dijkstra(sub, directed=False, indices=b, return_predecessors=True)
+            tip = int(np.argmax(np.where(np.isfinite(dist), dist, -1)))
+        if dist[tip] < min_root_length:
+            continue
+        candidates.append((nodes, sub, b, base_node, pred, tip, float(dist[tip])))
+    if auto_base and candidates:
+        from scipy.spatial import cKDTree
+
+        longest = max(cand[-1] for cand in candidates)
+        candidates = [cand for cand in candidates if cand[-1] >= min_plant_fraction * longest]
+        # A piece is a part of a longer plant broken off by a gap too wide to bridge (a
+        # lateral, the rest of a main root), not a plant of its own, when its base lies close
+        # to that plant, or when it is less than half as long, lies mostly inside the plant's
+        # bounding box and comes close to it somewhere. (Neighbouring seedlings on a plate
+        # have side-by-side bounding boxes and bases far apart.)
+        near = 3.0 * bridge_gaps
+        kept, trees = [], []
+        for cand in sorted(candidates, key=lambda cand: -cand[-1]):
+            pix = rc[cand[0]]
+            lo, hi = pix.min(axis=0), pix.max(axis=0) + 1
+            part_of = False
+            for other, tree, (olo, ohi) in trees:
+                if tree.query(rc[cand[3]])[0] <= near:
+                    part_of = True
+                elif cand[-1] < 0.5 * other[-1]:
+                    inter = np.prod(np.clip(np.minimum(hi, ohi) - np.maximum(lo, olo), 0, None))
+                    if inter >= 0.5 * np.prod(hi - lo) and tree.query(pix[:: max(1, len(pix) // 500)])[0].min() <= near:
+                        part_of = True
+                if part_of:
+                    break
+            if part_of:
+                continue
+            kept.append(cand)
+            opix = rc[cand[0]]
+            trees.append((cand, cKDTree(opix), (opix.min(axis=0), opix.max(axis=0) + 1)))
+        candidates = kept
+    why = f"no elongated root-like structure reaches min_root_length={min_root_length} px"
+    return candidates, rc, halfwidth, why
+
+
+
+def _ridge_sigmas(root_width: float) -> tuple[float, ...]:
+    """Scales 1, 2, 3, then 4, 6, 8, 12, 16, ... up to root_width / 2 (a bar of width w gives
+    its strongest centre response near σ ≈ w / 2√3, and still a single ridge up to σ ≈ w / 2)."""
+    top = max(1.0, float(root_width) / 2.0)
+    out = [s for s in (1.0, 2.0, 3.0) if s <= top + 1e-9]
+    s = 4.0
+    while s <= top + 1e-9:
+        out.append(s)
+        s = s * 1.5 if s * 1.5 == int(s * 1.5) else s * 4 / 3
+    return tuple(out) if out else (1.0,)
 
 
 def _refine_junction(main, cum, k, lat, hw):
@@ -484,7 +1058,11 @@ def _refine_junction(main, cum, k, lat, hw):
 
 
 def _lateral_paths(sub, main_idx, halfwidth, rc, min_lateral_length) -> list[np.ndarray]:
-    """Longest path into every side subtree of the main path, as node paths from the main."""
+    """Longest path from each attachment point into the side subtrees of the main path.
+
+    Node paths starting on the main path; one per attachment (junctions closer than about a
+    root width along the main path count as one).
+    """
     n = sub.shape[0]
     on_main = np.zeros(n, dtype=bool)
     on_main[main_idx] = True
@@ -502,26 +1080,40 @@ def _lateral_paths(sub, main_idx, halfwidth, rc, min_lateral_length) -> list[np.
     side = np.nonzero(~on_main)[0]
     only_side = side_graph[side][:, side]
     n_sub, lab = csgraph.connected_components(only_side, directed=False)
+    pos = np.full(n, -1, dtype=np.int64)
+    pos[main_idx] = np.arange(main_idx.size)
     paths = []
     for s in range(n_sub):
         members = side[lab == s]
-        d = dist[members]
-        if not np.any(np.isfinite(d)):
+        members = members[np.isfinite(dist[members])]
+        if members.size == 0:
             continue
-        far = int(members[np.argmax(np.where(np.isfinite(d), d, -1))])
-        a = int(src[far])
-        r, c = rc[a]
-        if dist[far] - halfwidth[r, c] < min_lateral_length:
-            continue
-        paths.append(_path_to(pred, far))
+        # Laterals that touch or cross (dense crowns) form one side subtree; split it by the
+        # main-root pixel each side pixel is nearest to. Attachments a few pixels apart along
+        # the main root are one junction smeared by the root's width.
+        at = pos[src[members]]
+        order = np.unique(at)
+        hw_at = halfwidth[rc[main_idx[order], 0], rc[main_idx[order], 1]]
+        new_group = np.concatenate([[True], np.diff(order) > 2 * hw_at[1:] + 3])
+        group_of = dict(zip(order.tolist(), np.cumsum(new_group).tolist()))
+        groups = np.array([group_of[int(a)] for a in at])
+        for gidx in np.unique(groups):
+            mem = members[groups == gidx]
+            far = int(mem[np.argmax(dist[mem])])
+            a = int(src[far])
+            r, c = rc[a]
+            if dist[far] - halfwidth[r, c] < min_lateral_length:
+                continue
+            paths.append(_path_to(pred, far))
     return paths
 
 
 def _no_root_message(source, threshold, t, roots_dark, why) -> str:
-    method = "otsu" if threshold is None else threshold
     polarity = "dark roots on a light background" if roots_dark else "light roots on a dark background"
-    return (
-        f"{source}: no root found: {why} (threshold {method!r} = {t:.4g}, assuming {polarity}). "
-        "Try another threshold= (e.g. 'triangle'), invert=, background= for uneven lighting, "
-        "or smaller min_object_size / min_root_length."
-    )
+    if isinstance(t, str):  # ridge mode
+        how = f"ridge filter, assuming {polarity}"
+        fix = "Try a lower sensitivity=(low, high), root_width= for wide roots, invert=, or threshold='otsu' for a clean scan"
+    else:
+        how = f"threshold {threshold!r} = {t:.4g}, assuming {polarity}"
+        fix = "Try another threshold= (e.g. 'triangle'), invert=, background= for uneven lighting"
+    return f"{source}: no root found: {why} ({how}). {fix}, or smaller min_object_size / min_root_length."

@@ -1,0 +1,45 @@
+"""roots_from_image on real photographs with hand tracings (../shared/data; skipped without it).
+
+Tolerances are the issue's per-image targets where this image meets them (measured figures in
+BENCHMARKS.md, "Roots from photographs"): they guard against regressions, they are not tuned.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from rootshape_jax.io import compare_to_tracing, read_rsml, roots_from_image
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+pytestmark = pytest.mark.skipif(not (DATA / "images").is_dir(), reason="../shared/data not present")
+
+
+@pytest.mark.slow
+def test_plate_one_root_system_per_seedling():
+    stem = "2012_11_19_18h00_chl110_1_1"
+    ex = roots_from_image(DATA / "images" / "arabidopsis_plate" / f"{stem}.jpg")
+    tr = read_rsml(DATA / "rsml" / "arabidopsis_plate" / f"{stem}.rsml")
+    assert len(ex) == len(tr) == 5
+    xs = [r.metadata["base_xy"][0] for r in ex]
+    assert xs == sorted(xs)
+    cmp = compare_to_tracing(ex, tr, elastic=False)
+    assert len(cmp.plants) == 5 and [p.traced for p in cmp.plants] == [p.extracted for p in cmp.plants]
+    assert abs(cmp.total_length_ratio - 1) <= 0.2
+    for p in cmp.plants:
+        assert 0.85 <= p.main_length_ratio <= 1.25  # measured 1.01-1.13 (the tracing starts below the shoot)
+        assert abs(p.laterals_extracted - p.laterals_traced) <= 3
+
+
+def test_rootnav_seedling_on_blue_paper():
+    stem = "B_osr_0111"
+    ex = roots_from_image(DATA / "images" / "rootnav_osr" / f"{stem}.jpg")
+    tr = read_rsml(DATA / "rsml" / "rootnav_osr" / f"{stem}.rsml")
+    assert len(ex) == 1
+    assert ex[0].metadata["roots_dark"] is False  # white roots on blue paper
+    cmp = compare_to_tracing(ex, tr, elastic=False)
+    (p,) = cmp.plants
+    assert p.main_length_ratio == pytest.approx(1.0, abs=0.1)
+    assert abs(p.total_length_ratio - 1) <= 0.2
+    assert abs(p.laterals_extracted - p.laterals_traced) <= 0.3 * p.laterals_traced + 1
