@@ -333,3 +333,29 @@ def test_bad_options_name_the_option():
     ):
         with pytest.raises(ValueError, match=word):
             roots_from_image(img, **kw)
+
+
+def test_cli_extract_writes_rsml_overlay_and_names_a_bad_image(tmp_path):
+    """`rootshape extract IMAGES --out DIR`: one RSML and overlay per good image, the bad one
+    named on one line and skipped, exit 0."""
+    import subprocess
+    import sys
+
+    import skimage.io
+
+    src = tmp_path / "photos"
+    src.mkdir()
+    main, lats = _seedling(3, x0=150)
+    img = _draw([main, *lats], shape=(380, 300), width=3, contrast=0.3, noise=0.03, seed=3)
+    skimage.io.imsave(src / "good.png", (img * 255).astype(np.uint8))
+    (src / "broken.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 20)
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "rootshape_jax", "extract", str(src), "--out", str(out), "--quiet"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr
+    assert len([ln for ln in proc.stderr.splitlines() if "broken.png" in ln]) == 1
+    roots = read_rsml(out / "good.rsml")
+    assert len(roots) == 1 and roots[0].n_laterals >= 2
+    assert (out / "good_overlay.png").read_bytes()[:4] == b"\x89PNG"
+    assert not (out / "broken.rsml").exists()

@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ._common import PAPER_TRAITS, say
+from ._common import PAPER_TRAITS, CLIError, say, warn
 from ._inputs import Reading, load_roots, pick, prepare, read_requested, subsample
 from ._report import LOG_NAME, Output, settings, write_index
 from ._steps import (
@@ -89,6 +89,30 @@ def cmd_geodesic(args) -> None:
     b = pick(_read(args, out, reading, [args.b]), args.root_b, args.b)
     run_geodesic(a, b, out, args)
     _finish(out, reading)
+
+
+def cmd_extract(args) -> None:
+    import warnings
+
+    from rootshape_jax.io import extract_images
+
+    options = {} if args.root_width is None else {"root_width": args.root_width}
+    with warnings.catch_warnings():
+        # A skipped image is named in its row and summarised below: one line each, no repeat.
+        warnings.simplefilter("ignore", UserWarning)
+        rows = extract_images(
+            args.images, args.out, tracing=args.tracing, pixels_per_mm=args.pixels_per_mm,
+            progress=not args.quiet, **options,
+        )
+    ok = [r for r in rows if r.get("status") == "ok"]
+    skipped = [r for r in rows if r.get("status") != "ok"]
+    for r in skipped:
+        warn(f"skipped {r.get('image', '?')}: {r.get('reason', 'unreadable')}")
+    if not ok:
+        raise CLIError(f"no roots could be extracted from {len(rows)} image(s); see the lines above.")
+    plants = sum(int(r.get("plants", 0)) for r in ok)
+    say(args, f"extracted {plants} root system(s) from {len(ok)} image(s)"
+              + (f"; skipped {len(skipped)}" if skipped else "") + f"; results in {args.out}")
 
 
 def cmd_demo(args) -> None:

@@ -97,7 +97,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as e:  # --help, --version, or a usage error (already printed)
         return int(e.code) if isinstance(e.code, int) else EXIT_USAGE
-    configure_jax(devices=args.devices, float64=args.float64)
+    configure_jax(devices=getattr(args, "devices", None), float64=getattr(args, "float64", False))
     if argv is None:  # the program: Ctrl-C ends the process (`_on_sigint`)
         with contextlib.suppress(ValueError):  # not the main thread: keep KeyboardInterrupt
             signal.signal(signal.SIGINT, _on_sigint)

@@ -9,6 +9,7 @@ from ._commands import (
     cmd_cluster,
     cmd_demo,
     cmd_distances,
+    cmd_extract,
     cmd_geodesic,
     cmd_mean,
     cmd_pca,
@@ -265,6 +266,22 @@ def build_parser() -> argparse.ArgumentParser:
             "of laterals, lateral lengths, insertion angles, depth, width, convex hull) in "
             "traits.csv, in the input's units.", cmd_traits)
     _add_common(p)
+
+    p = add("extract", "roots from photographs or scans (one RSML + overlay PNG per image)",
+            "Find the root systems in each image (plates with several seedlings, seedlings on "
+            "germination paper, dark-on-light or light-on-dark): one RSML and an overlay PNG "
+            "(the extraction drawn on the photo, one colour per root) per image, and "
+            "summary.json. With --tracing, the hand tracing is drawn too and compared (lengths, "
+            "lateral counts, elastic distance). A bad image is named and skipped.", cmd_extract)
+    p.add_argument("images", nargs="+", metavar="IMAGE", help="image files or folders of images")
+    p.add_argument("--out", default="rootshape_output", metavar="DIR", help="output folder")
+    p.add_argument("--tracing", nargs="+", metavar="RSML",
+                   help="hand tracings: an RSML file, a folder of <image name>.rsml, or several files")
+    p.add_argument("--pixels-per-mm", dest="pixels_per_mm", type=_positive_float, metavar="X",
+                   help="image scale; the RSML is then written in mm")
+    p.add_argument("--root-width", dest="root_width", type=_positive_float, metavar="PX",
+                   help="typical root width in pixels (default 6; set it for thick roots)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
 
     p = add("demo", "everything on the bundled 53-root data set, with an index.html",
             "Run every analysis on the bundled data set of 53 synthetic roots (control, drought, "

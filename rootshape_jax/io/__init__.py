@@ -8,3 +8,4 @@ from ._compare import (
     compare_to_tracing as compare_to_tracing,
     total_length as total_length,
 )
+from ._extract_cli import run_extract as extract_images
