@@ -20,8 +20,11 @@ Two solvers, both optimistix:
   A step solves every sample's warps and lateral correspondence afresh for its rotation (one
   batched engine call, in blocks of samples through the executor) and keeps them where they
   beat the carried ones, moves μ to the exact minimiser above, and refits each rotation by
-  weighted Kabsch. No sub-step can raise J, so the recorded energy never increases. The first
-  registrations come from a full registration (rotation search included) onto the start.
+  weighted Kabsch. No sub-step can raise J, so the recorded energy never increases. Before
+  it, a warm-up of Karcher steps registers every sample afresh (rotation search included) at
+  every step, until F falls by less than 1 % in a step (a step that would raise F is not
+  taken): carried from the start, registrations would keep each sample's rotation in the
+  basin it had against the start, and the fixed point would stop in a worse local minimum.
   The step loop is written once, on the host: the solver's `step`/`terminate` run there, so
   the per-sample work can run here or on a Dask cluster alike (DESIGN.md §13).
 - ``method="gradient"`` (`optx.minimise`, gradient descent by default, any optimistix
@@ -474,11 +477,47 @@ def _combine(y: FPIterate, full, samples: SRVFTree, mu_like, weights):
     )
 
 
-def _fixed_point(mu0, samples, mu_like, weights, opts, solver, *, rtol, atol, max_steps, throw, blocks, progress):
+# Warm-up: while the mean still moves far, every sample is registered afresh (rotation search
+# included) at every step; carried registrations would lock each sample's rotation into the
+# basin it had against the start (the medoid), and the fixed point then settles in a worse
+# local minimum (on 3D taproots, ~2 % above; see BENCHMARKS.md, "Karcher mean optimum").
+_WARMUP_RTOL = 1e-2
+
+_exact_update_jit = eqx.filter_jit(_exact_update)
+
+
+def _warm_up(mu0, blocks, mu_like, weights, opts, *, atol, n_steps, bar):
+    """Karcher steps with fresh full registrations until F falls by less than
+    ``_WARMUP_RTOL`` (relative) in a step, or stops falling (that step is undone). Returns the
+    mean, its full registrations and the F trace."""
+    registered, energies, O = blocks.full_registration(mu0, mu_like, weights, opts)
+    mu, F = mu0, float(jnp.mean(energies))
+    trace = [F]
+    for _ in range(n_steps):
+        mu_new = _exact_update_jit(registered, mu.s)
+        reg_new, e_new, O_new = blocks.full_registration(mu_new, mu_like, weights, opts)
+        F_new = float(jnp.mean(e_new))
+        if not F_new < F - atol:
+            break
+        mu, registered, energies, O = mu_new, reg_new, e_new, O_new
+        trace.append(F_new)
+        bar.set_postfix_str(f"F = {F_new:.6g} (warm-up)")
+        bar.update(1)
+        if F - F_new <= _WARMUP_RTOL * abs(F_new):
+            break
+        F = F_new
+    return mu, registered, O, trace
+
+
+def _fixed_point(
+    mu0, samples, mu_like, weights, opts, solver, *, rtol, atol, max_steps, throw, blocks, progress, warm_up_steps
+):
     with tqdm(desc="mean (fixed point)", unit="step", disable=not progress) as bar:
-        registered, energies, O = blocks.full_registration(mu0, mu_like, weights, opts)
-        y = _start_iterate(mu0, registered, O)
-        traces, steps = [], 0
+        mu, registered, O, warm = _warm_up(
+            mu0, blocks, mu_like, weights, opts, atol=atol, n_steps=warm_up_steps, bar=bar
+        )
+        y = _start_iterate(mu, registered, O)
+        traces, steps = list(warm), len(warm) - 1
         for _ in range(_MAX_ROUNDS):
             y, trace, n_steps, result = _solve_fixed_point(
                 y, blocks, mu_like, weights, opts, solver, rtol=rtol, atol=atol, max_steps=max_steps, bar=bar
@@ -602,6 +641,7 @@ def karcher_mean(
     distances: Array | np.ndarray | None = None,
     min_lateral_length: float | None = None,
     registration: RegistrationOptions | dict | None = None,
+    warm_up_steps: int = 10,
     client=None,
     block_size: int = 64,
     progress: bool = False,
@@ -628,6 +668,12 @@ def karcher_mean(
       ``optx.RESULTS.nonlinear_max_steps_reached``. The fixed point ends each solve with a
       full registration of every sample onto its result; where that finds better
       registrations the solve restarts from them (at most 4 solves). `steps` counts them all.
+    - `warm_up_steps`: the fixed point first takes up to this many Karcher steps with every
+      sample registered afresh (rotation search included), until F falls by less than 1 % in
+      a step; only then does it carry registrations from step to step. Carried from the very
+      start, each sample's rotation stays in the basin it had against the start (the medoid)
+      and the fixed point can settle in a worse local minimum (measured: 1.7 % above gradient
+      descent on CPlantBox taproots in 3D; BENCHMARKS.md). 0 turns the warm-up off.
     - `init`: ``"medoid"`` or the index of the sample to start from.
     - `distances`: an ``(n, n)`` distance matrix (e.g. `pairwise_distances(trees)`) for the
       medoid; without it the medoid of the DP-free lower bound of the elastic distance is used.
@@ -647,6 +693,8 @@ def karcher_mean(
         raise ValueError(f"method must be 'fixed_point' or 'gradient', got {method!r}.")
     if not isinstance(max_steps, int) or max_steps < 1:
         raise ValueError(f"max_steps must be an integer >= 1, got {max_steps!r}.")
+    if isinstance(warm_up_steps, bool) or not isinstance(warm_up_steps, int) or warm_up_steps < 0:
+        raise ValueError(f"warm_up_steps must be an integer >= 0, got {warm_up_steps!r}.")
     if not (rtol >= 0 and atol >= 0):
         raise ValueError(f"rtol and atol must be >= 0, got rtol={rtol!r}, atol={atol!r}.")
     if not isinstance(trees, (RootTree, SRVFTree)):
@@ -684,7 +732,7 @@ def karcher_mean(
         blocks = _SampleBlocks(executor, samples, block_size if client is not None else None)
         mu, trace, steps, result, registered, energies = _fixed_point(
             mu0, samples, mu_like, weights, opts, inner, rtol=float(rtol), atol=tol_a,
-            max_steps=max_steps, throw=throw, blocks=blocks, progress=progress,
+            max_steps=max_steps, throw=throw, blocks=blocks, progress=progress, warm_up_steps=warm_up_steps,
         )
     else:
         inner = solver if solver is not None else optx.GradientDescent(learning_rate=0.5, rtol=0.0, atol=0.0)
@@ -694,9 +742,15 @@ def karcher_mean(
                 f"optx.BFGS), got {type(inner).__name__}."
             )
         wrapped = _MonitoredMinimiser(inner, jnp.asarray(rtol, dtype), jnp.asarray(tol_a, dtype), max_steps + 1)
+        # optimistix's own throw raises inside jit (an EquinoxRuntimeError); raise ours instead.
         mu, trace, count, steps, result = _solve_gradient(
-            mu0, samples, mu_like, weights, opts, wrapped, max_steps, throw
+            mu0, samples, mu_like, weights, opts, wrapped, max_steps, False
         )
+        if throw and result != optx.RESULTS.successful:
+            raise ConvergenceError(
+                f"karcher_mean: gradient descent reached the maximum number of steps ({max_steps}) "
+                f"without converging ({result}); raise max_steps or rtol, or pass throw=False."
+            )
         trace = np.asarray(trace)[: int(count)]
         registered, energies, _ = _full_registration(mu, samples, mu_like, weights, opts)
 

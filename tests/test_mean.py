@@ -271,11 +271,34 @@ def test_medoid_from_given_distances(population):
     assert res.init_index == 4
 
 
-def test_max_steps_is_reported(population):
-    res = karcher_mean(population, max_steps=1, rtol=0.0, throw=False)
+@pytest.mark.parametrize("method", ["fixed_point", "gradient"])
+def test_max_steps_is_reported(population, method):
+    res = karcher_mean(population, method=method, max_steps=1, rtol=0.0, throw=False)
     assert res.result == optx.RESULTS.nonlinear_max_steps_reached
-    with pytest.raises(Exception, match="maximum number of steps"):
-        karcher_mean(population, max_steps=1, rtol=0.0, throw=True)
+    assert np.isfinite(float(res.energy))
+    with pytest.raises(rs.ConvergenceError, match="maximum number of steps"):
+        karcher_mean(population, method=method, max_steps=1, rtol=0.0, throw=True)
+
+
+def test_mixed_capacities_or_dimensions_raise_named_errors(population):
+    rng = np.random.default_rng(0)
+    other = rs.batch([random_root(rng, n_laterals=2) for _ in range(2)], n_points=T + 2, max_laterals=6)
+    with pytest.raises(ValueError, match="capacities"):
+        karcher_objective(jax.tree.map(lambda x: x[0], other), population)
+    with pytest.raises(rs.InvalidRootError, match="dimensions"):
+        rs.batch([random_root(rng, n_laterals=1), random_root(rng, n_laterals=1, d=3)])
+
+
+def test_warm_up_is_a_karcher_step_and_can_be_turned_off(population):
+    # warm_up_steps=0 is the carried fixed point from the medoid's full registration; with the
+    # warm-up, the trace starts at the same F and never increases.
+    cold = karcher_mean(population, warm_up_steps=0, max_steps=30)
+    warm = karcher_mean(population, max_steps=30)
+    t = np.asarray(warm.energy_trace)
+    assert np.all(np.diff(t) <= 1e-12 * t[0])
+    assert float(warm.energy) <= float(cold.energy) * (1 + 5e-3)
+    with pytest.raises(ValueError, match="warm_up_steps"):
+        karcher_mean(population, warm_up_steps=-1)
 
 
 def test_bad_input_is_rejected(population):
