@@ -84,7 +84,17 @@ class KarcherMean(eqx.Module):
 
     **Fields**
 
-    - `mean`: the mean root's curves (`RootTree`); dropped laterals are null slots.
+    - `mean`: the mean root's curves (`RootTree`, ``to_curves(mean_srvf)``); dropped
+      laterals are null slots. Back to SRVFs and registered onto `mean_srvf` it is not at
+      distance 0: on the grid, `srvf` (node values from the two adjacent segments) and its
+      inverse (trapezoid integration of q|q|) are not exact inverses — a T-point polyline has
+      (T − 1)·d free values, an SRVF T·d — and the mean, an average of warped SRVFs, is not the
+      SRVF of any polyline. The error sits in the main and lateral terms of every real slot
+      (mostly the laterals; the attachments round-trip exactly) and is of the same size as a
+      sample's own curves-to-SRVF round trip. Measured (float64, relative to the median
+      sample-to-mean distance): 0.27 % on the bundled 53 roots (T = 100), 0.51 % on CPlantBox
+      taproots (T = 100), 2.2 % on RootNav (T = 50), 3.2 % on the arabidopsis plate (T = 100).
+      Use `mean_srvf` (or `fitted`) for further computation, `mean` to draw and save.
     - `mean_srvf`: the mean as an `SRVFTree`. Its `mask` is False for dropped slots (their
       `q` is 0, their `s` is kept); every other slot is a real lateral.
     - `fitted`: the mean as fitted, every slot real and nothing dropped: the point the
