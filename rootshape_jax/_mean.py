@@ -527,7 +527,8 @@ def _fixed_point(
             mu0, blocks, mu_like, weights, opts, atol=atol, n_steps=warm_up_steps, bar=bar
         )
         y = _start_iterate(mu, registered, O)
-        traces, steps = list(warm), len(warm) - 1
+        # The solve's first record is the energy at the warm-up's last mean: not twice.
+        traces, steps = list(warm[:-1]), len(warm) - 1
         for _ in range(_MAX_ROUNDS):
             y, trace, n_steps, result = _solve_fixed_point(
                 y, blocks, mu_like, weights, opts, solver, rtol=rtol, atol=atol, max_steps=max_steps, bar=bar
