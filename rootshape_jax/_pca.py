@@ -21,8 +21,8 @@ the data's lateral-length range: shorter than the data's 10th percentile of late
 a lateral is dropped (the mean's slots that few samples reach are short, and their variation
 makes many short laterals that the data does not have); longer than the data's longest, it is
 scaled down to that length. Measured on the bundled 53 roots (T = 50): random roots with every
-lateral in range 86 % → 100 %, ±2σ along modes 1–5 90 % → 100 %; KS statistic of the pooled
-lateral lengths against the data 0.22 → 0.11 (random roots). See BENCHMARKS.md.
+lateral in range 84 % → 100 %, ±2σ along modes 1–5 90 % → 100 %; KS statistic of the pooled
+lateral lengths against the data 0.29 → 0.16 (random roots). See BENCHMARKS.md.
 """
 
 from __future__ import annotations
