@@ -25,6 +25,8 @@ Two solvers, both optimistix:
   every step, until F falls by less than 1 % in a step (a step that would raise F is not
   taken): carried from the start, registrations would keep each sample's rotation in the
   basin it had against the start, and the fixed point would stop in a worse local minimum.
+  For small populations (`n_starts`) the warm-up runs from several central samples and the
+  solve continues from the lowest F.
   The step loop is written once, on the host: the solver's `step`/`terminate` run there, so
   the per-sample work can run here or on a Dask cluster alike (DESIGN.md §13).
 - ``method="gradient"`` (`optx.minimise`, gradient descent by default, any optimistix
