@@ -90,6 +90,8 @@ from ._cluster import (
     confusion_matrix as confusion_matrix,
     loo_accuracy as loo_accuracy,
 )
+from ._permanova import Permanova as Permanova, permanova as permanova
+from ._plausibility import Plausibility as Plausibility, plausibility as plausibility
 from ._traits import traits as traits, traits_to_csv as traits_to_csv
 
 __version__ = "0.1.0"

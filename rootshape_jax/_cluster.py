@@ -24,7 +24,7 @@ import scipy.spatial.distance as ssd
 LINKAGE_METHODS = ("single", "complete", "average", "weighted", "ward", "centroid", "median")
 
 
-def _check_distances(distances) -> np.ndarray:
+def check_distances(distances) -> np.ndarray:
     D = np.asarray(distances, dtype=np.float64)
     if D.ndim != 2 or D.shape[0] != D.shape[1]:
         raise ValueError(f"distances must be a square (n, n) matrix, got shape {D.shape}.")
@@ -78,7 +78,7 @@ def cluster(
     """
     if method not in LINKAGE_METHODS:
         raise ValueError(f"method must be one of {LINKAGE_METHODS}, got {method!r}.")
-    D = _check_distances(distances)
+    D = check_distances(distances)
     n = D.shape[0]
     if n < 2:
         raise ValueError("cluster needs at least two roots.")
@@ -100,7 +100,7 @@ def cluster(
     return Clustering(linkage=Z, labels=labels, order=np.asarray(order), method=method)
 
 
-def _check_labels(labels, n: int) -> np.ndarray:
+def check_labels(labels, n: int) -> np.ndarray:
     y = np.asarray(labels)
     if y.shape != (n,):
         raise ValueError(f"labels must have shape ({n},), got {y.shape}.")
@@ -111,9 +111,9 @@ def class_mean_distances(distances, labels, *, leave_out: bool = True) -> tuple[
     """Squared distance of every root to every class mean, from distances alone (module
     docstring). With `leave_out`, root i is removed from its own class first (NaN if that
     empties the class). Returns ``(d2 of shape (n, n_classes), classes)``."""
-    D = _check_distances(distances)
+    D = check_distances(distances)
     n = D.shape[0]
-    y = _check_labels(labels, n)
+    y = check_labels(labels, n)
     classes = np.unique(y)
     D2 = D**2
     out = np.full((n, len(classes)), np.nan)
@@ -138,9 +138,9 @@ def loo_accuracy(distances, labels, *, rule: str = "nearest_neighbour") -> dict:
     Ties go to the first candidate (smallest index / first class in sorted order). Returns
     ``{"accuracy", "predicted", "correct"}``.
     """
-    D = _check_distances(distances)
+    D = check_distances(distances)
     n = D.shape[0]
-    y = _check_labels(labels, n)
+    y = check_labels(labels, n)
     if n < 2:
         raise ValueError("leave-one-out needs at least two roots.")
     if rule == "nearest_neighbour":

@@ -100,16 +100,24 @@ def log_map(registered: SRVFTree, mean: SRVFTree, c: TreeParams) -> Array:
     )
 
 
-def exp_map(mean: SRVFTree, c: TreeParams, min_lateral_length: Array, v: Array) -> SRVFTree:
+def exp_map(
+    mean: SRVFTree, c: TreeParams, min_lateral_length: Array, v: Array, max_lateral_length: Array | None = None
+) -> SRVFTree:
     """SRVF trees ``μ + W^{-1/2} v`` for flattened whitened tangent vectors v (batched).
-    Laterals shorter than `min_lateral_length` become nulls; attachments are clipped to [0, 1]."""
+    Laterals shorter than `min_lateral_length` become nulls; laterals longer than
+    `max_lateral_length` (if given) are scaled down to it (``q·√(max/L)``: the same shape,
+    shorter); attachments are clipped to [0, 1]."""
     T, C = mean.q0.shape
     K = mean.q.shape[0]
     u = unflatten(v, T, K, C)
     q0 = mean.q0 + u.q0 / c.q0
     q = mean.q + u.q / c.q
     s = jnp.clip(mean.s + u.s / c.s, 0.0, 1.0)
-    real = l2_norm_squared(q) >= min_lateral_length
+    length = l2_norm_squared(q)
+    if max_lateral_length is not None:
+        too_long = length > max_lateral_length
+        q = q * jnp.where(too_long, jnp.sqrt(max_lateral_length / jnp.where(too_long, length, 1.0)), 1.0)[..., None, None]
+    real = length >= min_lateral_length
     q = q * real[..., None, None]
     lead = q0.shape[:-2]
     origin = jnp.broadcast_to(mean.origin, lead + mean.origin.shape)

@@ -271,11 +271,34 @@ def test_medoid_from_given_distances(population):
     assert res.init_index == 4
 
 
-def test_max_steps_is_reported(population):
-    res = karcher_mean(population, max_steps=1, rtol=0.0, throw=False)
+@pytest.mark.parametrize("method", ["fixed_point", "gradient"])
+def test_max_steps_is_reported(population, method):
+    res = karcher_mean(population, method=method, max_steps=1, rtol=0.0, throw=False)
     assert res.result == optx.RESULTS.nonlinear_max_steps_reached
-    with pytest.raises(Exception, match="maximum number of steps"):
-        karcher_mean(population, max_steps=1, rtol=0.0, throw=True)
+    assert np.isfinite(float(res.energy))
+    with pytest.raises(rs.ConvergenceError, match="maximum number of steps"):
+        karcher_mean(population, method=method, max_steps=1, rtol=0.0, throw=True)
+
+
+def test_mixed_capacities_or_dimensions_raise_named_errors(population):
+    rng = np.random.default_rng(0)
+    other = rs.batch([random_root(rng, n_laterals=2) for _ in range(2)], n_points=T + 2, max_laterals=6)
+    with pytest.raises(ValueError, match="capacities"):
+        karcher_objective(jax.tree.map(lambda x: x[0], other), population)
+    with pytest.raises(rs.InvalidRootError, match="dimensions"):
+        rs.batch([random_root(rng, n_laterals=1), random_root(rng, n_laterals=1, d=3)])
+
+
+def test_warm_up_is_a_karcher_step_and_can_be_turned_off(population):
+    # warm_up_steps=0 is the carried fixed point from the medoid's full registration; with the
+    # warm-up, the trace starts at the same F and never increases.
+    cold = karcher_mean(population, warm_up_steps=0, max_steps=30)
+    warm = karcher_mean(population, max_steps=30)
+    t = np.asarray(warm.energy_trace)
+    assert np.all(np.diff(t) <= 1e-12 * t[0])
+    assert float(warm.energy) <= float(cold.energy) * (1 + 5e-3)
+    with pytest.raises(ValueError, match="warm_up_steps"):
+        karcher_mean(population, warm_up_steps=-1)
 
 
 def test_bad_input_is_rejected(population):
@@ -294,3 +317,43 @@ def test_bad_input_is_rejected(population):
     single = jax.tree.map(lambda x: x[0], population)
     with pytest.raises(ValueError, match="batch"):
         karcher_mean(single)
+
+
+def test_mean_curves_round_trip_is_bounded_by_the_samples_own(population, fp_population):
+    """`to_curves(mean_srvf)`, back to SRVFs and registered onto `mean_srvf`, is not at distance
+    0: on the grid, `srvf` (node-sampled) and `srvf_to_curve` (trapezoid) are not exact
+    inverses, for the samples' own SRVFs as much as for the mean's (KarcherMean docstring).
+    The attachments round-trip exactly (position term 0); the rest is bounded by the samples'
+    own round trip and by 10 % of the typical sample-to-mean distance at T = 30."""
+    m = fp_population
+    back = rs.to_srvf(rs.to_curves(m.mean_srvf))
+    direct = preshape_terms_of(m.mean_srvf, back)
+    assert float(direct.values["position"]) == 0.0
+    reg = rs.register(m.mean_srvf, back)
+    typical = float(np.median(np.sqrt(np.asarray(m.energies))))
+    samples = rs.to_srvf(population)
+    own = np.sqrt(np.asarray(preshape_terms_of(samples, rs.to_srvf(rs.to_curves(samples))).total))
+    assert float(reg.distance) <= 0.1 * typical
+    assert float(reg.distance) <= 1.5 * float(own.max())
+
+
+def preshape_terms_of(a, b):
+    from rootshape_jax._metric import preshape_terms
+
+    return preshape_terms(a, b, W)
+
+
+def test_multi_start_picks_the_lowest_warm_up(population):
+    # The candidates are the medoid and the next most central samples (DP-free lower-bound
+    # distances); the result reports the chosen one.
+    D = np.asarray(lower_bound_distances(rs.to_srvf(population), W))
+    order = list(np.argsort(np.sum(D**2, axis=1), kind="stable"))
+    two = karcher_mean(population, n_starts=2, max_steps=30)
+    one = karcher_mean(population, n_starts=1, max_steps=30)
+    assert one.init_index == order[0]
+    assert two.init_index in order[:2]
+    # The same start gives the same run.
+    if two.init_index == one.init_index:
+        np.testing.assert_allclose(two.energy, one.energy, rtol=1e-12)
+    with pytest.raises(ValueError, match="n_starts"):
+        karcher_mean(population, n_starts=0)

@@ -174,3 +174,36 @@ def test_bad_input(two_mode):
         sample(pc, jax.random.PRNGKey(0), 0)
     with pytest.raises(ValueError, match="coefficients"):
         reconstruct(pc, jnp.zeros((3, 100)))
+
+
+def test_synthesised_laterals_stay_in_the_data_range(two_mode):
+    """Defaults: laterals below the data's 10th percentile of lateral lengths are dropped,
+    longer than the data's longest are scaled down to it, so random roots and ±2σ modes
+    meet `plausibility`'s length criterion; a slow reference for the two thresholds."""
+    _, _, x, mean, pc = two_mode
+    reg = jax.tree.map(np.asarray, mean.registered)
+    lengths = np.array([
+        sum(np.sum(reg.q[i, k] ** 2, axis=-1)[j] * w for j, w in enumerate(_trapezoid(T)))
+        for i in range(reg.q.shape[0]) for k in range(reg.q.shape[1]) if reg.mask[i, k]
+    ])
+    np.testing.assert_allclose(float(pc.min_lateral_length), np.quantile(lengths, 0.1), rtol=1e-9)
+    np.testing.assert_allclose(float(pc.max_lateral_length), lengths.max(), rtol=1e-9)
+    t = sample(pc, jax.random.PRNGKey(5), 64, srvf=True)
+    L = np.asarray(rs.l2_norm_squared(t.q))[np.asarray(t.mask)]
+    assert L.min() >= float(pc.min_lateral_length) * (1 - 1e-9)
+    assert L.max() <= float(pc.max_lateral_length) * (1 + 1e-9)
+    # Without the cap (max_lateral_length=inf) the same draw has longer laterals.
+    free = tangent_pca(mean, max_lateral_length=float("inf"))
+    tf = sample(free, jax.random.PRNGKey(5), 64, srvf=True)
+    assert np.asarray(rs.l2_norm_squared(tf.q))[np.asarray(tf.mask)].max() > L.max()
+    # The measure agrees: every ±2σ root has its laterals in range (up to polyline rounding).
+    p = rs.plausibility(modes(pc, [-2.0, 2.0], component=0), x, tolerance=0.02)
+    assert p.lengths_in_range.all()
+    with pytest.raises(ValueError, match="max_lateral_length"):
+        tangent_pca(mean, max_lateral_length=0.0)
+
+
+def _trapezoid(n):
+    w = np.full(n, 1.0 / (n - 1))
+    w[[0, -1]] /= 2
+    return w

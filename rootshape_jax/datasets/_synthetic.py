@@ -89,12 +89,12 @@ class RootParameters:
     max_laterals: int = 30
     lateral_length_base: float = 40.0
     lateral_length_tip: float = 5.0
-    lateral_length_cv: float = 0.3
+    lateral_length_cv: float = 0.15
     lateral_min_length: float = 1.0
     insertion_angle_mean: float = 60.0
     insertion_angle_sd: float = 10.0
     side_pattern: str = "alternate"
-    lateral_tortuosity: float = 0.06
+    lateral_tortuosity: float = 0.012
     lateral_gravitropism: float = 0.01
     segment_length: float = 2.0
 
@@ -126,29 +126,34 @@ class RootParameters:
 
 
 # Named treatments, written as differences from the control so the direction of each effect
-# is visible (and tested in tests/test_datasets.py).
+# is visible (and tested in tests/test_datasets.py). The effects are strong enough, and the
+# within-condition noise (lateral length spread, bending) low enough, that the conditions
+# separate under the elastic metric about as the paper's wheat conditions did: on the default
+# data set (T = 50, scale-normalised) LOO 1-NN accuracy 100 %, average-linkage purity 94 %,
+# PERMANOVA R² 0.76 (BENCHMARKS.md, "Synthetic conditions").
 _CONTROL = RootParameters()
 CONDITIONS: dict[str, RootParameters] = {
     "control": _CONTROL,
-    # Water deficit: the main root grows deeper and steeper, branching is reduced.
+    # Water deficit: the main root grows deeper and steeper; fewer, shorter laterals.
     "drought": dataclasses.replace(
         _CONTROL,
         main_length_mean=150.0,
         main_length_sd=18.0,
         main_gravitropism=0.08,
-        lateral_density=0.09,
-        lateral_length_base=25.0,
-        lateral_length_tip=4.0,
+        lateral_density=0.045,
+        lateral_length_base=12.0,
+        lateral_length_tip=3.0,
     ),
     # Nitrate-rich patch / high N: more and longer laterals, a shorter main root.
     "high_nitrate": dataclasses.replace(
         _CONTROL,
-        main_length_mean=95.0,
-        main_length_sd=12.0,
+        main_length_mean=100.0,
+        main_length_sd=5.0,
         apical_zone=15.0,
-        lateral_density=0.34,
+        lateral_density=0.36,
         lateral_length_base=55.0,
-        lateral_length_tip=8.0,
+        lateral_length_tip=12.0,
+        lateral_length_cv=0.1,
     ),
     # Phosphate starvation: primary root growth is inhibited, laterals proliferate and grow
     # shallower.
