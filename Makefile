@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 EXTRAS ?= test,bench,sim,dask
 OUT ?= demo_output
 
-.PHONY: install test test-slow demo bench clean
+.PHONY: install lint test test-slow demo bench clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -19,7 +19,12 @@ install: $(VENV)/.installed
 # programs through JAX's persistent cache (also used by the tests' subprocesses).
 PYTEST := JAX_COMPILATION_CACHE_DIR=$(CURDIR)/.jax_cache $(PY) -m pytest -q -n 2 --dist loadfile
 
-test: $(VENV)/.installed
+# ruff: lint, import order and formatting (configured in pyproject.toml); part of `make test`.
+lint: $(VENV)/.installed
+	$(VENV)/bin/ruff check rootshape_jax tests benchmarks
+	$(VENV)/bin/ruff format --check rootshape_jax tests benchmarks
+
+test: lint
 	$(PYTEST) -m "not slow"
 
 test-slow: $(VENV)/.installed

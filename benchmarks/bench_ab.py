@@ -59,7 +59,7 @@ def _run(checkout: Path, what: str, devices) -> dict:
     code = CHILD.format(bench=str(Path(__file__).parent.resolve()), what=what, devices=devices)
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     line = [x for x in proc.stdout.splitlines() if x.startswith("RESULT ")][-1]
-    return json.loads(line[len("RESULT "):])
+    return json.loads(line[len("RESULT ") :])
 
 
 def main(argv=None):
@@ -76,9 +76,11 @@ def main(argv=None):
             for label, checkout in (("A", Path(args.a)), ("B", Path(args.b))):
                 res = _run(checkout, what, args.devices)
                 rows.append({"what": what, "round": r, "label": label, "checkout": str(checkout), **res})
-                print(f"{what} round {r} {label}: {res['wall_s']:.1f} s (compile {res['compile_s']:.1f} s) "
-                      + " ".join(f"{k}={v}" for k, v in res.items() if k in ("energy", "steps", "mean_distance")),
-                      flush=True)
+                print(
+                    f"{what} round {r} {label}: {res['wall_s']:.1f} s (compile {res['compile_s']:.1f} s) "
+                    + " ".join(f"{k}={v}" for k, v in res.items() if k in ("energy", "steps", "mean_distance")),
+                    flush=True,
+                )
     summary = {}
     for what in args.what:
         a = [x["wall_s"] for x in rows if x["what"] == what and x["label"] == "A"]

@@ -17,7 +17,6 @@ from pathlib import Path
 
 import jax
 
-
 jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
@@ -26,7 +25,6 @@ import scipy  # noqa: E402
 import scipy.optimize  # noqa: E402
 
 from rootshape_jax._assignment import linear_assignment  # noqa: E402
-
 
 SIZES = (10, 20, 40, 80)
 BATCH = 64
@@ -75,26 +73,18 @@ def main():
         row = {"K": k}
 
         row["scipy_single_s"] = _median_time(lambda: scipy.optimize.linear_sum_assignment(one))
-        row["scipy_batch_s"] = _median_time(
-            lambda: [scipy.optimize.linear_sum_assignment(c) for c in batch]
-        )
+        row["scipy_batch_s"] = _median_time(lambda: [scipy.optimize.linear_sum_assignment(c) for c in batch])
         expected = np.stack([scipy.optimize.linear_sum_assignment(c)[1] for c in batch])
 
         for method in ("callback", "jax"):
             single, t_single = _compiled(lambda c: linear_assignment(c, method=method), one_j)
-            vmapped, t_batch = _compiled(
-                jax.vmap(lambda c: linear_assignment(c, method=method)), batch_j
-            )
+            vmapped, t_batch = _compiled(jax.vmap(lambda c: linear_assignment(c, method=method)), batch_j)
             # Correctness guard: a benchmark of a wrong answer is worthless.
             np.testing.assert_array_equal(np.asarray(vmapped(batch_j)), expected)
             row[f"{method}_compile_single_s"] = t_single
             row[f"{method}_compile_batch_s"] = t_batch
-            row[f"{method}_single_s"] = _median_time(
-                lambda: jax.block_until_ready(single(one_j))
-            )
-            row[f"{method}_batch_s"] = _median_time(
-                lambda: jax.block_until_ready(vmapped(batch_j))
-            )
+            row[f"{method}_single_s"] = _median_time(lambda: jax.block_until_ready(single(one_j)))
+            row[f"{method}_batch_s"] = _median_time(lambda: jax.block_until_ready(vmapped(batch_j)))
         rows.append(row)
         print(f"K={k} done", flush=True)
 
@@ -116,12 +106,16 @@ def main():
 
     us = 1e6
     print()
-    print(f"Machine: {machine['cpu']}, {machine['logical_cpus']} logical CPUs, "
-          f"jax {machine['jax']}, scipy {machine['scipy']}, float64.")
+    print(
+        f"Machine: {machine['cpu']}, {machine['logical_cpus']} logical CPUs, "
+        f"jax {machine['jax']}, scipy {machine['scipy']}, float64."
+    )
     print()
-    print("| K | scipy direct | callback | jax | callback / scipy | jax / scipy "
-          f"| scipy ×{BATCH} loop | callback vmap ×{BATCH} | jax vmap ×{BATCH} "
-          "| jax vmap / callback vmap | compile callback / jax (single, batch) |")
+    print(
+        "| K | scipy direct | callback | jax | callback / scipy | jax / scipy "
+        f"| scipy ×{BATCH} loop | callback vmap ×{BATCH} | jax vmap ×{BATCH} "
+        "| jax vmap / callback vmap | compile callback / jax (single, batch) |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(

@@ -65,8 +65,10 @@ def main(argv=None):
         "permanova": {"pseudo_f": pm.pseudo_f, "p_value": pm.p_value, "r2": pm.r2, "permutations": pm.permutations},
         "mean_distance": {
             f"{a}-{b}": float(np.mean(D[np.ix_(y == a, y == b)][np.triu_indices(int(np.sum(y == a)), 1)]))
-            if a == b else float(np.mean(D[np.ix_(y == a, y == b)]))
-            for i, a in enumerate(classes) for b in classes[i:]
+            if a == b
+            else float(np.mean(D[np.ix_(y == a, y == b)]))
+            for i, a in enumerate(classes)
+            for b in classes[i:]
         },
     }
     print(out["separability"], flush=True)
@@ -88,9 +90,11 @@ def main(argv=None):
         for what, t in (("random_200", rnd), ("modes_1to5_pm2sd", flat)):
             pl = rs.plausibility(t, trees)
             res[what] = {
-                "rate": pl.rate, "lengths_in_range": float(np.mean(pl.lengths_in_range)),
+                "rate": pl.rate,
+                "lengths_in_range": float(np.mean(pl.lengths_in_range)),
                 "no_self_crossing": float(np.mean(pl.no_self_crossing)),
-                "ks_statistic": pl.ks_statistic, "ks_pvalue": pl.ks_pvalue,
+                "ks_statistic": pl.ks_statistic,
+                "ks_pvalue": pl.ks_pvalue,
             }
         res["min_lateral_length"] = float(pc.min_lateral_length)
         res["max_lateral_length"] = float(pc.max_lateral_length)

@@ -120,8 +120,11 @@ def main(argv=None):
     def add(**row):
         rows.append(row)
         extra = f", compile {row['compile_s']:.1f} s" if row.get("compile_s") is not None else ""
-        print(f"T={row['T']:4d} {row['what']:<22} {row['method']:<28} batch {row['batch']:5d}: "
-              f"{row['pairs_per_s']:10.1f} pairs/s{extra}", flush=True)
+        print(
+            f"T={row['T']:4d} {row['what']:<22} {row['method']:<28} batch {row['batch']:5d}: "
+            f"{row['pairs_per_s']:10.1f} pairs/s{extra}",
+            flush=True,
+        )
 
     for T in Ts:
         big = max(batches)
@@ -134,8 +137,7 @@ def main(argv=None):
         single = functools.partial(dp_warp, neighbourhood=n)
         comp_s, _, exe = _compile(single, q1[0], q2[0])
         sec = _per_pair_time(exe, q1[:n_single], q2[:n_single])
-        add(T=T, what="dp_warp", method="rootshape_jax single", batch=1, pairs_per_s=1 / sec,
-            compile_s=comp_s)
+        add(T=T, what="dp_warp", method="rootshape_jax single", batch=1, pairs_per_s=1 / sec, compile_s=comp_s)
         for B in batches:
             fn = functools.partial(dp_warp_batch, neighbourhood=n)
             comp_s, jitted, exe = _compile(fn, q1[:B], q2[:B])
@@ -143,58 +145,92 @@ def main(argv=None):
             jitted(q1[:B], q2[:B]).block_until_ready()
             size = jitted._cache_size()
             jitted(q1[big : big + B], q2[big : big + B]).block_until_ready()  # new data, same shape
-            add(T=T, what="dp_warp", method=f"rootshape_jax batched ({len(jax.devices())} dev)",
-                batch=B, pairs_per_s=B / sec, compile_s=comp_s,
-                recompiled_on_new_data=jitted._cache_size() != size)
+            add(
+                T=T,
+                what="dp_warp",
+                method=f"rootshape_jax batched ({len(jax.devices())} dev)",
+                batch=B,
+                pairs_per_s=B / sec,
+                compile_s=comp_s,
+                recompiled_on_new_data=jitted._cache_size() != size,
+            )
         if cf is not None:
+
             def fd_srvf(x):
                 return np.ascontiguousarray(cf.curve_to_q(np.asarray(x, float).T)[0])
 
             qa = [fd_srvf(x) for x in b1[:n_single]]
             qb = [fd_srvf(x) for x in b2[:n_single]]
             sec = _per_pair_time(lambda a, b: cf.optimum_reparam_curve(a, b), qa, qb)
-            add(T=T, what="dp_warp", method="fdasrsf optimum_reparam_curve", batch=1,
-                pairs_per_s=1 / sec, compile_s=None)
+            add(
+                T=T,
+                what="dp_warp",
+                method="fdasrsf optimum_reparam_curve",
+                batch=1,
+                pairs_per_s=1 / sec,
+                compile_s=None,
+            )
 
         # --- elastic curve distance ------------------------------------------------------
-        elastic = functools.partial(
-            elastic_curve_distance, scale=True, n_samples=T, neighbourhood=n
-        )
+        elastic = functools.partial(elastic_curve_distance, scale=True, n_samples=T, neighbourhood=n)
         comp_s, _, exe = _compile(elastic, c1[0], c2[0])
         sec = _per_pair_time(exe, c1[:n_single], c2[:n_single])
-        add(T=T, what="elastic_curve_distance", method="rootshape_jax single", batch=1,
-            pairs_per_s=1 / sec, compile_s=comp_s)
+        add(
+            T=T,
+            what="elastic_curve_distance",
+            method="rootshape_jax single",
+            batch=1,
+            pairs_per_s=1 / sec,
+            compile_s=comp_s,
+        )
         for B in batches:
             comp_s, jitted, exe = _compile(device_vmap(elastic), c1[:B], c2[:B])
             sec = _best_time(exe, c1[:B], c2[:B])
             out = jitted(c1[:B], c2[:B])
             size = jitted._cache_size()
             jitted(c1[big : big + B], c2[big : big + B]).energy.block_until_ready()
-            add(T=T, what="elastic_curve_distance",
-                method=f"rootshape_jax batched ({len(jax.devices())} dev)", batch=B,
-                pairs_per_s=B / sec, compile_s=comp_s,
+            add(
+                T=T,
+                what="elastic_curve_distance",
+                method=f"rootshape_jax batched ({len(jax.devices())} dev)",
+                batch=B,
+                pairs_per_s=B / sec,
+                compile_s=comp_s,
                 recompiled_on_new_data=jitted._cache_size() != size,
                 mean_dp_solves=float(jnp.mean(out.n_iterations)),
-                max_dp_solves=int(jnp.max(out.n_iterations)))
+                max_dp_solves=int(jnp.max(out.n_iterations)),
+            )
         # The cost of the alternation's quality: the two starts only (2 DP solves per pair).
         cheap = functools.partial(elastic, max_iterations=1)
         comp_s, _, exe = _compile(device_vmap(cheap), c1[:big], c2[:big])
         sec = _best_time(exe, c1[:big], c2[:big])
-        add(T=T, what="elastic_curve_distance",
+        add(
+            T=T,
+            what="elastic_curve_distance",
             method=f"rootshape_jax batched, max_iterations=1 ({len(jax.devices())} dev)",
-            batch=big, pairs_per_s=big / sec, compile_s=comp_s)
+            batch=big,
+            pairs_per_s=big / sec,
+            compile_s=comp_s,
+        )
         if cf is not None:
             pa = [np.asarray(x, float).T.copy() for x in b1[:n_single]]
             pb = [np.asarray(x, float).T.copy() for x in b2[:n_single]]
             # elastic_distance_curve modifies its inputs in place: give it copies.
             sec = _per_pair_time(lambda a, b: cf.elastic_distance_curve(a.copy(), b.copy()), pa, pb)
-            add(T=T, what="elastic_curve_distance", method="fdasrsf elastic_distance_curve",
-                batch=1, pairs_per_s=1 / sec, compile_s=None)
+            add(
+                T=T,
+                what="elastic_curve_distance",
+                method="fdasrsf elastic_distance_curve",
+                batch=1,
+                pairs_per_s=1 / sec,
+                compile_s=None,
+            )
 
     # Ratios against fdasrsf, same T, same run.
     for row in rows:
-        peer = [r for r in rows if r["T"] == row["T"] and r["what"] == row["what"]
-                and r["method"].startswith("fdasrsf")]
+        peer = [
+            r for r in rows if r["T"] == row["T"] and r["what"] == row["what"] and r["method"].startswith("fdasrsf")
+        ]
         row["x_fdasrsf"] = row["pairs_per_s"] / peer[0]["pairs_per_s"] if peer else None
 
     path = write_json("bench_curves", results)
@@ -218,8 +254,7 @@ def _markdown(results) -> str:
     for r in results["rows"]:
         x = f"{r['x_fdasrsf']:.1f}" if r.get("x_fdasrsf") is not None else ""
         c = f"{r['compile_s']:.1f}" if r.get("compile_s") is not None else ""
-        lines.append(f"| {r['T']} | {r['what']} | {r['method']} | {r['batch']} | "
-                     f"{r['pairs_per_s']:.1f} | {x} | {c} |")
+        lines.append(f"| {r['T']} | {r['what']} | {r['method']} | {r['batch']} | {r['pairs_per_s']:.1f} | {x} | {c} |")
     return "\n".join(lines) + "\n"
 
 

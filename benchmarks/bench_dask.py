@@ -59,8 +59,7 @@ def main(argv=None):
     import numpy as np
 
     import rootshape_jax as rs
-    from rootshape_jax import _dask
-    from rootshape_jax import _pairwise
+    from rootshape_jax import _dask, _pairwise
 
     T, chunk = 100, 32
     pairs = n * (n - 1) // 2
@@ -71,11 +70,22 @@ def main(argv=None):
     trees = rs.batch(roots, n_points=T, normalise_scale=True)
     K = trees.capacity
     lat = [r.n_laterals for r in roots]
-    print(f"N = {n} roots ({pairs} pairs), T = {T}, K = {K}, laterals per root {min(lat)}–{max(lat)} "
-          f"(mean {np.mean(lat):.1f}), {'float64' if args.x64 else 'float32'}", flush=True)
-    out = {"machine": machine(), "dtype": "float64" if args.x64 else "float32", "n_roots": n,
-           "pairs": pairs, "T": T, "K": K, "chunk_size": chunk, "block_size": block,
-           "mean_laterals": float(np.mean(lat))}
+    print(
+        f"N = {n} roots ({pairs} pairs), T = {T}, K = {K}, laterals per root {min(lat)}–{max(lat)} "
+        f"(mean {np.mean(lat):.1f}), {'float64' if args.x64 else 'float32'}",
+        flush=True,
+    )
+    out = {
+        "machine": machine(),
+        "dtype": "float64" if args.x64 else "float32",
+        "n_roots": n,
+        "pairs": pairs,
+        "T": T,
+        "K": K,
+        "chunk_size": chunk,
+        "block_size": block,
+        "mean_laterals": float(np.mean(lat)),
+    }
 
     # In-process path: compile on 2 roots (same chunk shape), then the whole matrix.
     small = jax.tree.map(lambda x: x[:2], trees)
@@ -87,11 +97,20 @@ def main(argv=None):
     D_local = np.asarray(jax.block_until_ready(D_local))
     wall = time.perf_counter() - t0
     cpu = _cpu_seconds() - c0
-    out["in_process"] = dict(devices=len(jax.devices()), compile_plus_first_chunk_s=compile_s, wall_s=wall,
-                             pairs_per_s=pairs / wall, cpu_s=cpu, cpu_s_per_pair=cpu / pairs,
-                             lateral_dp=stats["lateral_dp"])
-    print(f"in-process ({len(jax.devices())} devices): {wall:.1f} s, {pairs / wall:.2f} pairs/s, "
-          f"compile {compile_s:.1f} s", flush=True)
+    out["in_process"] = dict(
+        devices=len(jax.devices()),
+        compile_plus_first_chunk_s=compile_s,
+        wall_s=wall,
+        pairs_per_s=pairs / wall,
+        cpu_s=cpu,
+        cpu_s_per_pair=cpu / pairs,
+        lateral_dp=stats["lateral_dp"],
+    )
+    print(
+        f"in-process ({len(jax.devices())} devices): {wall:.1f} s, {pairs / wall:.2f} pairs/s, "
+        f"compile {compile_s:.1f} s",
+        flush=True,
+    )
 
     # Warm-up block: the first chunk-sized block of the real pairs.
     opts = jax.tree.map(np.asarray, rs.RegistrationOptions())
@@ -102,36 +121,60 @@ def main(argv=None):
 
     out["dask"] = []
     for n_workers in args.workers:
-        with distributed.LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                                      host="127.0.0.1", dashboard_address=None) as cluster, \
-                distributed.Client(cluster) as client:
+        with (
+            distributed.LocalCluster(
+                n_workers=n_workers, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+            ) as cluster,
+            distributed.Client(cluster) as client,
+        ):
             client.wait_for_workers(n_workers)
             addrs = sorted(client.scheduler_info()["workers"])
             [s_fut] = client.scatter([s_np], broadcast=True, hash=False)
             t0 = time.perf_counter()
             block = (I[:chunk], J[:chunk])
-            warm = [client.submit(_dask._task, _pairwise.pair_block, x64, block, (s_fut, s_fut, w_np, opts, chunk),
-                                  workers=[a], allow_other_workers=False, pure=False) for a in addrs]
+            warm = [
+                client.submit(
+                    _dask._task,
+                    _pairwise.pair_block,
+                    x64,
+                    block,
+                    (s_fut, s_fut, w_np, opts, chunk),
+                    workers=[a],
+                    allow_other_workers=False,
+                    pure=False,
+                )
+                for a in addrs
+            ]
             client.gather(warm)
             warm_s = time.perf_counter() - t0
             del warm, s_fut
             cpu0 = sum(client.run(_cpu_seconds).values())
             t0 = time.perf_counter()
-            D, st = rs.pairwise_distances(trees, weights=w, chunk_size=chunk, progress=True, return_stats=True,
-                                          client=client, block_size=block)
+            D, st = rs.pairwise_distances(
+                trees, weights=w, chunk_size=chunk, progress=True, return_stats=True, client=client, block_size=block
+            )
             D = np.asarray(D)
             wall = time.perf_counter() - t0
             cpu = sum(client.run(_cpu_seconds).values()) - cpu0
-        row = dict(workers=n_workers, warmup_compile_s=warm_s, wall_s=wall, pairs_per_s=pairs / wall,
-                   worker_cpu_s=cpu, cpu_s_per_pair=cpu / pairs, blocks=st["blocks"],
-                   speed_vs_in_process=out["in_process"]["wall_s"] / wall,
-                   max_abs_diff_vs_in_process=float(np.max(np.abs(D - D_local))),
-                   bitwise_equal_to_in_process=bool(np.array_equal(D, D_local)))
+        row = dict(
+            workers=n_workers,
+            warmup_compile_s=warm_s,
+            wall_s=wall,
+            pairs_per_s=pairs / wall,
+            worker_cpu_s=cpu,
+            cpu_s_per_pair=cpu / pairs,
+            blocks=st["blocks"],
+            speed_vs_in_process=out["in_process"]["wall_s"] / wall,
+            max_abs_diff_vs_in_process=float(np.max(np.abs(D - D_local))),
+            bitwise_equal_to_in_process=bool(np.array_equal(D, D_local)),
+        )
         out["dask"].append(row)
-        print(f"dask {n_workers} worker(s): {wall:.1f} s, {pairs / wall:.2f} pairs/s "
-              f"({row['speed_vs_in_process']:.2f}× in-process), warm-up/compile {warm_s:.1f} s, "
-              f"worker CPU {cpu / pairs * 1e3:.1f} ms/pair, max |ΔD| {row['max_abs_diff_vs_in_process']:.2e}",
-              flush=True)
+        print(
+            f"dask {n_workers} worker(s): {wall:.1f} s, {pairs / wall:.2f} pairs/s "
+            f"({row['speed_vs_in_process']:.2f}× in-process), warm-up/compile {warm_s:.1f} s, "
+            f"worker CPU {cpu / pairs * 1e3:.1f} ms/pair, max |ΔD| {row['max_abs_diff_vs_in_process']:.2e}",
+            flush=True,
+        )
 
     # Projection: N = 5,000 on 100 cores, from the one-worker run's cost per pair.
     one = next((r for r in out["dask"] if r["workers"] == 1), out["dask"][0])
@@ -140,18 +183,25 @@ def main(argv=None):
     eff = two["pairs_per_s"] / (2 * one["pairs_per_s"]) if two else None
     big = PROJECT_N * (PROJECT_N - 1) // 2
     ideal = big * per_pair / PROJECT_CORES
-    proj = dict(n_roots=PROJECT_N, pairs=big, cores=PROJECT_CORES, core_s_per_pair=per_pair,
-                ideal_wall_h=ideal / 3600, measured_two_worker_efficiency=eff,
-                wall_h_at_measured_efficiency=(ideal / eff / 3600) if eff else None,
-                tasks=-(-big // (8 * chunk)), compile_s_per_worker=one["warmup_compile_s"],
-                assumptions=[
-                    "cost per pair as measured with one worker process (one XLA device, one thread) here",
-                    "cluster cores as fast as this machine's; 100 single-core worker processes",
-                    f"roots like this data set (T = {T}, K = {K}, laterals per root as in the default data "
-                    "set); the cost per pair does not depend on N",
-                    "scheduler overhead and result transfer small against blocks of "
-                    f"{8 * chunk} pairs (one task each); compile once per worker, in parallel",
-                ])
+    proj = dict(
+        n_roots=PROJECT_N,
+        pairs=big,
+        cores=PROJECT_CORES,
+        core_s_per_pair=per_pair,
+        ideal_wall_h=ideal / 3600,
+        measured_two_worker_efficiency=eff,
+        wall_h_at_measured_efficiency=(ideal / eff / 3600) if eff else None,
+        tasks=-(-big // (8 * chunk)),
+        compile_s_per_worker=one["warmup_compile_s"],
+        assumptions=[
+            "cost per pair as measured with one worker process (one XLA device, one thread) here",
+            "cluster cores as fast as this machine's; 100 single-core worker processes",
+            f"roots like this data set (T = {T}, K = {K}, laterals per root as in the default data "
+            "set); the cost per pair does not depend on N",
+            "scheduler overhead and result transfer small against blocks of "
+            f"{8 * chunk} pairs (one task each); compile once per worker, in parallel",
+        ],
+    )
     out["projection"] = proj
 
     name = "dask_quick" if args.quick else "dask"
@@ -168,14 +218,20 @@ def main(argv=None):
         f"{out['in_process']['cpu_s_per_pair'] * 1e3:.1f} |",
     ]
     for r in out["dask"]:
-        lines.append(f"| Dask LocalCluster, {r['workers']} worker(s) | {r['wall_s']:.1f} | {r['pairs_per_s']:.2f} | "
-                     f"{r['speed_vs_in_process']:.2f}× | {r['warmup_compile_s']:.1f} | {r['cpu_s_per_pair'] * 1e3:.1f} |")
+        lines.append(
+            f"| Dask LocalCluster, {r['workers']} worker(s) | {r['wall_s']:.1f} | {r['pairs_per_s']:.2f} | "
+            f"{r['speed_vs_in_process']:.2f}× | {r['warmup_compile_s']:.1f} | {r['cpu_s_per_pair'] * 1e3:.1f} |"
+        )
     lines += [
         "",
         f"Projection, N = {PROJECT_N:,} ({big:,} pairs) on {PROJECT_CORES} cores: "
         f"{per_pair * 1e3:.0f} core-ms per pair → {proj['ideal_wall_h']:.1f} h at perfect scaling"
-        + (f", {proj['wall_h_at_measured_efficiency']:.1f} h at the 2-worker efficiency measured here "
-           f"({eff:.0%})" if eff else "") + f"; {proj['tasks']:,} tasks of {8 * chunk} pairs.",
+        + (
+            f", {proj['wall_h_at_measured_efficiency']:.1f} h at the 2-worker efficiency measured here ({eff:.0%})"
+            if eff
+            else ""
+        )
+        + f"; {proj['tasks']:,} tasks of {8 * chunk} pairs.",
     ]
     table = "\n".join(lines)
     print(table)

@@ -40,7 +40,13 @@ BASELINE_COMMIT = "f73dc8b"
 def pairs() -> list[tuple[str, Path, Path]]:
     out = []
     plate = "2012_11_19_18h00_chl110_1_1"
-    out.append(("plate", DATA / "images" / "arabidopsis_plate" / f"{plate}.jpg", DATA / "rsml" / "arabidopsis_plate" / f"{plate}.rsml"))
+    out.append(
+        (
+            "plate",
+            DATA / "images" / "arabidopsis_plate" / f"{plate}.jpg",
+            DATA / "rsml" / "arabidopsis_plate" / f"{plate}.rsml",
+        )
+    )
     for img in sorted((DATA / "images" / "rootnav_osr").glob("*.jpg")):
         out.append(("osr", img, DATA / "rsml" / "rootnav_osr" / f"{img.stem}.rsml"))
     return out
@@ -49,9 +55,15 @@ def pairs() -> list[tuple[str, Path, Path]]:
 def load_baseline():
     """The issue's starting implementation of roots_from_image, from git."""
     src = subprocess.run(
-        ["git", "show", f"{BASELINE_COMMIT}:rootshape_jax/io/_image.py"], cwd=ROOT, capture_output=True, text=True, check=True
+        ["git", "show", f"{BASELINE_COMMIT}:rootshape_jax/io/_image.py"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=True,
     ).stdout
-    src = src.replace("from .._errors import", "from rootshape_jax._errors import").replace("from .._root import", "from rootshape_jax._root import")
+    src = src.replace("from .._errors import", "from rootshape_jax._errors import").replace(
+        "from .._root import", "from rootshape_jax._root import"
+    )
     path = Path(tempfile.mkdtemp()) / "baseline_image.py"
     path.write_text(src)
     spec = importlib.util.spec_from_file_location("baseline_image", path)
@@ -182,8 +194,13 @@ def main():
     if not args.no_baseline:
         old = load_baseline()
         base = [run_one(old, k, i, r, elastic=False) for k, i, r in tqdm(todo, desc="baseline")]
-    out = {"machine": machine(), "rows": rows, "targets": targets(rows), "baseline_rows": base,
-           "baseline_targets": targets(base) if base else None}
+    out = {
+        "machine": machine(),
+        "rows": rows,
+        "targets": targets(rows),
+        "baseline_rows": base,
+        "baseline_targets": targets(base) if base else None,
+    }
     path = write_json("images", out)
     print(table(rows, base))
     print(out["targets"])

@@ -82,8 +82,13 @@ def run_set(name: str, T: int, only: list[str] | None = None) -> dict:
     if only:
         runs = {k: v for k, v in runs.items() if k in only}
     out = {
-        "set": name, "T": T, "n": int(trees.main.shape[0]), "K": int(trees.laterals.shape[1]),
-        "dim": int(trees.main.shape[-1]), "central": order[:4], "runs": {},
+        "set": name,
+        "T": T,
+        "n": int(trees.main.shape[0]),
+        "K": int(trees.laterals.shape[1]),
+        "dim": int(trees.main.shape[-1]),
+        "central": order[:4],
+        "runs": {},
     }
     for label, kw in runs.items():
         t0 = time.perf_counter()
@@ -91,8 +96,12 @@ def run_set(name: str, T: int, only: list[str] | None = None) -> dict:
         energy = float(km.energy)
         dt = time.perf_counter() - t0
         out["runs"][label] = {
-            "energy": energy, "seconds": dt, "steps": int(km.steps), "init": km.init_index,
-            "result": str(km.result), "trace": [float(x) for x in np.asarray(km.energy_trace)],
+            "energy": energy,
+            "seconds": dt,
+            "steps": int(km.steps),
+            "init": km.init_index,
+            "result": str(km.result),
+            "trace": [float(x) for x in np.asarray(km.energy_trace)],
         }
         if label == "default":
             out["round_trip"] = round_trip(km)
@@ -122,11 +131,20 @@ def round_trip(km) -> dict:
 
 
 def report() -> None:
-    parts = [json.loads((RESULTS / f"mean_optimum_{s}.json").read_text()) for s in SETS
-             if (RESULTS / f"mean_optimum_{s}.json").exists()]
+    parts = [
+        json.loads((RESULTS / f"mean_optimum_{s}.json").read_text())
+        for s in SETS
+        if (RESULTS / f"mean_optimum_{s}.json").exists()
+    ]
     write_json("mean_optimum", {"sets": parts})
-    cols = ["default", "fixed_point_no_warm_up", "gradient", "default_from_central_1",
-            "default_from_central_2", "default_from_central_3"]
+    cols = [
+        "default",
+        "fixed_point_no_warm_up",
+        "gradient",
+        "default_from_central_1",
+        "default_from_central_2",
+        "default_from_central_3",
+    ]
     print("| set (n, K, d, T) | " + " | ".join(cols) + " | default vs best other |")
     print("|---|" + "---|" * (len(cols) + 1))
     for p in parts:
@@ -134,8 +152,11 @@ def report() -> None:
         for c in cols:
             r = p["runs"].get(c)
             cells.append("" if r is None else f"{r['energy']:.5g} ({r['seconds']:.0f} s)")
-        print(f"| {p['set']} ({p['n']}, {p['K']}, {p['dim']}, {p['T']}) | " + " | ".join(cells)
-              + f" | {100 * p['default_gap']:+.2f} % |")
+        print(
+            f"| {p['set']} ({p['n']}, {p['K']}, {p['dim']}, {p['T']}) | "
+            + " | ".join(cells)
+            + f" | {100 * p['default_gap']:+.2f} % |"
+        )
 
 
 def main(argv=None):
@@ -143,8 +164,12 @@ def main(argv=None):
     p.add_argument("--set", choices=SETS)
     p.add_argument("--T", type=int, default=100)
     p.add_argument("--report", action="store_true")
-    p.add_argument("--runs", nargs="+", default=None,
-                   help="only these runs (default, fixed_point_no_warm_up, gradient, default_from_central_k)")
+    p.add_argument(
+        "--runs",
+        nargs="+",
+        default=None,
+        help="only these runs (default, fixed_point_no_warm_up, gradient, default_from_central_k)",
+    )
     args = p.parse_args(argv)
     if args.report:
         report()

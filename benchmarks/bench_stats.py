@@ -20,8 +20,12 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import PAPER_STATS as PAPER  # noqa: E402
-from _common import machine, setup_jax, write_json  # noqa: E402
+from _common import (  # noqa: E402
+    PAPER_STATS as PAPER,  # noqa: E402
+    machine,
+    setup_jax,
+    write_json,
+)
 
 
 def _median(fn, repeats=15):
@@ -51,16 +55,25 @@ def main(argv=None):
     p.add_argument("--methods", nargs="+", default=["fixed_point", "gradient"])
     p.add_argument("--max-steps", type=int, default=60)
     p.add_argument("--once", action="store_true", help="run each mean once (no compile split)")
-    p.add_argument("--mean-cache", default=None,
-                   help="pickle file: load the mean from it if it exists (skipping the mean "
-                        "benchmark), else save the first method's mean there")
-    p.add_argument("--synthesis-only", action="store_true",
-                   help="skip the mean benchmark: fit a rough mean (3 steps, untimed; the shapes, "
-                        "not the mean's quality, set these timings) and time PCA, sampling and "
-                        "regression only, into bench_stats_synthesis.json")
-    p.add_argument("--sync-dispatch", action="store_true",
-                   help="turn off JAX's asynchronous CPU dispatch (jax_cpu_enable_async_dispatch): "
-                        "shows what the worker-thread hand-off costs a sub-millisecond call")
+    p.add_argument(
+        "--mean-cache",
+        default=None,
+        help="pickle file: load the mean from it if it exists (skipping the mean "
+        "benchmark), else save the first method's mean there",
+    )
+    p.add_argument(
+        "--synthesis-only",
+        action="store_true",
+        help="skip the mean benchmark: fit a rough mean (3 steps, untimed; the shapes, "
+        "not the mean's quality, set these timings) and time PCA, sampling and "
+        "regression only, into bench_stats_synthesis.json",
+    )
+    p.add_argument(
+        "--sync-dispatch",
+        action="store_true",
+        help="turn off JAX's asynchronous CPU dispatch (jax_cpu_enable_async_dispatch): "
+        "shows what the worker-thread hand-off costs a sub-millisecond call",
+    )
     args = p.parse_args(argv)
     jax = setup_jax(1, x64=args.x64)
     if args.sync_dispatch:
@@ -103,7 +116,7 @@ def main(argv=None):
     if args.synthesis_only:
         means[args.methods[0]] = karcher_mean(trees, max_steps=3, throw=False)
         out["mean"] = {}
-    for method in ([] if means else args.methods):
+    for method in [] if means else args.methods:
         run = lambda: karcher_mean(trees, method=method, rtol=1e-4, max_steps=args.max_steps, throw=False)  # noqa: E731
         first, res = _first(run)
         second = None
@@ -130,9 +143,12 @@ def main(argv=None):
         out["mean"][method] = entry
         means[method] = res
         write_json("bench_stats" + ("_quick" if args.quick else ""), out)  # partial results
-        print(f"{method}: first {first:.1f} s, run {second} s, steps {entry['steps']}, "
-              f"energy {entry['energy']:.5f} (start {entry['energy_start']:.5f}), "
-              f"last rel. change {rel:.2e}, {entry['result']}", flush=True)
+        print(
+            f"{method}: first {first:.1f} s, run {second} s, steps {entry['steps']}, "
+            f"energy {entry['energy']:.5f} (start {entry['energy_start']:.5f}), "
+            f"last rel. change {rel:.2e}, {entry['result']}",
+            flush=True,
+        )
 
     res = means[args.methods[0]]
     if cache is not None and not cache.exists():
@@ -140,7 +156,9 @@ def main(argv=None):
     first, pc = _first(lambda: tangent_pca(res))
     pca_s = _median(lambda: tangent_pca(res), repeats=7)
     out["pca"] = {
-        "first_call_s": first, "run_s": pca_s, "n_components_99": pc.n_components,
+        "first_call_s": first,
+        "run_s": pca_s,
+        "n_components_99": pc.n_components,
         "explained_first_5": np.asarray(pc.explained_variance_ratio[:5]).tolist(),
         "speedup_vs_paper": PAPER["pca_s"] / pca_s,
     }
@@ -185,11 +203,18 @@ def main(argv=None):
             k: {"r2": v["r2"], "mean_relative_error": v["mean_relative_error"]} for k, v in report.items()
         },
     }
-    print(f"regression fit: {fit_s * 1e3:.2f} ms (matrix only {m_only_s * 1e3:.3f} ms); "
-          f"one regressed root {regressed_s * 1e3:.3f} ms", flush=True)
+    print(
+        f"regression fit: {fit_s * 1e3:.2f} ms (matrix only {m_only_s * 1e3:.3f} ms); "
+        f"one regressed root {regressed_s * 1e3:.3f} ms",
+        flush=True,
+    )
 
-    name = ("bench_stats" + ("_synthesis" if args.synthesis_only else "") + ("_quick" if args.quick else "")
-            + ("_sync" if args.sync_dispatch else ""))
+    name = (
+        "bench_stats"
+        + ("_synthesis" if args.synthesis_only else "")
+        + ("_quick" if args.quick else "")
+        + ("_sync" if args.sync_dispatch else "")
+    )
     path = write_json(name, out)
     print(f"\nwrote {path}\n")
     print("| task | this library | paper (Matlab) | speed-up |")
@@ -197,17 +222,25 @@ def main(argv=None):
     for method, e in out["mean"].items():
         t = e["run_s"] if e["run_s"] is not None else e["first_call_s"]
         comp = "" if e["compile_s_estimate"] is None else f" (+ {e['compile_s_estimate']:.0f} s compile)"
-        print(f"| Karcher mean, {method}, {n} roots: {e['steps']} steps, F {e['energy_start']:.4f} → "
-              f"{e['energy']:.4f} | {t:.1f} s{comp} | 9 h 4 min | {e['speedup_vs_paper']:.0f}× |")
+        print(
+            f"| Karcher mean, {method}, {n} roots: {e['steps']} steps, F {e['energy_start']:.4f} → "
+            f"{e['energy']:.4f} | {t:.1f} s{comp} | 9 h 4 min | {e['speedup_vs_paper']:.0f}× |"
+        )
     print(f"| tangent PCA | {pca_s * 1e3:.1f} ms | 1.1 s | {out['pca']['speedup_vs_paper']:.0f}× |")
     print(f"| one random root | {one_s * 1e3:.2f} ms | 0.22 s | {out['random_root']['speedup_vs_paper']:.0f}× |")
-    print(f"| regression fit (M only; with trait measurement {fit_s * 1e3:.0f} ms) | {m_only_s * 1e3:.2f} ms "
-          f"| 0.01 s | {out['regression']['speedup_fit_vs_paper']:.0f}× |")
-    print(f"| one regressed root, single call (SRVF only {srvf_s * 1e3:.3f} ms) | {regressed_s * 1e3:.3f} ms "
-          f"| 0.001 s | {out['regression']['speedup_root_vs_paper']:.1f}× |")
+    print(
+        f"| regression fit (M only; with trait measurement {fit_s * 1e3:.0f} ms) | {m_only_s * 1e3:.2f} ms "
+        f"| 0.01 s | {out['regression']['speedup_fit_vs_paper']:.0f}× |"
+    )
+    print(
+        f"| one regressed root, single call (SRVF only {srvf_s * 1e3:.3f} ms) | {regressed_s * 1e3:.3f} ms "
+        f"| 0.001 s | {out['regression']['speedup_root_vs_paper']:.1f}× |"
+    )
     for k, v in sweep_s.items():
-        print(f"| regressed root, average over a sweep of {k} in one call | {v * 1e3:.3f} ms | 0.001 s "
-              f"| {PAPER['regressed_root_s'] / v:.1f}× |")
+        print(
+            f"| regressed root, average over a sweep of {k} in one call | {v * 1e3:.3f} ms | 0.001 s "
+            f"| {PAPER['regressed_root_s'] / v:.1f}× |"
+        )
 
 
 if __name__ == "__main__":

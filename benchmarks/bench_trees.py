@@ -26,8 +26,9 @@ def main(argv=None):
     p.add_argument("--quick", action="store_true", help="small sizes, for a smoke run")
     p.add_argument("--x64", action="store_true", help="float64 (default float32)")
     p.add_argument("--devices", type=int, default=None)
-    p.add_argument("--geodesic-only", action="store_true",
-                   help="time only the geodesic; its entry replaces the one in trees.json")
+    p.add_argument(
+        "--geodesic-only", action="store_true", help="time only the geodesic; its entry replaces the one in trees.json"
+    )
     args = p.parse_args(argv)
     jax = setup_jax(args.devices, x64=args.x64)
     import numpy as np
@@ -35,9 +36,16 @@ def main(argv=None):
     import rootshape_jax as rs
     from rootshape_jax.datasets import default_dataset, synthetic_roots
 
-    results = {"machine": machine(), "dtype": "float64" if args.x64 else "float32", "per_pair": [], "paper": {
-        "align_one_pair_s": PAPER_ALIGN_S, "geodesic_s": PAPER_GEODESIC_S,
-        "matrix_53_estimate_h": PAPER_ALIGN_S * 1378 / 3600}}
+    results = {
+        "machine": machine(),
+        "dtype": "float64" if args.x64 else "float32",
+        "per_pair": [],
+        "paper": {
+            "align_one_pair_s": PAPER_ALIGN_S,
+            "geodesic_s": PAPER_GEODESIC_S,
+            "matrix_53_estimate_h": PAPER_ALIGN_S * 1378 / 3600,
+        },
+    }
     w = rs.Weights()  # the paper's (0.02, 1, 1)
 
     # 1. One registration against T and the number of laterals per root.
@@ -51,13 +59,24 @@ def main(argv=None):
             t = rs.batch(roots, n_points=T, max_laterals=2 * n, normalise_scale=True)
             a, b = rs.unstack(t)
             first, warm, reg = timed(rs.register, a, b, weights=w)
-            row = dict(T=T, laterals=n, K=2 * n, first_call_s=first, warm_s=warm,
-                       lateral_dp=int(reg.n_lateral_dp), lateral_pruned_per_iter=int(reg.n_lateral_skipped),
-                       iterations=int(reg.n_iterations), distance=float(reg.distance),
-                       speedup_vs_paper=PAPER_ALIGN_S / warm)
+            row = dict(
+                T=T,
+                laterals=n,
+                K=2 * n,
+                first_call_s=first,
+                warm_s=warm,
+                lateral_dp=int(reg.n_lateral_dp),
+                lateral_pruned_per_iter=int(reg.n_lateral_skipped),
+                iterations=int(reg.n_iterations),
+                distance=float(reg.distance),
+                speedup_vs_paper=PAPER_ALIGN_S / warm,
+            )
             results["per_pair"].append(row)
-            print(f"T={T:4d} laterals={n:3d}: {warm*1e3:8.1f} ms/pair warm (first call {first:.1f} s), "
-                  f"{row['lateral_dp']} lateral DPs, {row['iterations']} rounds", flush=True)
+            print(
+                f"T={T:4d} laterals={n:3d}: {warm * 1e3:8.1f} ms/pair warm (first call {first:.1f} s), "
+                f"{row['lateral_dp']} lateral DPs, {row['iterations']} rounds",
+                flush=True,
+            )
 
     # 2. Geodesic of 9 steps between two aligned roots.
     data = default_dataset()
@@ -65,14 +84,17 @@ def main(argv=None):
     data = data[:n_roots]
     T = 50 if args.quick else 100
     trees = rs.batch(data, n_points=T, normalise_scale=True)
-    print(f"dataset: {n_roots} roots, laterals per root {min(r.n_laterals for r in data)}–"
-          f"{max(r.n_laterals for r in data)} (mean {np.mean([r.n_laterals for r in data]):.1f}), K = {trees.capacity}, T = {T}")
+    print(
+        f"dataset: {n_roots} roots, laterals per root {min(r.n_laterals for r in data)}–"
+        f"{max(r.n_laterals for r in data)} (mean {np.mean([r.n_laterals for r in data]):.1f}), K = {trees.capacity}, T = {T}"
+    )
     a, b = rs.unstack(jax.tree.map(lambda x: x[:2], trees))
     reg = rs.register(a, b, weights=w)
     first, warm, _ = timed(rs.geodesic, a, b, n_steps=9, weights=w, registration=reg, repeats=20)
-    results["geodesic"] = dict(n_steps=9, T=T, K=trees.capacity, first_call_s=first, warm_s=warm,
-                               speedup_vs_paper=PAPER_GEODESIC_S / warm)
-    print(f"geodesic (9 steps, aligned): {warm*1e3:.2f} ms (paper {PAPER_GEODESIC_S*1e3:.0f} ms)")
+    results["geodesic"] = dict(
+        n_steps=9, T=T, K=trees.capacity, first_call_s=first, warm_s=warm, speedup_vs_paper=PAPER_GEODESIC_S / warm
+    )
+    print(f"geodesic (9 steps, aligned): {warm * 1e3:.2f} ms (paper {PAPER_GEODESIC_S * 1e3:.0f} ms)")
     if args.geodesic_only:
         import json
 
@@ -93,20 +115,30 @@ def main(argv=None):
     D, stats = rs.pairwise_distances(trees, weights=w, chunk_size=chunk, progress=True, return_stats=True)
     D = np.asarray(jax.block_until_ready(D))
     wall = time.perf_counter() - t0
-    real_pairs = sum(a.n_laterals * b.n_laterals for i, a in enumerate(data) for b in data[i + 1:])
+    real_pairs = sum(a.n_laterals * b.n_laterals for i, a in enumerate(data) for b in data[i + 1 :])
     results["matrix"] = dict(
-        n_roots=n_roots, pairs=stats["pairs"], T=T, K=trees.capacity, chunk_size=chunk,
-        compile_plus_first_chunk_s=compile_s, wall_s=wall, pairs_per_s=stats["pairs"] / wall,
-        lateral_dp_run=stats["lateral_dp"], lateral_pairs_pruned_per_round=stats["lateral_skipped"],
-        real_real_pairs_per_round=real_pairs, mean_distance=float(D[np.triu_indices(n_roots, 1)].mean()),
+        n_roots=n_roots,
+        pairs=stats["pairs"],
+        T=T,
+        K=trees.capacity,
+        chunk_size=chunk,
+        compile_plus_first_chunk_s=compile_s,
+        wall_s=wall,
+        pairs_per_s=stats["pairs"] / wall,
+        lateral_dp_run=stats["lateral_dp"],
+        lateral_pairs_pruned_per_round=stats["lateral_skipped"],
+        real_real_pairs_per_round=real_pairs,
+        mean_distance=float(D[np.triu_indices(n_roots, 1)].mean()),
         paper_estimate_s=PAPER_ALIGN_S * stats["pairs"],
     )
     slots = stats["lateral_dp"] + stats["lateral_skipped"]
     results["matrix"]["skipped_fraction"] = stats["lateral_skipped"] / slots
-    print(f"matrix {n_roots}×{n_roots}: {wall:.1f} s for {stats['pairs']} pairs "
-          f"({stats['pairs']/wall:.1f} pairs/s), compile+first chunk {compile_s:.1f} s; "
-          f"lateral DPs run {stats['lateral_dp']} of {slots} real–real pair-rounds "
-          f"({stats['lateral_skipped'] / slots:.0%} skipped; {real_pairs} real–real pairs per round)")
+    print(
+        f"matrix {n_roots}×{n_roots}: {wall:.1f} s for {stats['pairs']} pairs "
+        f"({stats['pairs'] / wall:.1f} pairs/s), compile+first chunk {compile_s:.1f} s; "
+        f"lateral DPs run {stats['lateral_dp']} of {slots} real–real pair-rounds "
+        f"({stats['lateral_skipped'] / slots:.0%} skipped; {real_pairs} real–real pairs per round)"
+    )
     path = write_json("trees" + ("_quick" if args.quick else ""), results)
     print("wrote", path)
 

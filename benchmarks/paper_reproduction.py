@@ -81,17 +81,44 @@ class Config:
 
 
 FULL = Config(
-    name="full", n_per_condition=None, T=50, n_steps=9, n_pairs=3, mean_max_steps=50,
-    n_landmarks=20, fc_n_points=50, fc_mean_steps=10, species=("wheat", "maize", "pea"),
-    n_per_species=10, species_days=12.0, n_random=24, sweep_size=5,
-    alphas=(-2.0, -1.0, 0.0, 1.0, 2.0), chunk_size=32, shared_capacity=False,
+    name="full",
+    n_per_condition=None,
+    T=50,
+    n_steps=9,
+    n_pairs=3,
+    mean_max_steps=50,
+    n_landmarks=20,
+    fc_n_points=50,
+    fc_mean_steps=10,
+    species=("wheat", "maize", "pea"),
+    n_per_species=10,
+    species_days=12.0,
+    n_random=24,
+    sweep_size=5,
+    alphas=(-2.0, -1.0, 0.0, 1.0, 2.0),
+    chunk_size=32,
+    shared_capacity=False,
     max_laterals_per_root=None,
 )
 TINY = Config(
-    name="tiny", n_per_condition=2, T=20, n_steps=5, n_pairs=2, mean_max_steps=3,
-    n_landmarks=8, fc_n_points=20, fc_mean_steps=2, species=("wheat", "maize"),
-    n_per_species=3, species_days=10.0, n_random=6, sweep_size=3, alphas=(-1.0, 0.0, 1.0),
-    chunk_size=8, shared_capacity=True, max_laterals_per_root=6,
+    name="tiny",
+    n_per_condition=2,
+    T=20,
+    n_steps=5,
+    n_pairs=2,
+    mean_max_steps=3,
+    n_landmarks=8,
+    fc_n_points=20,
+    fc_mean_steps=2,
+    species=("wheat", "maize"),
+    n_per_species=3,
+    species_days=10.0,
+    n_random=6,
+    sweep_size=3,
+    alphas=(-1.0, 0.0, 1.0),
+    chunk_size=8,
+    shared_capacity=True,
+    max_laterals_per_root=6,
 )
 
 
@@ -175,8 +202,11 @@ def module_from(cls, prefix: str, data: dict):
 def root_arrays(prefix: str, root) -> dict:
     import numpy as np
 
-    out = {f"{prefix}.main": root.main, f"{prefix}.attach": root.attach,
-           f"{prefix}.n_laterals": np.asarray(root.n_laterals)}
+    out = {
+        f"{prefix}.main": root.main,
+        f"{prefix}.attach": root.attach,
+        f"{prefix}.n_laterals": np.asarray(root.n_laterals),
+    }
     out.update({f"{prefix}.lateral{i}": lat for i, lat in enumerate(root.laterals)})
     return out
 
@@ -185,8 +215,12 @@ def root_from(prefix: str, data: dict, name: str = ""):
     from rootshape_jax import Root
 
     n = int(data[f"{prefix}.n_laterals"])
-    return Root(main=data[f"{prefix}.main"], laterals=tuple(data[f"{prefix}.lateral{i}"] for i in range(n)),
-                attach=data[f"{prefix}.attach"], name=name)
+    return Root(
+        main=data[f"{prefix}.main"],
+        laterals=tuple(data[f"{prefix}.lateral{i}"] for i in range(n)),
+        attach=data[f"{prefix}.attach"],
+        name=name,
+    )
 
 
 def fmt(x, digits: int = 3) -> str:
@@ -284,8 +318,7 @@ def limit_laterals(roots, n: int | None):
     """The roots with only their first `n` laterals (all of them when n is None)."""
     if n is None:
         return list(roots)
-    return [dataclasses.replace(r, laterals=r.laterals[:n], attach=r.attach[:n], children=())
-            for r in roots]
+    return [dataclasses.replace(r, laterals=r.laterals[:n], attach=r.attach[:n], children=()) for r in roots]
 
 
 def dataset(cfg: Config):
@@ -328,15 +361,20 @@ def toy_pair():
     main_a, main_b = main_root(0.0), main_root(4.0)
     a = Root(
         main=main_a,
-        laterals=(lateral(point_at(main_a, 0.30), 60.0, 45.0, 0.0),
-                  lateral(point_at(main_a, 0.65), -60.0, 30.0, 0.0)),
-        attach=np.array([0.30, 0.65]), name="toy A", metadata={"unit": "mm"},
+        laterals=(lateral(point_at(main_a, 0.30), 60.0, 45.0, 0.0), lateral(point_at(main_a, 0.65), -60.0, 30.0, 0.0)),
+        attach=np.array([0.30, 0.65]),
+        name="toy A",
+        metadata={"unit": "mm"},
     )
     b = Root(
         main=main_b,
-        laterals=(lateral(point_at(main_b, 0.38), 60.0, 55.0, -25.0),
-                  lateral(point_at(main_b, 0.65), -60.0, 30.0, 5.0)),
-        attach=np.array([0.38, 0.65]), name="toy B", metadata={"unit": "mm"},
+        laterals=(
+            lateral(point_at(main_b, 0.38), 60.0, 55.0, -25.0),
+            lateral(point_at(main_b, 0.65), -60.0, 30.0, 5.0),
+        ),
+        attach=np.array([0.38, 0.65]),
+        name="toy B",
+        metadata={"unit": "mm"},
     )
     return a, b
 
@@ -351,8 +389,9 @@ def rotated_root(root, rotation):
     O = np.asarray(rotation, dtype=np.float64)
     o = root.main[0]
     rot = lambda x: o + (np.asarray(x, np.float64) - o) @ O.T  # noqa: E731
-    return Root(main=rot(root.main), laterals=tuple(rot(lat) for lat in root.laterals),
-                attach=root.attach, name=root.name)
+    return Root(
+        main=rot(root.main), laterals=tuple(rot(lat) for lat in root.laterals), attach=root.attach, name=root.name
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -367,9 +406,17 @@ def distance_matrices(tag, roots, trees, cfg, cache, weights, *, progress):
     import rootshape_jax as rs
     from rootshape_jax import baselines as bl
 
-    key = {"set": tag, "roots": fingerprint_roots(roots), "T": cfg.T, "K": trees.capacity,
-           "dtype": str(trees.main.dtype), "weights": OURS_WEIGHTS, "chunk": cfg.chunk_size,
-           "n_landmarks": cfg.n_landmarks, "fc_n_points": cfg.fc_n_points}
+    key = {
+        "set": tag,
+        "roots": fingerprint_roots(roots),
+        "T": cfg.T,
+        "K": trees.capacity,
+        "dtype": str(trees.main.dtype),
+        "weights": OURS_WEIGHTS,
+        "chunk": cfg.chunk_size,
+        "n_landmarks": cfg.n_landmarks,
+        "fc_n_points": cfg.fc_n_points,
+    }
     hit = cache.load(f"distances_{tag}", key)
     if hit is not None:
         return {m: hit[m] for m in ("ours", "qed", "fc_srvf", "ted")}, json.loads(str(hit["timing"])), True
@@ -381,15 +428,17 @@ def distance_matrices(tag, roots, trees, cfg, cache, weights, *, progress):
     rs.pairwise_distances(small, weights=weights, chunk_size=cfg.chunk_size, progress=False)
     compile_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    D, stats = rs.pairwise_distances(trees, weights=weights, chunk_size=cfg.chunk_size,
-                                     progress=progress, return_stats=True)
+    D, stats = rs.pairwise_distances(
+        trees, weights=weights, chunk_size=cfg.chunk_size, progress=progress, return_stats=True
+    )
     D = np.asarray(D, dtype=np.float64)
     timing["ours"] = {"wall_s": time.perf_counter() - t0, "compile_s": compile_s, **stats}
     out = {"ours": D}
-    for m, fn in (("qed", lambda: bl.qed_distance_matrix(base, n_landmarks=cfg.n_landmarks)),
-                  ("fc_srvf", lambda: bl.fc_srvf_distance_matrix(base, n_points=cfg.fc_n_points,
-                                                                       progress=progress)),
-                  ("ted", lambda: bl.tree_edit_distance_matrix(base))):
+    for m, fn in (
+        ("qed", lambda: bl.qed_distance_matrix(base, n_landmarks=cfg.n_landmarks)),
+        ("fc_srvf", lambda: bl.fc_srvf_distance_matrix(base, n_points=cfg.fc_n_points, progress=progress)),
+        ("ted", lambda: bl.tree_edit_distance_matrix(base)),
+    ):
         say(f"  {tag}: {m} distance matrix ({len(base)} roots)")
         t0 = time.perf_counter()
         out[m] = np.asarray(fn(), dtype=np.float64)
@@ -435,33 +484,53 @@ def our_mean(trees, D, cfg, cache, weights, key_roots):
 
     from rootshape_jax import KarcherMean, SRVFTree, karcher_mean, to_curves
 
-    key = {"roots": key_roots, "T": cfg.T, "K": trees.capacity, "dtype": str(trees.main.dtype),
-           "weights": OURS_WEIGHTS, "max_steps": cfg.mean_max_steps, "D": _sha(np.asarray(D).tobytes())}
+    key = {
+        "roots": key_roots,
+        "T": cfg.T,
+        "K": trees.capacity,
+        "dtype": str(trees.main.dtype),
+        "weights": OURS_WEIGHTS,
+        "max_steps": cfg.mean_max_steps,
+        "D": _sha(np.asarray(D).tobytes()),
+    }
     hit = cache.load("mean_ours", key)
     if hit is not None:
         mean_srvf = module_from(SRVFTree, "mean_srvf", hit)
         km = KarcherMean(
-            mean=to_curves(mean_srvf), mean_srvf=mean_srvf,
+            mean=to_curves(mean_srvf),
+            mean_srvf=mean_srvf,
             fitted=module_from(SRVFTree, "fitted", hit),
             registered=module_from(SRVFTree, "registered", hit),
-            energies=jnp.asarray(hit["energies"]), energy=jnp.asarray(hit["energy"]),
-            energy_trace=jnp.asarray(hit["energy_trace"]), steps=jnp.asarray(hit["steps"]),
+            energies=jnp.asarray(hit["energies"]),
+            energy=jnp.asarray(hit["energy"]),
+            energy_trace=jnp.asarray(hit["energy_trace"]),
+            steps=jnp.asarray(hit["steps"]),
             result=eqx.tree_at(lambda r: r._value, optx.RESULTS.successful, jnp.asarray(hit["result"])),
-            init_index=int(hit["init_index"]), lateral_lengths=jnp.asarray(hit["lateral_lengths"]),
-            dropped=jnp.asarray(hit["dropped"]), weights=weights,
+            init_index=int(hit["init_index"]),
+            lateral_lengths=jnp.asarray(hit["lateral_lengths"]),
+            dropped=jnp.asarray(hit["dropped"]),
+            weights=weights,
         )
         return km, float(hit["seconds"]), True
     t0 = time.perf_counter()
-    km = karcher_mean(trees, weights=weights, distances=jnp.asarray(D), max_steps=cfg.mean_max_steps,
-                      throw=False)
+    km = karcher_mean(trees, weights=weights, distances=jnp.asarray(D), max_steps=cfg.mean_max_steps, throw=False)
     seconds = time.perf_counter() - t0
-    arrays = {**module_arrays("mean_srvf", km.mean_srvf), **module_arrays("fitted", km.fitted),
-              **module_arrays("registered", km.registered)}
-    arrays.update(energies=np.asarray(km.energies), energy=np.asarray(km.energy),
-                  energy_trace=np.asarray(km.energy_trace), steps=np.asarray(km.steps),
-                  result=np.asarray(km.result._value), init_index=np.asarray(km.init_index),
-                  lateral_lengths=np.asarray(km.lateral_lengths), dropped=np.asarray(km.dropped),
-                  seconds=np.asarray(seconds))
+    arrays = {
+        **module_arrays("mean_srvf", km.mean_srvf),
+        **module_arrays("fitted", km.fitted),
+        **module_arrays("registered", km.registered),
+    }
+    arrays.update(
+        energies=np.asarray(km.energies),
+        energy=np.asarray(km.energy),
+        energy_trace=np.asarray(km.energy_trace),
+        steps=np.asarray(km.steps),
+        result=np.asarray(km.result._value),
+        init_index=np.asarray(km.init_index),
+        lateral_lengths=np.asarray(km.lateral_lengths),
+        dropped=np.asarray(km.dropped),
+        seconds=np.asarray(seconds),
+    )
     cache.save("mean_ours", key, arrays)
     return km, seconds, False
 
@@ -469,12 +538,20 @@ def our_mean(trees, D, cfg, cache, weights, key_roots):
 def baseline_means(base_roots, cfg, cache, key_roots):
     from rootshape_jax import baselines as bl
 
-    key = {"roots": key_roots, "T": cfg.T, "n_landmarks": cfg.n_landmarks, "fc_n_points": cfg.fc_n_points,
-           "fc_mean_steps": cfg.fc_mean_steps}
+    key = {
+        "roots": key_roots,
+        "T": cfg.T,
+        "n_landmarks": cfg.n_landmarks,
+        "fc_n_points": cfg.fc_n_points,
+        "fc_mean_steps": cfg.fc_mean_steps,
+    }
     hit = cache.load("mean_baselines", key)
     if hit is not None:
-        return ({m: root_from(m, hit, name=f"{m} mean") for m in ("qed", "fc_srvf")},
-                {m: float(hit[f"{m}.seconds"]) for m in ("qed", "fc_srvf")}, True)
+        return (
+            {m: root_from(m, hit, name=f"{m} mean") for m in ("qed", "fc_srvf")},
+            {m: float(hit[f"{m}.seconds"]) for m in ("qed", "fc_srvf")},
+            True,
+        )
     means, seconds = {}, {}
     t0 = time.perf_counter()
     means["qed"] = bl.qed_mean(base_roots, n_landmarks=cfg.n_landmarks)
@@ -527,6 +604,7 @@ def main(argv=None):
     jax = setup_jax()  # every core as an XLA device, before JAX starts
     import numpy as np
     import optimistix as optx
+    from matplotlib.figure import Figure
 
     import rootshape_jax as rs
     from rootshape_jax import baselines as bl
@@ -539,7 +617,6 @@ def main(argv=None):
         plot_root,
         plot_samples_by_distance,
     )
-    from matplotlib.figure import Figure
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -547,10 +624,17 @@ def main(argv=None):
     notes: list[str] = []
     weights = rs.Weights(*OURS_WEIGHTS)
     info = machine()
-    cache = Cache(report.fig_dir / "cache", enabled=not args.no_cache,
-                  base={"version": CACHE_VERSION, "library": fingerprint_library(), "config": cfg.name})
-    results: dict = {"config": dataclasses.asdict(cfg), "machine": info, "paper_timing": PAPER_TIMING,
-                     "paper_stats": PAPER_STATS}
+    cache = Cache(
+        report.fig_dir / "cache",
+        enabled=not args.no_cache,
+        base={"version": CACHE_VERSION, "library": fingerprint_library(), "config": cfg.name},
+    )
+    results: dict = {
+        "config": dataclasses.asdict(cfg),
+        "machine": info,
+        "paper_timing": PAPER_TIMING,
+        "paper_stats": PAPER_STATS,
+    }
     section_s: dict = {}
 
     # ---------------------------------------------------------------- inputs
@@ -577,8 +661,14 @@ def main(argv=None):
     base_roots = rs.to_roots(trees, names=names)  # what the baselines see: the same geometry
     key_roots = fingerprint_roots(roots)
     dtype = str(trees.main.dtype)
-    results["data"] = {"n_roots": len(roots), "conditions": sorted(set(conditions)), "T": T, "K": K_data,
-                       "dtype": dtype, "laterals": [r.n_laterals for r in roots]}
+    results["data"] = {
+        "n_roots": len(roots),
+        "conditions": sorted(set(conditions)),
+        "T": T,
+        "K": K_data,
+        "dtype": dtype,
+        "laterals": [r.n_laterals for r in roots],
+    }
     say(f"{len(roots)} roots, T = {T}, K = {K_data}, {dtype}, {len(jax.devices())} devices")
 
     report.add(
@@ -590,8 +680,12 @@ def main(argv=None):
         f"- **Data**: the bundled synthetic data set (`rootshape_jax.datasets.default_dataset()`), "
         f"{len(roots)} roots ({', '.join(f'{conditions.count(c)} {c}' for c in sorted(set(conditions)))}), "
         f"{min(r.n_laterals for r in roots)}–{max(r.n_laterals for r in roots)} laterals"
-        + (f" (only the first {cfg.max_laterals_per_root} laterals of each root kept, here and for "
-           "the simulated species)" if cfg.max_laterals_per_root else "")
+        + (
+            f" (only the first {cfg.max_laterals_per_root} laterals of each root kept, here and for "
+            "the simulated species)"
+            if cfg.max_laterals_per_root
+            else ""
+        )
         + "; the paper used "
         "53 scanned wheat roots, which are not public, so figures show the same experiments on other roots.",
         f"- **Ours**: λ = (λm, λs, λp) = {OURS_WEIGHTS} (the paper's), T = {T} points per branch, "
@@ -614,11 +708,13 @@ def main(argv=None):
     t_sec = time.perf_counter()
     say("distance matrices of the data set")
     D_data, timing_data, cached_data = distance_matrices(
-        "data", roots, trees, cfg, cache, weights, progress=not args.tiny)
+        "data", roots, trees, cfg, cache, weights, progress=not args.tiny
+    )
     sim_trees = rs.batch(sim_raw, n_points=T, max_laterals=K_species, normalise_scale=True)
     say(f"distance matrices of the simulated species ({len(sim_raw)} roots, K = {K_species})")
     D_sim, timing_sim, cached_sim = distance_matrices(
-        "species", sim_raw, sim_trees, cfg, cache, weights, progress=not args.tiny)
+        "species", sim_raw, sim_trees, cfg, cache, weights, progress=not args.tiny
+    )
     for D in (D_data, D_sim):
         for m in list(D):
             D[m], _ = symmetric(D[m], METHOD_LABEL[m], notes)
@@ -651,51 +747,79 @@ def main(argv=None):
         lengths = np.asarray(s.lengths, np.float64)
         interp = np.asarray(s.interpolated, np.float64)
         ratio = lengths / np.maximum(interp, 1e-300)
-        row = {"id": gid, "geodesic": label, "method": method, "steps": int(lengths.shape[0]),
-               "length_start": float(lengths[0]), "length_end": float(lengths[-1]),
-               "min_ratio": float(s.min_ratio), "tau_at_min": float(taus_of(lengths.shape[0])[int(np.argmin(ratio))]),
-               "mean_shortfall": float(s.mean_shortfall), "lengths": lengths.tolist(),
-               "interpolated": interp.tolist(), **(extra or {})}
+        row = {
+            "id": gid,
+            "geodesic": label,
+            "method": method,
+            "steps": int(lengths.shape[0]),
+            "length_start": float(lengths[0]),
+            "length_end": float(lengths[-1]),
+            "min_ratio": float(s.min_ratio),
+            "tau_at_min": float(taus_of(lengths.shape[0])[int(np.argmin(ratio))]),
+            "mean_shortfall": float(s.mean_shortfall),
+            "lengths": lengths.tolist(),
+            "interpolated": interp.tolist(),
+            **(extra or {}),
+        }
         geodesics.append(row)
         return row
 
-    report.add("## (a) Geodesics between roots of the data set", "",
-               "Paper Fig. 6: for each pair, the geodesic of ours (top row, λ = (0.02, 1, 1)), QED "
-               "(Feragen et al., middle) and fc-SRVF (Wang et al., bottom). Colour = lateral slot, so "
-               "one colour follows one lateral along a row (for the baselines, the lateral's index "
-               "in each step's root). Ours registers b onto a (rotation, warps, lateral "
-               "correspondence); as in the paper, the baselines start from the same alignment: b "
-               "rotated by our rotation. Their own correspondence is by order along the main root.", "")
+    report.add(
+        "## (a) Geodesics between roots of the data set",
+        "",
+        "Paper Fig. 6: for each pair, the geodesic of ours (top row, λ = (0.02, 1, 1)), QED "
+        "(Feragen et al., middle) and fc-SRVF (Wang et al., bottom). Colour = lateral slot, so "
+        "one colour follows one lateral along a row (for the baselines, the lateral's index "
+        "in each step's root). Ours registers b onto a (rotation, warps, lateral "
+        "correspondence); as in the paper, the baselines start from the same alignment: b "
+        "rotated by our rotation. Their own correspondence is by order along the main root.",
+        "",
+    )
     for p_i, (i, j) in enumerate(pairs):
         a, b = singles[i], singles[j]
         ra, rb = base_roots[i], base_roots[j]
         first_reg, align_s, reg = timed(rs.register, a, b, weights=weights)
-        first_geo, geo_s, path = timed(rs.geodesic, a, b, n_steps=cfg.n_steps, weights=weights,
-                                       registration=reg)
+        first_geo, geo_s, path = timed(rs.geodesic, a, b, n_steps=cfg.n_steps, weights=weights, registration=reg)
         rb_aligned = rotated_root(rb, reg.rotation)
-        q_first, q_s, qed_path = timed(bl.qed_geodesic, ra, rb_aligned, n_steps=cfg.n_steps,
-                                       n_landmarks=cfg.n_landmarks, repeats=1)
-        f_first, f_s, fc_path = timed(bl.fc_srvf_geodesic, ra, rb_aligned, n_steps=cfg.n_steps,
-                                      n_points=cfg.fc_n_points, repeats=1)
+        q_first, q_s, qed_path = timed(
+            bl.qed_geodesic, ra, rb_aligned, n_steps=cfg.n_steps, n_landmarks=cfg.n_landmarks, repeats=1
+        )
+        f_first, f_s, fc_path = timed(
+            bl.fc_srvf_geodesic, ra, rb_aligned, n_steps=cfg.n_steps, n_points=cfg.fc_n_points, repeats=1
+        )
         label = f"pair {p_i + 1}: {names[i]} → {names[j]}"
         d_q = float(bl.qed_distance(ra, rb_aligned, n_landmarks=cfg.n_landmarks))
         d_f = float(bl.fc_srvf_distance(ra, rb_aligned, n_points=cfg.fc_n_points))
-        for method, pth, dist in (("ours", path, float(reg.distance)), ("qed", qed_path, d_q),
-                                  ("fc_srvf", fc_path, d_f)):
+        for method, pth, dist in (
+            ("ours", path, float(reg.distance)),
+            ("qed", qed_path, d_q),
+            ("fc_srvf", fc_path, d_f),
+        ):
             shrink_row(f"a{p_i + 1}-{method}", label, method, pth, {"distance": dist})
         both = np.asarray(a.mask & reg.registered.mask)
-        pair_timing.append({
-            "pair": label, "laterals": [base_roots[i].n_laterals, base_roots[j].n_laterals], "K": K_data,
-            "ours": {"alignment_s": align_s, "alignment_first_call_s": first_reg, "geodesic_s": geo_s,
-                     "geodesic_first_call_s": first_geo},
-            "qed": {"geodesic_s": q_s}, "fc_srvf": {"geodesic_s": f_s},
-            "matched_laterals": int(both.sum()),
-        })
-        fig = strip_figure([("ours", path), ("QED\n(Feragen)", qed_path), ("fc-SRVF\n(Wang)", fc_path)],
-                           taus, label)
-        report.figure(fig, f"geodesic_pair{p_i + 1}.png",
-                      f"{label} ({ra.n_laterals} and {rb.n_laterals} laterals). Distances: ours "
-                      f"{fmt(reg.distance)}, QED {fmt(d_q)}, fc-SRVF {fmt(d_f)} (each in its own metric).")
+        pair_timing.append(
+            {
+                "pair": label,
+                "laterals": [base_roots[i].n_laterals, base_roots[j].n_laterals],
+                "K": K_data,
+                "ours": {
+                    "alignment_s": align_s,
+                    "alignment_first_call_s": first_reg,
+                    "geodesic_s": geo_s,
+                    "geodesic_first_call_s": first_geo,
+                },
+                "qed": {"geodesic_s": q_s},
+                "fc_srvf": {"geodesic_s": f_s},
+                "matched_laterals": int(both.sum()),
+            }
+        )
+        fig = strip_figure([("ours", path), ("QED\n(Feragen)", qed_path), ("fc-SRVF\n(Wang)", fc_path)], taus, label)
+        report.figure(
+            fig,
+            f"geodesic_pair{p_i + 1}.png",
+            f"{label} ({ra.n_laterals} and {rb.n_laterals} laterals). Distances: ours "
+            f"{fmt(reg.distance)}, QED {fmt(d_q)}, fc-SRVF {fmt(d_f)} (each in its own metric).",
+        )
     section_s["a_geodesics"] = time.perf_counter() - t_sec
 
     # ---------------------------------------------------------------- (b) λ study
@@ -713,58 +837,117 @@ def main(argv=None):
         matched = int(np.sum(real_a & real_b))
         created = int(np.sum(real_a ^ real_b))
         terms = reg.terms
-        lam_rows.append({"lambda": lam, "distance": float(reg.distance), "main_term": float(terms.main),
-                         "lateral_term": float(terms.lateral), "position_term": float(terms.position),
-                         "matched_laterals": matched, "grown_or_removed_laterals": created,
-                         "upper_lateral": "slides" if matched == 2 else "removed and re-grown"})
+        lam_rows.append(
+            {
+                "lambda": lam,
+                "distance": float(reg.distance),
+                "main_term": float(terms.main),
+                "lateral_term": float(terms.lateral),
+                "position_term": float(terms.position),
+                "matched_laterals": matched,
+                "grown_or_removed_laterals": created,
+                "upper_lateral": "slides" if matched == 2 else "removed and re-grown",
+            }
+        )
         shrink_row(f"b{k + 1}", f"toy, λ = {lam}", "ours", path, {"distance": float(reg.distance)})
         lam_strips.append((f"λ = {lam}", path))
-    report.add("## (b) Influence of the weights λ (toy pair)", "",
-               "Paper Fig. 7: rows λ = (1, .01, .01), (.01, 1, .01), (.01, .01, 1), (.01, 1e-5, 1). "
-               "Toy pair: the upper lateral moves 8 % of the main root down while it grows "
-               "(45 → 55 mm, main root 100 mm) and bends; the main root bends slightly; the lower "
-               "lateral stays. The paper finds the first three geodesics similar (the lateral "
-               "slides) and the fourth growing a new lateral instead of sliding the old one.", "")
+    report.add(
+        "## (b) Influence of the weights λ (toy pair)",
+        "",
+        "Paper Fig. 7: rows λ = (1, .01, .01), (.01, 1, .01), (.01, .01, 1), (.01, 1e-5, 1). "
+        "Toy pair: the upper lateral moves 8 % of the main root down while it grows "
+        "(45 → 55 mm, main root 100 mm) and bends; the main root bends slightly; the lower "
+        "lateral stays. The paper finds the first three geodesics similar (the lateral "
+        "slides) and the fourth growing a new lateral instead of sliding the old one.",
+        "",
+    )
     fig = strip_figure(lam_strips, taus, "Geodesics of the toy pair for the paper's four weight triplets")
     report.figure(fig, "lambda_study.png", "one row per λ = (λm, λs, λp); colour = lateral slot")
-    report.add(*md_table(
-        ["λ = (λm, λs, λp)", "distance", "λm term", "λs term", "λp term", "real–real matches",
-         "laterals grown / removed", "upper lateral"],
-        [[str(r["lambda"]), r["distance"], r["main_term"], r["lateral_term"], r["position_term"],
-          str(r["matched_laterals"]), str(r["grown_or_removed_laterals"]), r["upper_lateral"]]
-         for r in lam_rows]))
+    report.add(
+        *md_table(
+            [
+                "λ = (λm, λs, λp)",
+                "distance",
+                "λm term",
+                "λs term",
+                "λp term",
+                "real–real matches",
+                "laterals grown / removed",
+                "upper lateral",
+            ],
+            [
+                [
+                    str(r["lambda"]),
+                    r["distance"],
+                    r["main_term"],
+                    r["lateral_term"],
+                    r["position_term"],
+                    str(r["matched_laterals"]),
+                    str(r["grown_or_removed_laterals"]),
+                    r["upper_lateral"],
+                ]
+                for r in lam_rows
+            ],
+        )
+    )
     results["lambda_study"] = lam_rows
     section_s["b_lambda"] = time.perf_counter() - t_sec
 
     # ---------------------------------------------------------------- shrinkage table
-    report.add("## Shrinkage of every geodesic", "",
-               "Total root length (main + laterals) along each geodesic, L(τ), against the straight "
-               "interpolation of the end lengths, (1 − τ) L(0) + τ L(1) "
-               "(`rootshape_jax.baselines.geodesic_shrinkage`). A ratio below 1 is shrinkage; "
-               "the paper's claim is that ours does not shrink and the father–child methods do. "
-               "Lengths in units of the main-root length (scale normalised).", "")
-    report.add(*md_table(
-        ["id", "geodesic", "method", "steps", "L(0)", "L(1)", "min L(τ)/interp.", "τ at min",
-         "mean shortfall"],
-        [[g["id"], g["geodesic"], METHOD_LABEL[g["method"]], str(g["steps"]), g["length_start"],
-          g["length_end"], g["min_ratio"], g["tau_at_min"], g["mean_shortfall"]] for g in geodesics]))
+    report.add(
+        "## Shrinkage of every geodesic",
+        "",
+        "Total root length (main + laterals) along each geodesic, L(τ), against the straight "
+        "interpolation of the end lengths, (1 − τ) L(0) + τ L(1) "
+        "(`rootshape_jax.baselines.geodesic_shrinkage`). A ratio below 1 is shrinkage; "
+        "the paper's claim is that ours does not shrink and the father–child methods do. "
+        "Lengths in units of the main-root length (scale normalised).",
+        "",
+    )
+    report.add(
+        *md_table(
+            ["id", "geodesic", "method", "steps", "L(0)", "L(1)", "min L(τ)/interp.", "τ at min", "mean shortfall"],
+            [
+                [
+                    g["id"],
+                    g["geodesic"],
+                    METHOD_LABEL[g["method"]],
+                    str(g["steps"]),
+                    g["length_start"],
+                    g["length_end"],
+                    g["min_ratio"],
+                    g["tau_at_min"],
+                    g["mean_shortfall"],
+                ]
+                for g in geodesics
+            ],
+        )
+    )
     summary = []
     for m in METHODS:
         rows = [g for g in geodesics if g["method"] == m and g["id"].startswith("a")]
         if rows:
-            summary.append([METHOD_LABEL[m], str(len(rows)), min(g["min_ratio"] for g in rows),
-                            float(np.mean([g["min_ratio"] for g in rows])),
-                            float(np.mean([g["mean_shortfall"] for g in rows]))])
+            summary.append(
+                [
+                    METHOD_LABEL[m],
+                    str(len(rows)),
+                    min(g["min_ratio"] for g in rows),
+                    float(np.mean([g["min_ratio"] for g in rows])),
+                    float(np.mean([g["mean_shortfall"] for g in rows])),
+                ]
+            )
     report.add("Summary over the data-set pairs of (a):", "")
-    report.add(*md_table(["method", "geodesics", "worst min ratio", "mean min ratio", "mean shortfall"],
-                         summary))
-    report.add("Reading the measure: no straight-line geodesic can be longer than the interpolation (up to discretisation). "
-               "In QED an edge's length is a sum of norms of landmark differences, and "
-               "|(1 − τ) u + τ v| ≤ (1 − τ)|u| + τ|v|; in the SRVF methods (ours and fc-SRVF) a "
-               "branch's length is ‖q‖², and ‖(1 − τ) q_a + τ q_b‖² ≤ (1 − τ)‖q_a‖² + τ‖q_b‖². "
-               "Equality needs corresponding branches to be parallel (QED) or equal (SRVF), and a "
-               "lateral grown from a null (virtual) lateral has length τ L in QED but τ² L in the "
-               "SRVF methods. The table measures how much each path shrinks, not whether.", "")
+    report.add(*md_table(["method", "geodesics", "worst min ratio", "mean min ratio", "mean shortfall"], summary))
+    report.add(
+        "Reading the measure: no straight-line geodesic can be longer than the interpolation (up to discretisation). "
+        "In QED an edge's length is a sum of norms of landmark differences, and "
+        "|(1 − τ) u + τ v| ≤ (1 − τ)|u| + τ|v|; in the SRVF methods (ours and fc-SRVF) a "
+        "branch's length is ‖q‖², and ‖(1 − τ) q_a + τ q_b‖² ≤ (1 − τ)‖q_a‖² + τ‖q_b‖². "
+        "Equality needs corresponding branches to be parallel (QED) or equal (SRVF), and a "
+        "lateral grown from a null (virtual) lateral has length τ L in QED but τ² L in the "
+        "SRVF methods. The table measures how much each path shrinks, not whether.",
+        "",
+    )
     results["geodesics"] = geodesics
 
     # ---------------------------------------------------------------- (c) means
@@ -774,12 +957,16 @@ def main(argv=None):
     b_means, b_mean_s, b_cached = baseline_means(base_roots, cfg, cache, key_roots)
     mean_root = rs.to_roots(km.mean)[0]
     fig, _ = plot_mean(trees, km.mean, title=f"Mean of the {len(roots)} roots (ours)")
-    report.add("## (c) Mean root", "",
-               f"Paper Figs. 5 and 8. Ours: Karcher mean (fixed point, start at the medoid of our "
-               f"distance matrix), {int(km.steps)} steps, energy {fmt(float(km.energy_trace[0]))} → "
-               f"{fmt(float(km.energy))}, status {'converged' if bool(km.result == optx.RESULTS.successful) else 'step limit reached'}"
-               f"; baselines: `qed_mean` and `fc_srvf_mean` (max_steps = {cfg.fc_mean_steps}) on "
-               "the same roots.", "")
+    report.add(
+        "## (c) Mean root",
+        "",
+        f"Paper Figs. 5 and 8. Ours: Karcher mean (fixed point, start at the medoid of our "
+        f"distance matrix), {int(km.steps)} steps, energy {fmt(float(km.energy_trace[0]))} → "
+        f"{fmt(float(km.energy))}, status {'converged' if bool(km.result == optx.RESULTS.successful) else 'step limit reached'}"
+        f"; baselines: `qed_mean` and `fc_srvf_mean` (max_steps = {cfg.fc_mean_steps}) on "
+        "the same roots.",
+        "",
+    )
     report.figure(fig, "mean_ours.png", "input roots (left) and our mean root (right)")
     fig = Figure(figsize=(10, 4.6), layout="constrained")
     axs = fig.subplots(1, 3)
@@ -792,18 +979,33 @@ def main(argv=None):
     mean_rows = []
     for m, r in (("ours", mean_root), ("qed", b_means["qed"]), ("fc_srvf", b_means["fc_srvf"])):
         t = rs.traits(r)
-        mean_rows.append([METHOD_LABEL[m], t["main_length"], str(t["n_laterals"]), t["mean_lateral_length"],
-                          t["total_length"]])
+        mean_rows.append(
+            [METHOD_LABEL[m], t["main_length"], str(t["n_laterals"]), t["mean_lateral_length"], t["total_length"]]
+        )
     med = lambda k: float(np.median([t[k] for t in dataset_traits]))  # noqa: E731
-    mean_rows.append(["data set (median)", med("main_length"), fmt(med("n_laterals")),
-                      med("mean_lateral_length"), med("total_length")])
-    report.add(*md_table(["mean by", "main length", "laterals", "mean lateral length", "total length"],
-                         mean_rows))
-    results["means"] = {"ours": {"steps": int(km.steps), "energy": float(km.energy),
-                                 "energy_trace": np.asarray(km.energy_trace).tolist(), "seconds": mean_s,
-                                 "cached": mean_cached, "init_index": km.init_index},
-                        "baselines_seconds": b_mean_s, "baselines_cached": b_cached,
-                        "traits_table": [[str(c) for c in r] for r in mean_rows]}
+    mean_rows.append(
+        [
+            "data set (median)",
+            med("main_length"),
+            fmt(med("n_laterals")),
+            med("mean_lateral_length"),
+            med("total_length"),
+        ]
+    )
+    report.add(*md_table(["mean by", "main length", "laterals", "mean lateral length", "total length"], mean_rows))
+    results["means"] = {
+        "ours": {
+            "steps": int(km.steps),
+            "energy": float(km.energy),
+            "energy_trace": np.asarray(km.energy_trace).tolist(),
+            "seconds": mean_s,
+            "cached": mean_cached,
+            "init_index": km.init_index,
+        },
+        "baselines_seconds": b_mean_s,
+        "baselines_cached": b_cached,
+        "traits_table": [[str(c) for c in r] for r in mean_rows],
+    }
     section_s["c_means"] = time.perf_counter() - t_sec
 
     # ---------------------------------------------------------------- (d) modes
@@ -814,13 +1016,16 @@ def main(argv=None):
     n_modes = min(2, int(pc.components.shape[0]))
     mode_trees = rs.modes(pc, list(cfg.alphas), component=list(range(n_modes)))
     fig, _ = plot_modes(mode_trees, list(cfg.alphas), explained=ratio[:n_modes])
-    report.add("## (d) Principal modes of variation", "",
-               f"Paper Fig. 9: mean ± α √σ_i Λ_i for the first {n_modes} tangent-PCA components. "
-               f"They explain {', '.join(f'{100 * r:.1f} %' for r in ratio[:n_modes])} of the variance; "
-               f"{pc.n_components} components reach 99 %.", "")
+    report.add(
+        "## (d) Principal modes of variation",
+        "",
+        f"Paper Fig. 9: mean ± α √σ_i Λ_i for the first {n_modes} tangent-PCA components. "
+        f"They explain {', '.join(f'{100 * r:.1f} %' for r in ratio[:n_modes])} of the variance; "
+        f"{pc.n_components} components reach 99 %.",
+        "",
+    )
     report.figure(fig, "modes.png", f"first {n_modes} modes, α = {', '.join(f'{a:g}' for a in cfg.alphas)}")
-    results["pca"] = {"explained_ratio": ratio[:10].tolist(), "n_components_99": pc.n_components,
-                      "seconds": pca_s}
+    results["pca"] = {"explained_ratio": ratio[:10].tolist(), "n_components_99": pc.n_components, "seconds": pca_s}
     section_s["d_modes"] = time.perf_counter() - t_sec
 
     # ---------------------------------------------------------------- (e) random roots
@@ -829,13 +1034,18 @@ def main(argv=None):
     key = jax.random.PRNGKey(0)
     _, one_s, _ = timed(rs.sample, pc, key, 1)
     samples = rs.sample(pc, key, cfg.n_random)
-    d_mean = np.asarray(rs.cross_distances(rs.stack([km.mean]), samples, weights=weights,
-                                           chunk_size=cfg.chunk_size, progress=False))[0]
+    d_mean = np.asarray(
+        rs.cross_distances(rs.stack([km.mean]), samples, weights=weights, chunk_size=cfg.chunk_size, progress=False)
+    )[0]
     fig, _ = plot_samples_by_distance(samples, d_mean, n_groups=3)
-    report.add("## (e) Random roots from the fitted model", "",
-               f"Paper Fig. 10: {cfg.n_random} roots sampled with b ~ N(0, I) on the {pc.n_components} "
-               "kept components, in three rows by their elastic distance to the mean (each sample "
-               "registered onto the mean root).", "")
+    report.add(
+        "## (e) Random roots from the fitted model",
+        "",
+        f"Paper Fig. 10: {cfg.n_random} roots sampled with b ~ N(0, I) on the {pc.n_components} "
+        "kept components, in three rows by their elastic distance to the mean (each sample "
+        "registered onto the mean root).",
+        "",
+    )
     report.figure(fig, "random_roots.png", "random roots grouped by distance to the mean (closest first)")
     results["random"] = {"distances_to_mean": d_mean.tolist(), "one_root_s": one_s}
     section_s["e_random"] = time.perf_counter() - t_sec
@@ -848,8 +1058,7 @@ def main(argv=None):
     P = np.array([[float(t[k]) for k in trait_names] for t in raw_traits])
     # The shapes are scale normalised, so the traits (in mm, measured on the roots as given)
     # enter as covariates and each predicted root is scaled to its requested main length.
-    _, fit_s, reg_model = timed(rs.TraitRegression.fit, pc, None, traits=(), covariates=P,
-                                covariate_names=trait_names)
+    _, fit_s, reg_model = timed(rs.TraitRegression.fit, pc, None, traits=(), covariates=P, covariate_names=trait_names)
     _, one_reg_s, _ = timed(reg_model.synthesize, P[0])
 
     def predict(values):
@@ -863,22 +1072,28 @@ def main(argv=None):
     for k, nm in enumerate(trait_names):
         ss = float(np.sum((P[:, k] - P[:, k].mean()) ** 2))
         r2[nm] = 1.0 - float(np.sum((got[:, k] - P[:, k]) ** 2)) / ss if ss > 0 else float("nan")
-    report.add("## (f) Roots regressed from traits", "",
-               "Paper Figs. 11–13: M = B P⁺ maps (main length, mean lateral length, std of lateral "
-               f"lengths) to the {reg_model.n_components} kept PCA coefficients. Each sweep varies one "
-               "trait from its 10th to its 90th percentile in the data set with the others at their "
-               "median (the paper's Figs. 12–13 fix one lateral statistic and vary the other); the "
-               "value measured on the predicted root is shown under the requested one. R² of measured "
-               "vs requested on the training roots: "
-               + ", ".join(f"{k.replace('_', ' ')} {fmt(v)}" for k, v in r2.items()) + ".", "")
+    report.add(
+        "## (f) Roots regressed from traits",
+        "",
+        "Paper Figs. 11–13: M = B P⁺ maps (main length, mean lateral length, std of lateral "
+        f"lengths) to the {reg_model.n_components} kept PCA coefficients. Each sweep varies one "
+        "trait from its 10th to its 90th percentile in the data set with the others at their "
+        "median (the paper's Figs. 12–13 fix one lateral statistic and vary the other); the "
+        "value measured on the predicted root is shown under the requested one. R² of measured "
+        "vs requested on the training roots: "
+        + ", ".join(f"{k.replace('_', ' ')} {fmt(v)}" for k, v in r2.items())
+        + ".",
+        "",
+    )
     sweeps = {}
     for k, nm in enumerate(trait_names):
         values = np.tile(np.median(P, axis=0), (cfg.sweep_size, 1))
         values[:, k] = np.percentile(P[:, k], np.linspace(10, 90, cfg.sweep_size))
         pred = predict(values)
         measured = np.array([float(t[nm]) for t in rs.traits(rs.to_roots(pred))])
-        fig, _ = plot_regression_sweep(pred, values[:, k], trait_name=nm.replace("_", " "), trait_unit="mm",
-                                       measured=measured)
+        fig, _ = plot_regression_sweep(
+            pred, values[:, k], trait_name=nm.replace("_", " "), trait_unit="mm", measured=measured
+        )
         report.figure(fig, f"regression_{nm}.png", f"{nm.replace('_', ' ')} varied, other traits at their median")
         sweeps[nm] = {"requested": values[:, k].tolist(), "measured": measured.tolist()}
     results["regression"] = {"r2_training": r2, "sweeps": sweeps, "fit_s": fit_s, "one_root_s": one_reg_s}
@@ -889,29 +1104,52 @@ def main(argv=None):
     say("(g) clustering and classification")
     n_cond = len(set(conditions))
     cl = rs.cluster(D_data["ours"], n_clusters=n_cond, method="average")
-    fig, _ = plot_dendrogram(D_data["ours"], labels=names, n_clusters=n_cond, roots=trees,
-                             title="Hierarchical clustering (ours, average linkage)")
-    report.add("## (g) Hierarchical clustering and classification", "",
-               "Paper Figs. 14–15: average-linkage clustering of our distance matrix, cut into as many "
-               "clusters as there are labels. Below, leave-one-out classification from each method's "
-               "distance matrix alone: nearest neighbour (the label of the closest other root; ties "
-               "to the lowest index) and nearest "
-               "class mean (from distances, `rootshape_jax.loo_accuracy`); purity of the "
-               "average-linkage clusters against the labels.", "")
-    report.figure(fig, "dendrogram_conditions.png", "synthetic conditions: dendrogram (ours) with members of each cluster")
-    cont = [[c] + [str(int(np.sum((np.asarray(conditions) == c) & (cl.labels == g)))) for g in range(cl.n_clusters)]
-            for c in sorted(set(conditions))]
+    fig, _ = plot_dendrogram(
+        D_data["ours"],
+        labels=names,
+        n_clusters=n_cond,
+        roots=trees,
+        title="Hierarchical clustering (ours, average linkage)",
+    )
+    report.add(
+        "## (g) Hierarchical clustering and classification",
+        "",
+        "Paper Figs. 14–15: average-linkage clustering of our distance matrix, cut into as many "
+        "clusters as there are labels. Below, leave-one-out classification from each method's "
+        "distance matrix alone: nearest neighbour (the label of the closest other root; ties "
+        "to the lowest index) and nearest "
+        "class mean (from distances, `rootshape_jax.loo_accuracy`); purity of the "
+        "average-linkage clusters against the labels.",
+        "",
+    )
+    report.figure(
+        fig, "dendrogram_conditions.png", "synthetic conditions: dendrogram (ours) with members of each cluster"
+    )
+    cont = [
+        [c] + [str(int(np.sum((np.asarray(conditions) == c) & (cl.labels == g)))) for g in range(cl.n_clusters)]
+        for c in sorted(set(conditions))
+    ]
     report.add("Conditions per cluster (ours):", "")
     report.add(*md_table(["condition"] + [f"cluster {g + 1}" for g in range(cl.n_clusters)], cont))
     n_sp = len(set(species_labels))
-    fig, _ = plot_dendrogram(D_sim["ours"], labels=sim_names, n_clusters=n_sp, roots=sim_trees,
-                             title="Hierarchical clustering of CPlantBox species (ours)")
-    report.figure(fig, "dendrogram_species.png",
-                  f"CPlantBox-simulated {', '.join(cfg.species)} ({cfg.n_per_species} each, "
-                  f"{cfg.species_days:g} days, 2D projection): dendrogram (ours)")
+    fig, _ = plot_dendrogram(
+        D_sim["ours"],
+        labels=sim_names,
+        n_clusters=n_sp,
+        roots=sim_trees,
+        title="Hierarchical clustering of CPlantBox species (ours)",
+    )
+    report.figure(
+        fig,
+        "dendrogram_species.png",
+        f"CPlantBox-simulated {', '.join(cfg.species)} ({cfg.n_per_species} each, "
+        f"{cfg.species_days:g} days, 2D projection): dendrogram (ours)",
+    )
     acc_rows, acc = [], {}
-    for tag, D, labels, what in (("conditions", D_data, conditions, f"synthetic conditions ({len(roots)} roots)"),
-                                 ("species", D_sim, species_labels, f"CPlantBox species ({len(sim_raw)} roots)")):
+    for tag, D, labels, what in (
+        ("conditions", D_data, conditions, f"synthetic conditions ({len(roots)} roots)"),
+        ("species", D_sim, species_labels, f"CPlantBox species ({len(sim_raw)} roots)"),
+    ):
         k = len(set(labels))
         acc[tag] = {}
         for m in ("ours", "qed", "fc_srvf", "ted"):
@@ -920,34 +1158,68 @@ def main(argv=None):
             pur = purity(D[m], labels, k)
             acc[tag][m] = {"nearest_neighbour": nn, "nearest_mean": nm_, "cluster_purity": pur}
             acc_rows.append([what, METHOD_LABEL[m], f"{100 * nn:.1f} %", f"{100 * nm_:.1f} %", f"{100 * pur:.1f} %"])
-        acc_rows.append([what, "chance (largest class)", f"{100 * max(labels.count(v) for v in set(labels)) / len(labels):.1f} %", "", ""])
-    report.add(*md_table(["labelled set", "distance", "LOO nearest neighbour", "LOO nearest class mean",
-                          "cluster purity"], acc_rows))
+        acc_rows.append(
+            [
+                what,
+                "chance (largest class)",
+                f"{100 * max(labels.count(v) for v in set(labels)) / len(labels):.1f} %",
+                "",
+                "",
+            ]
+        )
+    report.add(
+        *md_table(
+            ["labelled set", "distance", "LOO nearest neighbour", "LOO nearest class mean", "cluster purity"], acc_rows
+        )
+    )
     results["classification"] = acc
     section_s["g_clustering"] = time.perf_counter() - t_sec
 
     # ---------------------------------------------------------------- (h) timing
     say("(h) timing")
-    report.add("## (h) Timing", "",
-               "The paper's table (Matlab, Intel i5-4460 @ 3.2 GHz, 8 GB RAM; seconds), quoted:", "")
-    report.add(*md_table(["", "Size", "Approach", "Alignment", "Correspondence", "Geodesic", "Overall"],
-                         [[e, str(s), a] + [("N/A" if v is None else f"{v:g}") for v in (al, co, ge, ov)]
-                          for e, s, a, al, co, ge, ov in PAPER_TIMING]))
-    report.add("Ours, same layout, for the pairs of (a) (this machine, warm calls after a first "
-               "call that compiles: best of 3 for ours, one for the baselines). *Alignment* is our registration of b onto "
-               "a (rotation, warps and lateral correspondence together, so *Correspondence* is part of "
-               "it); the baselines start from that alignment, as in the paper, and their own "
-               "correspondence (by order along the main root, plus per-edge DP warps for fc-SRVF) is "
-               "part of their *Geodesic* call. Size: laterals of a / b; K lateral slots after adding "
-               "virtual ones.", "")
+    report.add(
+        "## (h) Timing", "", "The paper's table (Matlab, Intel i5-4460 @ 3.2 GHz, 8 GB RAM; seconds), quoted:", ""
+    )
+    report.add(
+        *md_table(
+            ["", "Size", "Approach", "Alignment", "Correspondence", "Geodesic", "Overall"],
+            [
+                [e, str(s), a] + [("N/A" if v is None else f"{v:g}") for v in (al, co, ge, ov)]
+                for e, s, a, al, co, ge, ov in PAPER_TIMING
+            ],
+        )
+    )
+    report.add(
+        "Ours, same layout, for the pairs of (a) (this machine, warm calls after a first "
+        "call that compiles: best of 3 for ours, one for the baselines). *Alignment* is our registration of b onto "
+        "a (rotation, warps and lateral correspondence together, so *Correspondence* is part of "
+        "it); the baselines start from that alignment, as in the paper, and their own "
+        "correspondence (by order along the main root, plus per-edge DP warps for fc-SRVF) is "
+        "part of their *Geodesic* call. Size: laterals of a / b; K lateral slots after adding "
+        "virtual ones.",
+        "",
+    )
     rows = []
     for pt in pair_timing:
         size = f"{pt['laterals'][0]} / {pt['laterals'][1]} (K = {pt['K']})"
         al = pt["ours"]["alignment_s"]
-        rows.append([pt["pair"], size, "ours", al, "in alignment", pt["ours"]["geodesic_s"], al + pt["ours"]["geodesic_s"]])
-        rows.append(["", size, "QED (Feragen et al.)", al, "in geodesic", pt["qed"]["geodesic_s"], al + pt["qed"]["geodesic_s"]])
-        rows.append(["", size, "fc-SRVF (Wang et al.)", al, "in geodesic", pt["fc_srvf"]["geodesic_s"],
-                     al + pt["fc_srvf"]["geodesic_s"]])
+        rows.append(
+            [pt["pair"], size, "ours", al, "in alignment", pt["ours"]["geodesic_s"], al + pt["ours"]["geodesic_s"]]
+        )
+        rows.append(
+            ["", size, "QED (Feragen et al.)", al, "in geodesic", pt["qed"]["geodesic_s"], al + pt["qed"]["geodesic_s"]]
+        )
+        rows.append(
+            [
+                "",
+                size,
+                "fc-SRVF (Wang et al.)",
+                al,
+                "in geodesic",
+                pt["fc_srvf"]["geodesic_s"],
+                al + pt["fc_srvf"]["geodesic_s"],
+            ]
+        )
     report.add(*md_table(["", "Size", "Approach", "Alignment", "Correspondence", "Geodesic", "Overall"], rows))
     first_calls = ", ".join(f"{fmt(pt['ours']['alignment_first_call_s'])} s" for pt in pair_timing)
     report.add(f"First calls of our registration (compilation included): {first_calls}.", "")
@@ -956,13 +1228,22 @@ def main(argv=None):
     mrows = []
     for m in ("ours", "qed", "fc_srvf", "ted"):
         t = timing_data[m]
-        mrows.append([METHOD_LABEL[m], t["wall_s"], fmt(t.get("compile_s")) if "compile_s" in t else "–",
-                      n_pairs_data / t["wall_s"],
-                      f"≈ {paper_matrix_h:.0f} h (147 s × {n_pairs_data})" if m == "ours" else "not reported"])
-    report.add(f"Overall: the {len(roots)}-root distance matrix ({n_pairs_data} pairs){' — loaded from the cache; times measured when it was computed' if cached_data else ''}. "
-               "Ours registers every pair (rotation, warps, correspondence); the baselines' matrices "
-               "use no rotation. The paper reports no matrix time; its 147 s alignment per pair "
-               "gives the estimate.", "")
+        mrows.append(
+            [
+                METHOD_LABEL[m],
+                t["wall_s"],
+                fmt(t.get("compile_s")) if "compile_s" in t else "–",
+                n_pairs_data / t["wall_s"],
+                f"≈ {paper_matrix_h:.0f} h (147 s × {n_pairs_data})" if m == "ours" else "not reported",
+            ]
+        )
+    report.add(
+        f"Overall: the {len(roots)}-root distance matrix ({n_pairs_data} pairs){' — loaded from the cache; times measured when it was computed' if cached_data else ''}. "
+        "Ours registers every pair (rotation, warps, correspondence); the baselines' matrices "
+        "use no rotation. The paper reports no matrix time; its 147 s alignment per pair "
+        "gives the estimate.",
+        "",
+    )
     report.add(*md_table(["method", "wall (s)", "compile (s)", "pairs / s", "paper (Matlab)"], mrows))
     srows = [
         ["Karcher mean, ours" + (" (cached)" if mean_cached else ""), mean_s, "32,640 (9 h 4 min)"],
@@ -973,21 +1254,34 @@ def main(argv=None):
         ["regression fit", fit_s, PAPER_STATS["regression_fit_s"]],
         ["one regressed root", one_reg_s, PAPER_STATS["regressed_root_s"]],
     ]
-    report.add("Statistics (paper Section 6.5; ours: the mean's single call includes compilation, the "
-               "others are best warm calls):", "")
+    report.add(
+        "Statistics (paper Section 6.5; ours: the mean's single call includes compilation, the "
+        "others are best warm calls):",
+        "",
+    )
     report.add(*md_table(["task", "ours (s)", "paper (s)"], srows))
-    results["timing"] = {"pairs": pair_timing, "matrix_data": timing_data, "matrix_species": timing_sim,
-                         "statistics": {r[0]: r[1] for r in srows}}
+    results["timing"] = {
+        "pairs": pair_timing,
+        "matrix_data": timing_data,
+        "matrix_species": timing_sim,
+        "statistics": {r[0]: r[1] for r in srows},
+    }
 
     # ---------------------------------------------------------------- notes
     report.add("## Notes", "")
     if cache.hits:
-        report.add(f"- Loaded from the cache (same configuration, inputs and library source): "
-                   f"{', '.join(cache.hits)}. Delete `{NAME}/cache` or pass `--no-cache` to recompute.")
+        report.add(
+            f"- Loaded from the cache (same configuration, inputs and library source): "
+            f"{', '.join(cache.hits)}. Delete `{NAME}/cache` or pass `--no-cache` to recompute."
+        )
     for n in notes:
         report.add(f"- {n}")
-    report.add(f"- Section run times (s): " + ", ".join(f"{k} {v:.1f}" for k, v in section_s.items())
-               + f"; whole script {time.perf_counter() - start_all:.1f} s.", "")
+    report.add(
+        "- Section run times (s): "
+        + ", ".join(f"{k} {v:.1f}" for k, v in section_s.items())
+        + f"; whole script {time.perf_counter() - start_all:.1f} s.",
+        "",
+    )
     results["cache_hits"] = cache.hits
     results["section_seconds"] = section_s
     results["figures"] = report.figures

@@ -5,21 +5,16 @@ with null laterals to fixed capacities, so the elastic metric, registration, dis
 and Karcher means are jit/vmap-compiled. See README.md and docs/architecture.md.
 """
 
-from ._errors import (
-    CapacityError as CapacityError,
-    ConvergenceError as ConvergenceError,
-    CoordinateRangeError as CoordinateRangeError,
-    InvalidCostError as InvalidCostError,
-    StoreMismatchError as StoreMismatchError,
-    ImageError as ImageError,
-    InvalidRootError as InvalidRootError,
-    MissingDependencyError as MissingDependencyError,
-    RootShapeError as RootShapeError,
-    RSMLError as RSMLError,
-    RSMLWarning as RSMLWarning,
+from ._assignment import (
+    assignment_cost as assignment_cost,
+    linear_assignment as linear_assignment,
 )
-from ._root import Root as Root
-from ._root import limit_laterals as limit_laterals
+from ._cluster import (
+    Clustering as Clustering,
+    cluster as cluster,
+    confusion_matrix as confusion_matrix,
+    loo_accuracy as loo_accuracy,
+)
 from ._curves import (
     curve_length as curve_length,
     l2_norm_squared as l2_norm_squared,
@@ -27,53 +22,43 @@ from ._curves import (
     srvf as srvf,
     srvf_to_curve as srvf_to_curve,
 )
-from ._rotation import optimal_rotation as optimal_rotation
-from ._tree import (
-    RootTree as RootTree,
-    SRVFTree as SRVFTree,
-    batch as batch,
-    stack as stack,
-    to_curves as to_curves,
-    to_roots as to_roots,
-    to_srvf as to_srvf,
-    unstack as unstack,
-)
-from ._tree import scale_tree as scale_tree
-from ._metric import (
-    TERMS as TERMS,
-    MetricTerms as MetricTerms,
-    Weights as Weights,
-    preshape_distance_squared as preshape_distance_squared,
+from ._elastic import (
+    CurveRegistration as CurveRegistration,
+    elastic_curve_distance as elastic_curve_distance,
 )
 from ._engine import (
     MEAN_REGISTRATION as MEAN_REGISTRATION,
     Registration as Registration,
     RegistrationOptions as RegistrationOptions,
 )
-from ._registration import distance as distance, register as register
-from ._pairwise import (
-    cross_distances as cross_distances,
-    pairwise_distances as pairwise_distances,
+from ._errors import (
+    CapacityError as CapacityError,
+    ConvergenceError as ConvergenceError,
+    CoordinateRangeError as CoordinateRangeError,
+    ImageError as ImageError,
+    InvalidCostError as InvalidCostError,
+    InvalidRootError as InvalidRootError,
+    MissingDependencyError as MissingDependencyError,
+    RootShapeError as RootShapeError,
+    RSMLError as RSMLError,
+    RSMLWarning as RSMLWarning,
+    StoreMismatchError as StoreMismatchError,
 )
 from ._geodesic import geodesic as geodesic
-from ._warp import (
-    apply_warp_curve as apply_warp_curve,
-    apply_warp_srvf as apply_warp_srvf,
-    dp_warp as dp_warp,
-    dp_warp_batch as dp_warp_batch,
-)
-from ._elastic import (
-    CurveRegistration as CurveRegistration,
-    elastic_curve_distance as elastic_curve_distance,
-)
-from ._assignment import (
-    assignment_cost as assignment_cost,
-    linear_assignment as linear_assignment,
-)
 from ._mean import (
     KarcherMean as KarcherMean,
     karcher_mean as karcher_mean,
     karcher_objective as karcher_objective,
+)
+from ._metric import (
+    TERMS as TERMS,
+    MetricTerms as MetricTerms,
+    Weights as Weights,
+    preshape_distance_squared as preshape_distance_squared,
+)
+from ._pairwise import (
+    cross_distances as cross_distances,
+    pairwise_distances as pairwise_distances,
 )
 from ._pca import (
     TangentPCA as TangentPCA,
@@ -83,20 +68,36 @@ from ._pca import (
     sample as sample,
     tangent_pca as tangent_pca,
 )
-from ._regression import TraitRegression as TraitRegression
-from ._cluster import (
-    Clustering as Clustering,
-    cluster as cluster,
-    confusion_matrix as confusion_matrix,
-    loo_accuracy as loo_accuracy,
-)
 from ._permanova import Permanova as Permanova, permanova as permanova
 from ._plausibility import Plausibility as Plausibility, plausibility as plausibility
+from ._registration import distance as distance, register as register
+from ._regression import TraitRegression as TraitRegression
+from ._root import Root as Root, limit_laterals as limit_laterals
+from ._rotation import optimal_rotation as optimal_rotation
 from ._traits import traits as traits, traits_to_csv as traits_to_csv
+from ._tree import (
+    RootTree as RootTree,
+    SRVFTree as SRVFTree,
+    batch as batch,
+    scale_tree as scale_tree,
+    stack as stack,
+    to_curves as to_curves,
+    to_roots as to_roots,
+    to_srvf as to_srvf,
+    unstack as unstack,
+)
+from ._warp import (
+    apply_warp_curve as apply_warp_curve,
+    apply_warp_srvf as apply_warp_srvf,
+    dp_warp as dp_warp,
+    dp_warp_batch as dp_warp_batch,
+)
 
 __version__ = "0.1.0"
-from . import baselines as baselines
-from .baselines import Shrinkage as Shrinkage, geodesic_shrinkage as geodesic_shrinkage
-from ._executor import LocalExecutor as LocalExecutor
+from . import (
+    _dask,  # noqa: F401  (registers the Dask executor for client=; imports no Dask)
+    baselines as baselines,
+)
 from ._devices import use_all_cores as use_all_cores
-from . import _dask  # noqa: F401  (registers the Dask executor for client=; imports no Dask)
+from ._executor import LocalExecutor as LocalExecutor
+from .baselines import Shrinkage as Shrinkage, geodesic_shrinkage as geodesic_shrinkage

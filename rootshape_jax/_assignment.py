@@ -29,7 +29,6 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._errors import InvalidCostError
 
-
 _METHODS = ("callback", "jax")
 _NONFINITE_MSG = (
     "cost matrix contains NaN/inf entries; the optimal assignment is undefined. "
@@ -202,9 +201,7 @@ def linear_assignment(
     return _solve_jax(cost)
 
 
-def assignment_cost(
-    cost: Float[ArrayLike, "K K"], perm: Int[ArrayLike, " K"]
-) -> Float[Array, ""]:
+def assignment_cost(cost: Float[ArrayLike, "K K"], perm: Int[ArrayLike, " K"]) -> Float[Array, ""]:
     """Total cost `sum_i cost[i, perm[i]]` of an assignment, gathered in JAX.
 
     Differentiable in `cost`: the gradient is the 0/1 matrix with ones at `(i, perm[i])`.

@@ -99,9 +99,7 @@ def cumulative_sum(x: Array, *, axis: int) -> Array:
     return jax.lax.associative_scan(jnp.add, x, axis=axis)
 
 
-def srvf_to_curve(
-    q: Float[ArrayLike, "T d"], origin: Float[ArrayLike, " d"] | None = None
-) -> Float[Array, "T d"]:
+def srvf_to_curve(q: Float[ArrayLike, "T d"], origin: Float[ArrayLike, " d"] | None = None) -> Float[Array, "T d"]:
     """Inverse SRVF: ``b(t) = origin + ∫_0^t q|q|`` by cumulative trapezoid on the grid."""
     q = jnp.asarray(q)
     n = q.shape[-2]
@@ -126,9 +124,7 @@ def resample_curve(beta: Float[ArrayLike, "n d"], n_points: int) -> Float[Array,
     return interpolate_at_fraction(beta, fractions)
 
 
-def interpolate_at_fraction(
-    beta: Float[Array, "T d"], fraction: Float[ArrayLike, " *k"]
-) -> Float[Array, "*k d"]:
+def interpolate_at_fraction(beta: Float[Array, "T d"], fraction: Float[ArrayLike, " *k"]) -> Float[Array, "*k d"]:
     """Point of the curve at arc-length ``fraction`` ∈ [0, 1] of its length (linear)."""
     seg = safe_norm(jnp.diff(beta, axis=0))
     cum = jnp.concatenate([jnp.zeros((1,), seg.dtype), cumulative_sum(seg, axis=-1)])

@@ -90,8 +90,13 @@ class DaskExecutor(Executor):
         run = uuid.uuid4().hex[:8]
         name = getattr(fn, "__name__", "block")
         futures = client.map(
-            _task, [fn] * len(todo), [x64] * len(todo), [_to_numpy(blocks[b]) for b in todo],
-            shared=shared_future, key=[f"rootshape-{name}-{run}-{b}" for b in todo], pure=False,
+            _task,
+            [fn] * len(todo),
+            [x64] * len(todo),
+            [_to_numpy(blocks[b]) for b in todo],
+            shared=shared_future,
+            key=[f"rootshape-{name}-{run}-{b}" for b in todo],
+            pure=False,
         )
         index = dict(zip(futures, todo))
         try:

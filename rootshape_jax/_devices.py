@@ -21,9 +21,7 @@ from jax.sharding import Mesh, PartitionSpec
 from ._errors import InvalidRootError
 
 
-def split_over_devices(
-    fn: Callable, batched: tuple, shared: tuple = (), *, devices: Sequence[Any] | None = None
-):
+def split_over_devices(fn: Callable, batched: tuple, shared: tuple = (), *, devices: Sequence[Any] | None = None):
     """``fn(*batched, *shared)`` with the leading axis of `batched` split evenly across devices.
 
     Rows are independent, so no collective runs inside: each device computes its own share

@@ -20,7 +20,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from ._curves import l2_norm_squared, resample_curve, srvf
 from ._errors import InvalidRootError
 from ._rotation import optimal_rotation
-from ._warp import check_neighbourhood, dp_warp_if, warp_samples_unchecked, warp_samples
+from ._warp import check_neighbourhood, dp_warp_if, warp_samples, warp_samples_unchecked
 
 
 class CurveRegistration(eqx.Module):
@@ -55,9 +55,7 @@ def _check_curve(beta, name: str):
         )
     if not jnp.issubdtype(beta.dtype, jnp.floating):
         beta = beta.astype(jnp.result_type(float))
-    return eqx.error_if(
-        beta, ~jnp.all(jnp.isfinite(beta)), f"elastic_curve_distance: {name} contains NaN or inf."
-    )
+    return eqx.error_if(beta, ~jnp.all(jnp.isfinite(beta)), f"elastic_curve_distance: {name} contains NaN or inf.")
 
 
 def _unit(q: Array) -> Array:
@@ -176,21 +174,16 @@ def elastic_curve_distance(
 
 
 @eqx.filter_jit
-def _elastic_curve_distance(
-    beta1, beta2, max_iterations, rtol, *, rotation, scale, n_samples, neighbourhood
-):
+def _elastic_curve_distance(beta1, beta2, max_iterations, rtol, *, rotation, scale, n_samples, neighbourhood):
     beta1 = _check_curve(beta1, "beta1")
     beta2 = _check_curve(beta2, "beta2")
     if beta1.shape[1] != beta2.shape[1]:
         raise InvalidRootError(
-            f"elastic_curve_distance: both curves need the same dimension d, got {beta1.shape[1]} "
-            f"and {beta2.shape[1]}."
+            f"elastic_curve_distance: both curves need the same dimension d, got {beta1.shape[1]} and {beta2.shape[1]}."
         )
     d = beta1.shape[1]
     if rotation and d not in (2, 3):
-        raise InvalidRootError(
-            f"elastic_curve_distance: rotation=True needs curves in 2D or 3D, got d = {d}."
-        )
+        raise InvalidRootError(f"elastic_curve_distance: rotation=True needs curves in 2D or 3D, got d = {d}.")
     dtype = jnp.result_type(beta1, beta2)
     rtol = jnp.asarray(rtol, dtype)
     q1 = srvf(resample_curve(beta1.astype(dtype), n_samples))

@@ -40,7 +40,6 @@ from ._rotation import optimal_rotation
 from ._tree import SRVFTree
 from ._warp import apply_warp_srvf, dp_warp
 
-
 # --------------------------------------------------------------------------------------------
 # Options and result
 
@@ -137,7 +136,9 @@ def registration_options(
     (the public functions' keyword options), on top of `base` (default `register`'s)."""
     if isinstance(options, RegistrationOptions):
         if shorthand:
-            raise ValueError(f"give registration options either as `registration=` or as keywords, not both ({sorted(shorthand)}).")
+            raise ValueError(
+                f"give registration options either as `registration=` or as keywords, not both ({sorted(shorthand)})."
+            )
         return options
     given = dict(options or {})
     unknown = (set(given) | set(shorthand)) - set(OPTION_NAMES)
@@ -425,8 +426,12 @@ def evaluate(p: Prepared, O: Array, rows: Array, options: RegistrationOptions):
     n_final = B + B * K
     identity = jnp.broadcast_to(_identity_grid(T, dtype), (n_final, T))
     Ef, Gf = run_dp_slabs(
-        need, final_pair, jnp.zeros((n_final,), dtype), identity,
-        neighbourhood=options.neighbourhood, dp_batch_size=options.dp_batch_size,
+        need,
+        final_pair,
+        jnp.zeros((n_final,), dtype),
+        identity,
+        neighbourhood=options.neighbourhood,
+        dp_batch_size=options.dp_batch_size,
     )
     n_dp = jnp.sum(computed.reshape(B, K * K), axis=1, dtype=jnp.int32)
     return p.lam_main * Ef[:B] + lap, perm, Gf[:B], Gf[B:].reshape(B, K, T), n_dp
@@ -444,9 +449,7 @@ def refit_rotation(p: Prepared, perm: Array, g0: Array, gam: Array) -> Array:
     qw = jax.vmap(jax.vmap(warp_preserving_norm))(qbp, gam)
     A = jnp.concatenate([a.q0[:, None], a.q], axis=1)[..., :d]
     Bm = jnp.concatenate([q0w[:, None], qw], axis=1)[..., :d]
-    w = jnp.concatenate(
-        [jnp.broadcast_to(p.lam_main, (B, 1)), p.lam_lateral * (a.mask & mbp).astype(dtype)], axis=1
-    )
+    w = jnp.concatenate([jnp.broadcast_to(p.lam_main, (B, 1)), p.lam_lateral * (a.mask & mbp).astype(dtype)], axis=1)
     return jax.vmap(optimal_rotation)(A, Bm, w)
 
 

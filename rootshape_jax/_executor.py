@@ -211,6 +211,5 @@ def executor_for(client) -> Executor:
         if ex is not None:
             return ex
     raise TypeError(
-        "client must be a dask.distributed.Client (or None for the local path), got "
-        f"{type(client).__name__}."
+        f"client must be a dask.distributed.Client (or None for the local path), got {type(client).__name__}."
     )

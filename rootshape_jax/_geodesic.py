@@ -28,7 +28,9 @@ def geodesic_srvf(a: SRVFTree, registered_b: SRVFTree, taus) -> SRVFTree:
         base = None
         if a.base_radius is not None:
             # A lateral present on one side only keeps its partner's starting radius.
-            base_b = jnp.where(jnp.concatenate([jnp.ones(1, bool), registered_b.mask]), registered_b.base_radius, a.base_radius)
+            base_b = jnp.where(
+                jnp.concatenate([jnp.ones(1, bool), registered_b.mask]), registered_b.base_radius, a.base_radius
+            )
             base_a = jnp.where(jnp.concatenate([jnp.ones(1, bool), a.mask]), a.base_radius, base_b)
             base = lerp(base_a, base_b)
         return SRVFTree(

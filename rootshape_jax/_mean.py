@@ -76,7 +76,6 @@ from ._rotation import optimal_rotation
 from ._tangent import TreeParams, params_of, params_to_tree, unwhiten, whiten, whitening
 from ._tree import RootTree, SRVFTree, batch_size, check_compatible, to_curves, to_srvf
 
-
 # --------------------------------------------------------------------------------------------
 # Result
 
@@ -278,7 +277,12 @@ def _carried(y: FPIterate, mu: SRVFTree, O, samples: SRVFTree) -> SRVFTree:
     q = rotate_batch(y.warped_q, O) * real[..., None, None]
     s = jnp.where(real, y.reg_s, mu.s[None])
     return SRVFTree(
-        q0=q0, q=q, s=s, mask=real, origin=samples.origin, base_radius=y.reg_base,
+        q0=q0,
+        q=q,
+        s=s,
+        mask=real,
+        origin=samples.origin,
+        base_radius=y.reg_base,
         thickness_scale=samples.thickness_scale,
     )
 
@@ -615,8 +619,13 @@ def _gradient_fn(z: TreeParams, args):
 def _solve_gradient(mu0: TreeParams, samples, mu_like, weights, opts, solver, max_steps, throw):
     c = whitening(weights, mu0.q0.shape[0], mu0.q0.dtype)
     sol = optx.minimise(
-        _gradient_fn, solver, whiten(mu0, c), (samples, mu_like, weights, opts, c),
-        has_aux=True, max_steps=max_steps, throw=throw,
+        _gradient_fn,
+        solver,
+        whiten(mu0, c),
+        (samples, mu_like, weights, opts, c),
+        has_aux=True,
+        max_steps=max_steps,
+        throw=throw,
     )
     return unwhiten(sol.value, c), sol.state.trace, sol.state.count, sol.stats["num_steps"], sol.result
 
@@ -770,8 +779,19 @@ def karcher_mean(
         blocks = _SampleBlocks(executor, samples, block_size if client is not None else None)
         mu0s = [params_of(jax.tree.map(lambda x, i=i: x[i], samples)) for i in starts]
         mu, trace, steps, result, registered, energies, chosen = _fixed_point(
-            mu0s, samples, mu_like, weights, opts, inner, rtol=float(rtol), atol=tol_a,
-            max_steps=max_steps, throw=throw, blocks=blocks, progress=progress, warm_up_steps=warm_up_steps,
+            mu0s,
+            samples,
+            mu_like,
+            weights,
+            opts,
+            inner,
+            rtol=float(rtol),
+            atol=tol_a,
+            max_steps=max_steps,
+            throw=throw,
+            blocks=blocks,
+            progress=progress,
+            warm_up_steps=warm_up_steps,
         )
         start = starts[chosen]
     else:

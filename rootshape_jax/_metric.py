@@ -16,7 +16,6 @@ from ._terms import LateralTerm, MainTerm, MetricTerm, PositionTerm
 from ._thickness import ThicknessTerm
 from ._tree import SRVFTree
 
-
 TERMS: tuple[MetricTerm, ...] = (MainTerm(), LateralTerm(), PositionTerm(), ThicknessTerm())
 TERM_NAMES: tuple[str, ...] = tuple(t.name for t in TERMS)
 

@@ -10,7 +10,6 @@ the matrix does not depend on the executor or the block size.
 
 from __future__ import annotations
 
-import math
 import os
 
 import equinox as eqx
@@ -89,14 +88,29 @@ def run_pairs(
     st = None
     if store is not None:
         dtype = np.asarray(s.q0).dtype
-        st = BlockStore(store, {
-            "kind": kind, "n": int(s.q0.shape[0]), "m": int(t.q0.shape[0]), "n_pairs": n_pairs,
-            "block_size": block_size, "chunk_size": chunk_size, "dtype": str(dtype),
-            "fingerprint": fingerprint(kind, s, t, weights, options, repr(options)),
-        })
+        st = BlockStore(
+            store,
+            {
+                "kind": kind,
+                "n": int(s.q0.shape[0]),
+                "m": int(t.q0.shape[0]),
+                "n_pairs": n_pairs,
+                "block_size": block_size,
+                "chunk_size": chunk_size,
+                "dtype": str(dtype),
+                "fingerprint": fingerprint(kind, s, t, weights, options, repr(options)),
+            },
+        )
     results, counts = executor.map_blocks(
-        pair_block, [(I[a:z], J[a:z]) for a, z in spans], shared=(s, t, weights, options, chunk_size),
-        sizes=[z - a for a, z in spans], store=st, resume=resume, progress=progress, desc=desc, unit="pair",
+        pair_block,
+        [(I[a:z], J[a:z]) for a, z in spans],
+        shared=(s, t, weights, options, chunk_size),
+        sizes=[z - a for a, z in spans],
+        store=st,
+        resume=resume,
+        progress=progress,
+        desc=desc,
+        unit="pair",
     )
     energies = np.concatenate([r["energies"] for r in results]) if results else np.zeros(0)
     stats = {
@@ -111,8 +125,7 @@ def run_pairs(
 def _as_batch(trees, name, weights) -> SRVFTree:
     if not isinstance(trees, (RootTree, SRVFTree)):
         raise TypeError(
-            f"{name} must be a batched RootTree or SRVFTree (rootshape_jax.batch(roots)), "
-            f"got {type(trees).__name__}."
+            f"{name} must be a batched RootTree or SRVFTree (rootshape_jax.batch(roots)), got {type(trees).__name__}."
         )
     s = to_srvf(trees, weights=weights)
     n = batch_size(s)
@@ -158,8 +171,20 @@ def pairwise_distances(
     n = batch_size(s)
     I, J = np.triu_indices(n, 1)
     e, stats = run_pairs(
-        s, s, I, J, "pairwise", weights=weights, options=opts, chunk_size=chunk_size, client=client,
-        block_size=block_size, store=store, resume=resume, progress=progress, desc="distances",
+        s,
+        s,
+        I,
+        J,
+        "pairwise",
+        weights=weights,
+        options=opts,
+        chunk_size=chunk_size,
+        client=client,
+        block_size=block_size,
+        store=store,
+        resume=resume,
+        progress=progress,
+        desc="distances",
     )
     D = np.zeros((n, n), dtype=np.asarray(s.q0).dtype)
     D[I, J] = np.sqrt(np.maximum(e, 0.0))
@@ -192,7 +217,19 @@ def cross_distances(
     n, m = batch_size(s), batch_size(t)
     I, J = (x.ravel() for x in np.meshgrid(np.arange(n), np.arange(m), indexing="ij"))
     e, _ = run_pairs(
-        s, t, I, J, "cross", weights=weights, options=opts, chunk_size=chunk_size, client=client,
-        block_size=block_size, store=store, resume=resume, progress=progress, desc="cross distances",
+        s,
+        t,
+        I,
+        J,
+        "cross",
+        weights=weights,
+        options=opts,
+        chunk_size=chunk_size,
+        client=client,
+        block_size=block_size,
+        store=store,
+        resume=resume,
+        progress=progress,
+        desc="cross distances",
     )
     return jnp.asarray(np.sqrt(np.maximum(e, 0.0)).reshape(n, m))

@@ -146,9 +146,7 @@ def tangent_pca(
     # The tangent point is the fitted mean (every slot real), where the samples were registered.
     mu = mean.fitted
     dtype = mu.q0.dtype
-    c, Vt, eig, ratio, scores, mean_norm2, default_threshold, default_longest = _fit(
-        mean.registered, mu, mean.weights
-    )
+    c, Vt, eig, ratio, scores, mean_norm2, default_threshold, default_longest = _fit(mean.registered, mu, mean.weights)
     if min_lateral_length is None:
         threshold = default_threshold
     else:
@@ -199,16 +197,12 @@ def reconstruct(pc: TangentPCA, coefficients, *, srvf: bool = False) -> RootTree
     `SRVFTree` with ``srvf=True``."""
     b = jnp.asarray(coefficients, pc.mean.q0.dtype)
     if b.ndim == 0 or b.shape[-1] > pc.components.shape[0]:
-        raise ValueError(
-            f"coefficients must have shape (..., m) with m <= {pc.components.shape[0]}, got {b.shape}."
-        )
+        raise ValueError(f"coefficients must have shape (..., m) with m <= {pc.components.shape[0]}, got {b.shape}.")
     t, curves = _reconstruct(pc, b)
     return t if srvf else curves
 
 
-def modes(
-    pc: TangentPCA, alphas: Sequence[float] | Array, *, component: int | Sequence[int] = 0
-) -> RootTree:
+def modes(pc: TangentPCA, alphas: Sequence[float] | Array, *, component: int | Sequence[int] = 0) -> RootTree:
     """Roots along principal mode(s): ``μ + α √σ_i Λ_i`` for each α in `alphas`.
 
     One `component` gives a batched `RootTree` of shape ``(len(alphas),)``; a sequence of

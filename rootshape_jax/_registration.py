@@ -7,11 +7,10 @@ input and options.
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
-
-import equinox as eqx
 
 from ._curves import safe_sqrt
 from ._engine import Registration, RegistrationOptions, pair_distances_squared, register_pairs_jit, registration_options

@@ -16,10 +16,9 @@ requested ones.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import functools
 import warnings
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
@@ -167,9 +166,7 @@ def _check_values(reg: "TraitRegression", values):
         if not np.all(np.isfinite(v)):
             raise ValueError("trait values contain NaN or inf.")
     if v.ndim == 0 or v.shape[-1] != len(reg.names):
-        raise ValueError(
-            f"values must have shape (..., {len(reg.names)}) in the order {reg.names}, got {v.shape}."
-        )
+        raise ValueError(f"values must have shape (..., {len(reg.names)}) in the order {reg.names}, got {v.shape}.")
     return v
 
 
@@ -178,9 +175,17 @@ def _synthesize_method(reg: "TraitRegression", values, *, srvf: bool = False) ->
     batch), in the order of `names`."""
     pc = reg.pca
     return _synthesize(
-        reg.offset, reg.slopes, reg.s_offset, reg.s_slopes, pc.mean.origin,
-        pc.min_lateral_length, reg.trait_mean, reg.trait_scale, _check_values(reg, values),
-        curves=not srvf, thick=None if pc.mean.thickness_scale is None else (pc.mean.base_radius, pc.mean.thickness_scale),
+        reg.offset,
+        reg.slopes,
+        reg.s_offset,
+        reg.s_slopes,
+        pc.mean.origin,
+        pc.min_lateral_length,
+        reg.trait_mean,
+        reg.trait_scale,
+        _check_values(reg, values),
+        curves=not srvf,
+        thick=None if pc.mean.thickness_scale is None else (pc.mean.base_radius, pc.mean.thickness_scale),
     )
 
 
@@ -336,7 +341,7 @@ class TraitRegression(eqx.Module):
         values = [requested]
         if len(self.names) > len(self.trait_names):
             if covariates is None:
-                raise ValueError(f"report needs the covariates {self.names[len(self.trait_names):]}.")
+                raise ValueError(f"report needs the covariates {self.names[len(self.trait_names) :]}.")
             values.append(_as_matrix(covariates, n, "covariates"))
         synth = self.synthesize(np.concatenate(values, axis=1))
         got = _measure(synth, self.trait_names)

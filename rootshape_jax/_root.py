@@ -41,13 +41,9 @@ def check_polyline(points: Any, *, what: str, dim: int | None = None) -> np.ndar
     if not np.issubdtype(arr.dtype, np.floating):
         arr = arr.astype(np.float64)
     if arr.ndim != 2:
-        raise InvalidRootError(
-            f"{what}: expected an (n_points, d) array of coordinates, got shape {arr.shape}."
-        )
+        raise InvalidRootError(f"{what}: expected an (n_points, d) array of coordinates, got shape {arr.shape}.")
     if arr.shape[1] not in (2, 3):
-        raise InvalidRootError(
-            f"{what}: points must be 2D or 3D, got d = {arr.shape[1]} (shape {arr.shape})."
-        )
+        raise InvalidRootError(f"{what}: points must be 2D or 3D, got d = {arr.shape[1]} (shape {arr.shape}).")
     if dim is not None and arr.shape[1] != dim:
         raise InvalidRootError(
             f"{what}: has dimension {arr.shape[1]} but the main root has dimension {dim}; "
@@ -61,11 +57,12 @@ def check_polyline(points: Any, *, what: str, dim: int | None = None) -> np.ndar
     if not np.all(np.isfinite(arr)):
         bad = int(np.argmax(~np.all(np.isfinite(arr), axis=1)))
         raise InvalidRootError(
-            f"{what}: coordinates contain NaN or inf (first at point {bad}). "
-            "Remove or repair those points."
+            f"{what}: coordinates contain NaN or inf (first at point {bad}). Remove or repair those points."
         )
     check_range(
-        arr, limit=ROOT_COORDINATE_LIMIT, what=what,
+        arr,
+        limit=ROOT_COORDINATE_LIMIT,
+        what=what,
         fix="Rescale the coordinates (e.g. express them in another unit) before building a Root.",
     )
     return arr
@@ -152,9 +149,7 @@ class Root:
         else:
             lats_in = self.laterals
         lats = tuple(
-            check_polyline(lat, what=f"{label}: lateral {i}", dim=main.shape[1]).astype(
-                main.dtype, copy=False
-            )
+            check_polyline(lat, what=f"{label}: lateral {i}", dim=main.shape[1]).astype(main.dtype, copy=False)
             for i, lat in enumerate(lats_in)
         )
         if self.attach is None:
@@ -173,8 +168,7 @@ class Root:
                 )
         if self.children and len(self.children) != len(lats):
             raise InvalidRootError(
-                f"{label}: `children` must hold one entry per lateral ({len(lats)}), "
-                f"got {len(self.children)}."
+                f"{label}: `children` must hold one entry per lateral ({len(lats)}), got {len(self.children)}."
             )
         main_radius = None
         if self.main_radius is not None:
@@ -236,9 +230,7 @@ class Root:
             laterals=tuple(origin + (lat - origin) * factor for lat in self.laterals),
             children=tuple(c.scaled_about(origin, factor) for c in self.children),
             main_radius=None if self.main_radius is None else self.main_radius * f,
-            lateral_radii=(
-                None if self.lateral_radii is None else tuple(r * f for r in self.lateral_radii)
-            ),
+            lateral_radii=(None if self.lateral_radii is None else tuple(r * f for r in self.lateral_radii)),
         )
 
     def select_laterals(self, indices: Sequence[int]) -> "Root":
@@ -250,9 +242,7 @@ class Root:
             laterals=tuple(self.laterals[i] for i in idx),
             attach=self.attach[idx] if idx else np.zeros((0,), self.main.dtype),
             children=tuple(self.children[i] for i in idx) if self.children else (),
-            lateral_radii=(
-                None if self.lateral_radii is None else tuple(self.lateral_radii[i] for i in idx)
-            ),
+            lateral_radii=(None if self.lateral_radii is None else tuple(self.lateral_radii[i] for i in idx)),
         )
 
     def __repr__(self) -> str:

@@ -23,8 +23,7 @@ def optimal_rotation(
     B = jnp.asarray(B)
     if A.shape != B.shape or A.ndim < 2 or A.shape[-1] not in (2, 3):
         raise ValueError(
-            f"optimal_rotation needs A and B of the same shape (..., T, d), d in (2, 3); "
-            f"got {A.shape} and {B.shape}."
+            f"optimal_rotation needs A and B of the same shape (..., T, d), d in (2, 3); got {A.shape} and {B.shape}."
         )
     tw = trapezoid_weights(A.shape[-2], A.dtype)
     if weights is None:

@@ -40,8 +40,13 @@ def params_to_tree(p: TreeParams, like: SRVFTree, origin=None, base_radius=None)
     if like.thickness_scale is not None and base_radius is None:
         base_radius = like.base_radius
     return SRVFTree(
-        q0=p.q0, q=p.q, s=p.s, mask=jnp.ones(p.s.shape, bool), origin=origin,
-        base_radius=base_radius, thickness_scale=like.thickness_scale,
+        q0=p.q0,
+        q=p.q,
+        s=p.s,
+        mask=jnp.ones(p.s.shape, bool),
+        origin=origin,
+        base_radius=base_radius,
+        thickness_scale=like.thickness_scale,
     )
 
 
@@ -55,9 +60,7 @@ def whitening(weights: Weights, T: int, dtype) -> TreeParams:
         return jnp.where(lam > 0, jnp.sqrt(jnp.where(lam > 0, lam, 1.0)), 1.0)
 
     blocks = {t.tangent_block: scale(weights[t.name]) for t in TERMS if t.tangent_block is not None}
-    return TreeParams(
-        (blocks["q0"] * sqrt_tw)[:, None], (blocks["q"] * sqrt_tw)[None, :, None], blocks["s"]
-    )
+    return TreeParams((blocks["q0"] * sqrt_tw)[:, None], (blocks["q"] * sqrt_tw)[None, :, None], blocks["s"])
 
 
 def whiten(p: TreeParams, c: TreeParams) -> TreeParams:
@@ -71,9 +74,7 @@ def unwhiten(z: TreeParams, c: TreeParams) -> TreeParams:
 def flatten(v: TreeParams) -> Array:
     """One vector per tree: q0, then q, then s (leading batch axes kept)."""
     lead = v.q0.shape[:-2]
-    return jnp.concatenate(
-        [v.q0.reshape(lead + (-1,)), v.q.reshape(lead + (-1,)), v.s.reshape(lead + (-1,))], axis=-1
-    )
+    return jnp.concatenate([v.q0.reshape(lead + (-1,)), v.q.reshape(lead + (-1,)), v.s.reshape(lead + (-1,))], axis=-1)
 
 
 def unflatten(x: Array, T: int, K: int, C: int) -> TreeParams:
@@ -116,7 +117,10 @@ def exp_map(
     length = l2_norm_squared(q)
     if max_lateral_length is not None:
         too_long = length > max_lateral_length
-        q = q * jnp.where(too_long, jnp.sqrt(max_lateral_length / jnp.where(too_long, length, 1.0)), 1.0)[..., None, None]
+        q = (
+            q
+            * jnp.where(too_long, jnp.sqrt(max_lateral_length / jnp.where(too_long, length, 1.0)), 1.0)[..., None, None]
+        )
     real = length >= min_lateral_length
     q = q * real[..., None, None]
     lead = q0.shape[:-2]

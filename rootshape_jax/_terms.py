@@ -28,7 +28,6 @@ from jaxtyping import Array, Float
 
 from ._curves import l2_norm_squared
 
-
 if TYPE_CHECKING:
     from ._metric import Weights
     from ._tree import SRVFTree

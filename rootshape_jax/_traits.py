@@ -191,8 +191,7 @@ def traits(root_or_roots: Root | Sequence[Root], *, window: float | None = None)
         return _root_traits(root_or_roots, window)
     if isinstance(root_or_roots, (str, bytes, Mapping)) or not isinstance(root_or_roots, Iterable):
         raise InvalidRootError(
-            "traits() expects a rootshape_jax.Root or a sequence of them, got "
-            f"{type(root_or_roots).__name__}."
+            f"traits() expects a rootshape_jax.Root or a sequence of them, got {type(root_or_roots).__name__}."
         )
     return [_root_traits(r, window) for r in root_or_roots]
 

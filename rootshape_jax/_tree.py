@@ -22,7 +22,7 @@ from jaxtyping import Array, Bool, Float
 
 from ._curves import interpolate_at_fraction, srvf, srvf_to_curve
 from ._errors import CapacityError, InvalidRootError
-from ._root import Root, check_polyline, check_range, coordinate_limit, polyline_length
+from ._root import Root, check_range, coordinate_limit, polyline_length
 from ._thickness import extended_srvf, integrate_branch, wants_thickness
 
 
@@ -57,9 +57,7 @@ class RootTree(eqx.Module):
     lateral_radius: Float[Array, "*B K T"] | None = None
 
     def __check_init__(self):
-        _check_shapes(
-            "RootTree", self.main, self.laterals, self.attach, self.mask, names=("main", "laterals")
-        )
+        _check_shapes("RootTree", self.main, self.laterals, self.attach, self.mask, names=("main", "laterals"))
         _check_radius_shapes("RootTree", self.main, self.laterals, self.main_radius, self.lateral_radius)
 
     @property
@@ -291,11 +289,15 @@ def root_to_arrays_with_radius(
     limit = coordinate_limit(dtype, n_points)
     label = f"root {root.name!r}" if root.name else "root"
     for x, what in (
-        (main_resampled, "main root"), (lats, "laterals"), (main_radius, "main radius"),
+        (main_resampled, "main root"),
+        (lats, "laterals"),
+        (main_radius, "main radius"),
         (lat_radius, "lateral radii"),
     ):
         check_range(
-            x, limit=limit, what=f"{label}: {what}",
+            x,
+            limit=limit,
+            what=f"{label}: {what}",
             fix=f"With dtype={np.dtype(dtype).name} and n_points={n_points}, rescale the "
             "coordinates (another unit, or normalise_scale=True), or use dtype=float64 "
             "(jax.config.update('jax_enable_x64', True)).",
@@ -348,9 +350,7 @@ def batch(
             raise TypeError(f"batch(): item {i} is a {type(r).__name__}, expected a Root.")
     dims = {r.dim for r in roots_list}
     if len(dims) != 1:
-        raise InvalidRootError(
-            f"batch(): roots mix dimensions {sorted(dims)}; convert 2D roots to 3D (z = 0) first."
-        )
+        raise InvalidRootError(f"batch(): roots mix dimensions {sorted(dims)}; convert 2D roots to 3D (z = 0) first.")
     if not isinstance(n_points, int) or n_points < 2:
         raise ValueError(f"n_points must be an integer >= 2, got {n_points!r}.")
     if max_laterals is None:
@@ -369,9 +369,7 @@ def batch(
     if any(r.has_radius for r in roots_list):
         _warn_missing_radius(roots_list)
         radii = dict(main_radius=jnp.asarray(main_r), lateral_radius=jnp.asarray(lat_r))
-    tree = RootTree(
-        jnp.asarray(main), jnp.asarray(lats), jnp.asarray(attach), jnp.asarray(mask), **radii
-    )
+    tree = RootTree(jnp.asarray(main), jnp.asarray(lats), jnp.asarray(attach), jnp.asarray(mask), **radii)
     return unstack(tree)[0] if single else tree
 
 
@@ -403,9 +401,7 @@ def _warn_missing_radius(roots: Sequence[Root]) -> None:
         elif r.main_radius is None:
             missing.append(f"root {_root_label(r, i)} has no main-root radius; it is taken as 0")
         elif r.lateral_radii is None and r.n_laterals:
-            missing.append(
-                f"root {_root_label(r, i)} has no lateral radii; they are taken as 0"
-            )
+            missing.append(f"root {_root_label(r, i)} has no lateral radii; they are taken as 0")
     if missing:
         shown = "; ".join(missing[:10])
         more = f"; ... and {len(missing) - 10} more" if len(missing) > 10 else ""

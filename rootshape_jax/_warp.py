@@ -42,10 +42,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._devices import device_vmap
 from ._curves import safe_sqrt
+from ._devices import device_vmap
 from ._errors import InvalidRootError
-
 
 # ---------------------------------------------------------------------------------------------
 # Move set and stencils (numpy, built once per (neighbourhood, T) at trace time)
@@ -171,8 +170,7 @@ def _check_gamma(gamma, n_points: int, dtype, what: str):
     gamma = jnp.asarray(gamma)
     if gamma.shape != (n_points,):
         raise InvalidRootError(
-            f"{what}: gamma must be the warp sampled on the grid, shape ({n_points},), got "
-            f"{gamma.shape}."
+            f"{what}: gamma must be the warp sampled on the grid, shape ({n_points},), got {gamma.shape}."
         )
     return gamma.astype(dtype)
 
@@ -255,8 +253,7 @@ def _forward(q1: Array, q2: Array, n: int):
         # (A stacked (M, T, B) array reduced by min *and* argmin is computed twice by XLA.)
         for m in members:
             cross = sum(
-                c * win[n - st.pairs[u, 0], n - st.pairs[u, 1] : n - st.pairs[u, 1] + size]
-                for u, c in terms[m]
+                c * win[n - st.pairs[u, 0], n - st.pairs[u, 1] : n - st.pairs[u, 1] + size] for u, c in terms[m]
             )
             prev = hist[n - a[m], n - b[m] : n - b[m] + size]
             best = jnp.minimum(best, prev + (r1_k[m] + r2[m] + cross))
@@ -274,6 +271,7 @@ def _forward(q1: Array, q2: Array, n: int):
         else:
             # Several loops, each a branch of a switch so that XLA cannot fuse them back.
             branches = [functools.partial(group_min, members=g) for g in groups]
+
             def one_group(j, bst):
                 return jax.lax.switch(j, branches, bst, win, hist, r1_k)
 
@@ -338,9 +336,7 @@ def _dp_block(q1: Array, q2: Array, n: int):
     """Warps (B, T) and DP minima (B,) for a batch of pairs, in one forward scan."""
     table, gram, r1, r2 = _forward(q1, q2, n)
     cost = table[-1, -1]
-    gamma = jax.vmap(lambda t, g, x, y: _backtrack(t, g, x, y, n), in_axes=(2, 2, 2, 2))(
-        table, gram, r1, r2
-    )
+    gamma = jax.vmap(lambda t, g, x, y: _backtrack(t, g, x, y, n), in_axes=(2, 2, 2, 2))(table, gram, r1, r2)
     return gamma, cost
 
 
@@ -429,9 +425,7 @@ def _batched_kernel(n: int):
     def _rule(axis_size, in_batched, q1, q2, active):
         q1, q2, active = _broadcast_unbatched(axis_size, in_batched, (q1, q2, active))
         outer, inner = active.shape
-        gamma, cost = batched(
-            q1.reshape((-1,) + q1.shape[2:]), q2.reshape((-1,) + q2.shape[2:]), active.reshape(-1)
-        )
+        gamma, cost = batched(q1.reshape((-1,) + q1.shape[2:]), q2.reshape((-1,) + q2.shape[2:]), active.reshape(-1))
         return (gamma.reshape(outer, inner, -1), cost.reshape(outer, inner)), (True, True)
 
     return batched
@@ -439,8 +433,7 @@ def _batched_kernel(n: int):
 
 def _broadcast_unbatched(axis_size, in_batched, args):
     return tuple(
-        x if batched else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x))
-        for x, batched in zip(args, in_batched)
+        x if batched else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x)) for x, batched in zip(args, in_batched)
     )
 
 
@@ -482,18 +475,14 @@ def dp_warp_and_energy(
     return _dp_kernel(n)(q1, q2, jnp.asarray(True))
 
 
-def dp_warp_if(
-    q1: Array, q2: Array, active: Array, *, neighbourhood: int
-) -> tuple[Array, Array]:
+def dp_warp_if(q1: Array, q2: Array, active: Array, *, neighbourhood: int) -> tuple[Array, Array]:
     """`dp_warp_and_energy` for loops under `vmap`: lanes with ``active`` False are skipped
     (identity warp, cost 0) instead of being computed and thrown away."""
     q1, q2, n = _prepare(q1, q2, neighbourhood, "dp_warp")
     return _dp_kernel(n)(q1, q2, jnp.asarray(active, bool))
 
 
-def dp_warp(
-    q1: Float[ArrayLike, "T d"], q2: Float[ArrayLike, "T d"], *, neighbourhood: int = 7
-) -> Float[Array, " T"]:
+def dp_warp(q1: Float[ArrayLike, "T d"], q2: Float[ArrayLike, "T d"], *, neighbourhood: int = 7) -> Float[Array, " T"]:
     """Optimal warp ``γ`` of ``q2`` onto ``q1`` by exact dynamic programming.
 
     Minimises ``∫|q1(t) − √γ'(t) q2(γ(t))|² dt`` (see the module docstring for the exact
@@ -533,9 +522,7 @@ def _check_monotone(gamma: Array, what: str) -> Array:
     tol = 16 * jnp.finfo(gamma.dtype).eps
     ends_bad = (jnp.abs(gamma[0]) > tol) | (jnp.abs(gamma[-1] - 1) > tol)
     bad = jnp.any(jnp.diff(gamma) < -tol) | ends_bad
-    return eqx.error_if(
-        gamma, bad, f"{what}: gamma must be nondecreasing from gamma[0] = 0 to gamma[-1] = 1."
-    )
+    return eqx.error_if(gamma, bad, f"{what}: gamma must be nondecreasing from gamma[0] = 0 to gamma[-1] = 1.")
 
 
 def warp_samples(
@@ -614,9 +601,7 @@ def _sqrt_speed(gamma: Array) -> Array:
     return 0.5 * (left + right)
 
 
-def apply_warp_srvf(
-    q: Float[ArrayLike, "T d"], gamma: Float[ArrayLike, " T"]
-) -> Float[Array, "T d"]:
+def apply_warp_srvf(q: Float[ArrayLike, "T d"], gamma: Float[ArrayLike, " T"]) -> Float[Array, "T d"]:
     """``(q∘γ)·√γ'`` on the grid: q linearly interpolated at γ(t_i); √γ' at a node is the mean
     of the square roots of the two adjacent finite differences (one at the ends), which is 0
     where γ is flat and has a finite gradient there."""
@@ -629,18 +614,13 @@ def apply_warp_srvf(
     return _lerp(q, gamma * last) * _sqrt_speed(gamma)[:, None]
 
 
-def apply_warp_curve(
-    beta: Float[ArrayLike, "T d"], gamma: Float[ArrayLike, " T"]
-) -> Float[Array, "T d"]:
+def apply_warp_curve(beta: Float[ArrayLike, "T d"], gamma: Float[ArrayLike, " T"]) -> Float[Array, "T d"]:
     """``β∘γ`` on the grid (linear interpolation of β at γ(t_i))."""
     beta = jnp.asarray(beta)
     if beta.ndim != 2 or beta.shape[0] < 2:
-        raise InvalidRootError(
-            f"apply_warp_curve: beta must have shape (T, d), T >= 2; got {beta.shape}."
-        )
+        raise InvalidRootError(f"apply_warp_curve: beta must have shape (T, d), T >= 2; got {beta.shape}.")
     gamma = _check_gamma(gamma, beta.shape[0], beta.dtype, "apply_warp_curve")
     return _lerp(beta, gamma * (beta.shape[0] - 1))
-
 
 
 @eqx.filter_jit
@@ -657,8 +637,7 @@ def dp_warp_batch(
     q1s, q2s = jnp.asarray(q1s), jnp.asarray(q2s)
     if q1s.ndim != 3 or q1s.shape != q2s.shape:
         raise InvalidRootError(
-            f"dp_warp_batch: q1s and q2s must share the shape (B, T, d), got {q1s.shape} and "
-            f"{q2s.shape}."
+            f"dp_warp_batch: q1s and q2s must share the shape (B, T, d), got {q1s.shape} and {q2s.shape}."
         )
     fn = functools.partial(_dp_warp_nan, neighbourhood=neighbourhood)
     return device_vmap(fn)(q1s, q2s)

@@ -85,7 +85,7 @@ def transformed_copies(root: Root, rng: np.random.Generator, n: int, *, reparam=
         o = root.main[0]
         rot = lambda p: (p - o) @ O.T + o  # noqa: E731
         a = rng.uniform(0.6, 1.6) if (reparam and i) else 1.0
-        warp = (lambda t, a=a: t**a)
+        warp = lambda t, a=a: t**a
         main = reparameterise(rot(root.main), warp) if reparam else rot(root.main)
         order = rng.permutation(root.n_laterals)
         lats = [reparameterise(rot(root.laterals[k]), warp) if reparam else rot(root.laterals[k]) for k in order]
@@ -167,10 +167,7 @@ def reference_warp_energy(q1: np.ndarray, q2: np.ndarray, gamma: np.ndarray) -> 
             for j in range(int(np.floor(g[i])) + 1, int(np.ceil(g[i + 1]))):
                 xs.append(i + (j - g[i]) / s)
         xs.sort()
-        f = [
-            np.sum((_ref_lerp(q1, x) - np.sqrt(max(s, 0.0)) * _ref_lerp(q2, g[i] + s * (x - i))) ** 2)
-            for x in xs
-        ]
+        f = [np.sum((_ref_lerp(q1, x) - np.sqrt(max(s, 0.0)) * _ref_lerp(q2, g[i] + s * (x - i))) ** 2) for x in xs]
         total += sum((xs[p + 1] - xs[p]) * (f[p] + f[p + 1]) / 2 for p in range(len(xs) - 1))
     return total / (T - 1)
 

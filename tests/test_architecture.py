@@ -9,10 +9,9 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import random_root
 
 import rootshape_jax as rs
-
-from helpers import random_root
 
 PKG = Path(rs.__file__).resolve().parent
 MODULES = sorted(p for p in PKG.rglob("*.py"))
@@ -77,7 +76,9 @@ def test_module_level_imports_have_no_cycle():
             deps.update(f"{mod}.{n}" for n in names)
         graph[me] = {d for d in deps if d != me}
     names = set(graph)
-    graph = {k: {d for d in v if d in names and not k.startswith(d + ".") and d != "rootshape_jax"} for k, v in graph.items()}
+    graph = {
+        k: {d for d in v if d in names and not k.startswith(d + ".") and d != "rootshape_jax"} for k, v in graph.items()
+    }
 
     state = {}
 
@@ -195,7 +196,9 @@ def test_preshape_terms_match_a_numpy_reference():
     lat = 1.5 * np.sum(np.sum((np.asarray(a.q) - np.asarray(reg.q)) ** 2, -1) * tw)
     both = np.asarray(a.mask) & np.asarray(reg.mask)
     pos = 0.7 * np.sum(np.where(both, (np.asarray(a.s) - np.asarray(reg.s)) ** 2, 0.0))
-    np.testing.assert_allclose([terms.main, terms.lateral, terms.position, terms.thickness], [main, lat, pos, 0.0], rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(
+        [terms.main, terms.lateral, terms.position, terms.thickness], [main, lat, pos, 0.0], rtol=1e-10, atol=1e-14
+    )
     assert float(terms.total) == pytest.approx(main + lat + pos, rel=1e-12)
 
 

@@ -80,9 +80,7 @@ def test_brute_force_small(method):
     for k in range(1, 8):
         for _ in range(5):
             cost = rng.uniform(-5, 5, size=(k, k))
-            np.testing.assert_allclose(
-                _matched(cost, solve(cost)), _brute_force_cost(cost), rtol=1e-13, atol=1e-13
-            )
+            np.testing.assert_allclose(_matched(cost, solve(cost)), _brute_force_cost(cost), rtol=1e-13, atol=1e-13)
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -124,19 +122,13 @@ def test_huge_and_tiny(method):
     for _ in range(40):
         k = int(rng.integers(2, 8))
         mask = rng.random((k, k)) < rng.uniform(0.2, 0.8)
-        cost = np.where(
-            mask, 1e12 * rng.uniform(1, 2, size=(k, k)), rng.uniform(0, 1e-12, size=(k, k))
-        )
+        cost = np.where(mask, 1e12 * rng.uniform(1, 2, size=(k, k)), rng.uniform(0, 1e-12, size=(k, k)))
         best = _brute_force_cost(cost)
         np.testing.assert_allclose(_matched(cost, solve(cost)), best, rtol=1e-12, atol=0)
     for k in (16, 40):
         mask = rng.random((k, k)) < 0.5
-        cost = np.where(
-            mask, 1e12 * rng.uniform(1, 2, size=(k, k)), rng.uniform(0, 1e-12, size=(k, k))
-        )
-        np.testing.assert_allclose(
-            _matched(cost, solve(cost)), _scipy_cost(cost)[0], rtol=1e-12, atol=0
-        )
+        cost = np.where(mask, 1e12 * rng.uniform(1, 2, size=(k, k)), rng.uniform(0, 1e-12, size=(k, k)))
+        np.testing.assert_allclose(_matched(cost, solve(cost)), _scipy_cost(cost)[0], rtol=1e-12, atol=0)
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -151,9 +143,7 @@ def test_negative_entries(method, k):
 
 
 @pytest.mark.parametrize("method", METHODS)
-@pytest.mark.parametrize(
-    ("n_a", "n_b", "k"), [(0, 0, 4), (3, 0, 5), (3, 5, 8), (8, 8, 8), (7, 12, 16)]
-)
+@pytest.mark.parametrize(("n_a", "n_b", "k"), [(0, 0, 4), (3, 0, 5), (3, 5, 8), (8, 8, 8), (7, 12, 16)])
 def test_registration_block_structure(method, n_a, n_b, k):
     rng = np.random.default_rng(100 * n_a + n_b)
     solve = _solver(method)
@@ -219,9 +209,7 @@ def test_vmap_equals_loop(method):
     batched = jax.jit(jax.vmap(lambda c: linear_assignment(c, method=method)))(costs)
     looped = np.stack([np.asarray(_solver(method)(c)) for c in costs])
     np.testing.assert_array_equal(np.asarray(batched), looped)
-    np.testing.assert_array_equal(
-        looped, np.stack([scipy.optimize.linear_sum_assignment(c)[1] for c in costs])
-    )
+    np.testing.assert_array_equal(looped, np.stack([scipy.optimize.linear_sum_assignment(c)[1] for c in costs]))
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -233,9 +221,7 @@ def test_nested_vmap(method):
     assert out.shape == (2, 3, 5)
     for a in range(2):
         for b in range(3):
-            np.testing.assert_array_equal(
-                out[a, b], scipy.optimize.linear_sum_assignment(costs[a, b])[1]
-            )
+            np.testing.assert_array_equal(out[a, b], scipy.optimize.linear_sum_assignment(costs[a, b])[1])
 
 
 def test_vmapped_batch_is_one_host_call(monkeypatch):
@@ -267,9 +253,7 @@ def test_jit_does_not_retrace(method):
     rng = np.random.default_rng(14)
     for _ in range(3):
         cost = rng.normal(size=(6, 6))
-        np.testing.assert_array_equal(
-            np.asarray(solve(cost)), scipy.optimize.linear_sum_assignment(cost)[1]
-        )
+        np.testing.assert_array_equal(np.asarray(solve(cost)), scipy.optimize.linear_sum_assignment(cost)[1])
     # The guard is live: a new shape is a new trace.
     with pytest.raises(RuntimeError, match="traced"):
         solve(rng.normal(size=(7, 7)))
@@ -320,9 +304,7 @@ def test_nonfinite_raises(method, bad):
         jax.block_until_ready(f(batch))
 
 
-@pytest.mark.parametrize(
-    "shape", [(3,), (3, 4), (2, 3, 3), (0, 0), ()], ids=["1d", "rect", "3d", "empty", "scalar"]
-)
+@pytest.mark.parametrize("shape", [(3,), (3, 4), (2, 3, 3), (0, 0), ()], ids=["1d", "rect", "3d", "empty", "scalar"])
 def test_bad_shape_raises(shape):
     with pytest.raises(InvalidCostError, match="cost"):
         linear_assignment(np.zeros(shape))

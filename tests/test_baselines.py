@@ -12,14 +12,13 @@ import itertools
 
 import numpy as np
 import pytest
+from helpers import random_root, reference_dp
 
 import rootshape_jax as rs
 from rootshape_jax import baselines as bl
 from rootshape_jax._curves import srvf, srvf_to_curve
 from rootshape_jax._warp import apply_warp_srvf
 from rootshape_jax.baselines._fc_srvf import _register_pair
-
-from helpers import random_root, reference_dp
 
 L = 12  # landmarks per edge in the QED tests
 T = 16  # points per edge in the fc-SRVF tests (small: the numpy DP reference is slow)

@@ -28,7 +28,10 @@ DATA = Path(__file__).parent / "data" / "rsml"
 def run_cli(*args, cwd=None, timeout=1800) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-m", "rootshape_jax", *map(str, args)],
-        capture_output=True, text=True, cwd=cwd, timeout=timeout,
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=timeout,
     )
 
 
@@ -71,7 +74,9 @@ def test_help_lists_every_command():
         assert re.search(rf"^\s+{cmd}\b", proc.stdout, re.M), cmd
 
 
-@pytest.mark.parametrize("cmd", ["distances", "geodesic", "mean", "pca", "sample", "regress", "cluster", "traits", "demo"])
+@pytest.mark.parametrize(
+    "cmd", ["distances", "geodesic", "mean", "pca", "sample", "regress", "cluster", "traits", "demo"]
+)
 def test_subcommand_help(cmd, capsys):
     from rootshape_jax._cli import main
 
@@ -108,8 +113,9 @@ def test_traits_end_to_end(rsml_files, tmp_path):
 
 def test_traits_samples_subsamples_evenly(tmp_path):
     out = tmp_path / "out"
-    proc = run_cli("traits", "--synthetic", 5, "--condition", "control", "--condition", "drought",
-                   "--samples", 3, "--out", out)
+    proc = run_cli(
+        "traits", "--synthetic", 5, "--condition", "control", "--condition", "drought", "--samples", 3, "--out", out
+    )
     assert proc.returncode == 0, proc.stderr
     with open(out / "traits.csv", newline="") as f:
         rows = list(csv.DictReader(f))
@@ -340,8 +346,7 @@ class _Links(HTMLParser):
 @pytest.mark.slow
 def test_demo_tiny_index_links_exist(tmp_path):
     out = tmp_path / "demo"
-    proc = run_cli("demo", "--samples", 6, "--points", 30, "--laterals", 4, "-n", 4, "--max-steps", 5,
-                   "--out", out)
+    proc = run_cli("demo", "--samples", 6, "--points", 30, "--laterals", 4, "-n", 4, "--max-steps", 5, "--out", out)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "Traceback" not in proc.stderr
     assert str(out.resolve()) in proc.stdout
@@ -384,8 +389,20 @@ def test_demo_tiny_index_links_exist(tmp_path):
 def test_distances_match_the_library(rsml_files, tmp_path):
     """The CSV matrix is the library's pairwise_distances of the same roots, same settings."""
     out = tmp_path / "o"
-    proc = run_cli("distances", rsml_files, "--points", 24, "--laterals", 3, "--weights", "0.1,1,0.5",
-                   "--float64", "--quiet", "--out", out)
+    proc = run_cli(
+        "distances",
+        rsml_files,
+        "--points",
+        24,
+        "--laterals",
+        3,
+        "--weights",
+        "0.1,1,0.5",
+        "--float64",
+        "--quiet",
+        "--out",
+        out,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert (out / "distances.png").read_bytes()[:4] == b"\x89PNG"
     names, D = read_matrix(out / "distances.csv")
@@ -402,8 +419,9 @@ def test_distances_match_the_library(rsml_files, tmp_path):
 def test_geodesic_end_to_end(rsml_files, tmp_path):
     out = tmp_path / "o"
     a, b = rsml_files / "control.rsml", rsml_files / "drought.rsml"
-    proc = run_cli("geodesic", a, b, "--root-b", 1, "--steps", 5, "--points", 30, "--laterals", 3,
-                   "--quiet", "--out", out)
+    proc = run_cli(
+        "geodesic", a, b, "--root-b", 1, "--steps", 5, "--points", 30, "--laterals", 3, "--quiet", "--out", out
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert (out / "geodesic.png").read_bytes()[:4] == b"\x89PNG"
     steps = [read_rsml(out / f"geodesic_step_{i:02d}.rsml") for i in range(5)]
@@ -451,8 +469,10 @@ def test_folder_skips_unreadable_files_and_summarises(folder_with_bad_files, tmp
     assert any("skipped" in ln and "b_notxml.rsml" in ln and "not well-formed XML" in ln for ln in lines)
     # The summary ends the run: 2 + 2 (partly bad: ok1, ok2) + 1 roots from 3 files.
     summary = proc.stdout.strip().splitlines()[-1]
-    assert summary == ("read 5 root system(s) from 3 file(s); skipped 2: b_notxml.rsml (not well-formed XML), "
-                       "c_nogeom.rsml (nothing readable)."), summary
+    assert summary == (
+        "read 5 root system(s) from 3 file(s); skipped 2: b_notxml.rsml (not well-formed XML), "
+        "c_nogeom.rsml (nothing readable)."
+    ), summary
     with open(out / "traits.csv", newline="") as f:
         assert len(list(csv.DictReader(f))) == 5
     # Full detail goes to the log: every skipped part of the partly bad file, each skip reason.
@@ -475,8 +495,10 @@ def test_folder_of_only_bad_files_fails_naming_them(tmp_path):
     assert proc.returncode == 1 and "Traceback" not in proc.stderr
     lines = proc.stderr.splitlines()
     assert len(lines) == 3 and lines[0].startswith("rootshape: warning: skipped") and "x.rsml" in lines[0]
-    assert lines[-1] == ("rootshape: error: no readable roots: every file was skipped: x.rsml (not well-formed "
-                         "XML), y.rsml (no <scene> element). Fix or remove these files.")
+    assert lines[-1] == (
+        "rootshape: error: no readable roots: every file was skipped: x.rsml (not well-formed "
+        "XML), y.rsml (no <scene> element). Fix or remove these files."
+    )
 
 
 @pytest.mark.skipif(not SHARED_RSML.is_dir(), reason="shared RSML data not present")
@@ -568,9 +590,19 @@ def test_full_disk_names_the_file_and_keeps_the_earlier_one(rsml_files, tmp_path
 
 @pytest.mark.parametrize(
     "text, expected",
-    [("=HYPERLINK(\"http://x\",\"y\")", "'=HYPERLINK(\"http://x\",\"y\")"), ("+1+2", "'+1+2"),
-     ("-2+3", "'-2+3"), ("@SUM(A1)", "'@SUM(A1)"), ("\tx", "'\tx"), ("\rx", "'\rx"),
-     ("-1.5", "-1.5"), ("-3", "-3"), ("+2e-3", "+2e-3"), ("plain", "plain"), ("a=b", "a=b")],
+    [
+        ('=HYPERLINK("http://x","y")', '\'=HYPERLINK("http://x","y")'),
+        ("+1+2", "'+1+2"),
+        ("-2+3", "'-2+3"),
+        ("@SUM(A1)", "'@SUM(A1)"),
+        ("\tx", "'\tx"),
+        ("\rx", "'\rx"),
+        ("-1.5", "-1.5"),
+        ("-3", "-3"),
+        ("+2e-3", "+2e-3"),
+        ("plain", "plain"),
+        ("a=b", "a=b"),
+    ],
 )
 def test_csv_cells_are_escaped_like_owasp(text, expected):
     from rootshape_jax._cli._report import cell
@@ -585,8 +617,10 @@ def test_formula_root_labels_are_escaped_in_csv(tmp_path):
     roots = synthetic_roots(2, seed=0)
     import dataclasses
 
-    roots = [dataclasses.replace(roots[0], name='=HYPERLINK("http://evil","x")'),
-             dataclasses.replace(roots[1], name="-7")]
+    roots = [
+        dataclasses.replace(roots[0], name='=HYPERLINK("http://evil","x")'),
+        dataclasses.replace(roots[1], name="-7"),
+    ]
     write_rsml(roots, folder / "f.rsml")
     out = tmp_path / "o"
     proc = run_cli("traits", folder, "--out", out)
@@ -611,9 +645,27 @@ def test_ctrl_c_during_distances_exits_cleanly(tmp_path):
     for attempt in range(3):
         out = tmp_path / f"o{attempt}"
         p = subprocess.Popen(
-            [sys.executable, "-m", "rootshape_jax", "distances", "--synthetic", "4", "--condition",
-             "control", "--condition", "drought", "--points", "20", "--laterals", "3", "--out", str(out)],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+            [
+                sys.executable,
+                "-m",
+                "rootshape_jax",
+                "distances",
+                "--synthetic",
+                "4",
+                "--condition",
+                "control",
+                "--condition",
+                "drought",
+                "--points",
+                "20",
+                "--laterals",
+                "3",
+                "--out",
+                str(out),
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            env=env,
         )
         seen, deadline = b"", time.monotonic() + 120
         while b"/28 " not in seen and time.monotonic() < deadline:  # the progress bar is shown
@@ -642,9 +694,28 @@ def test_store_resumes_after_ctrl_c(tmp_path):
     import time
 
     store, out = tmp_path / "store", tmp_path / "o"
-    cmd = [sys.executable, "-m", "rootshape_jax", "distances", "--synthetic", "10", "--condition", "control",
-           "--condition", "drought", "--points", "16", "--laterals", "3", "--float64", "--quiet",
-           "--store", str(store), "--out", str(out)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "rootshape_jax",
+        "distances",
+        "--synthetic",
+        "10",
+        "--condition",
+        "control",
+        "--condition",
+        "drought",
+        "--points",
+        "16",
+        "--laterals",
+        "3",
+        "--float64",
+        "--quiet",
+        "--store",
+        str(store),
+        "--out",
+        str(out),
+    ]
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     deadline = time.monotonic() + 600
     while not list(store.glob("block_*.npz")) and p.poll() is None and time.monotonic() < deadline:
@@ -675,16 +746,31 @@ def test_thickness_weight_from_the_command_line(tmp_path):
     roots = []
     for i, r in enumerate(synthetic_roots(3, condition="control", seed=2)):
         taper = lambda pts, r0: r0 * (1.2 - np.linspace(0, 1, len(pts)))  # noqa: E731
-        roots.append(dataclasses.replace(
-            r, main_radius=taper(r.main, 0.5 + 0.2 * i),
-            lateral_radii=tuple(taper(lat, 0.2 + 0.1 * rng.random()) for lat in r.laterals),
-        ))
+        roots.append(
+            dataclasses.replace(
+                r,
+                main_radius=taper(r.main, 0.5 + 0.2 * i),
+                lateral_radii=tuple(taper(lat, 0.2 + 0.1 * rng.random()) for lat in r.laterals),
+            )
+        )
     write_rsml(roots, tmp_path / "thick.rsml")
     mats = {}
     for w in ("0.02,1,1,0.5", "0.02,1,1"):
         out = tmp_path / w.replace(",", "_")
-        proc = run_cli("distances", tmp_path / "thick.rsml", "--points", 24, "--laterals", 3, "--weights", w,
-                       "--float64", "--quiet", "--out", out)
+        proc = run_cli(
+            "distances",
+            tmp_path / "thick.rsml",
+            "--points",
+            24,
+            "--laterals",
+            3,
+            "--weights",
+            w,
+            "--float64",
+            "--quiet",
+            "--out",
+            out,
+        )
         assert proc.returncode == 0, proc.stderr[-3000:]
         mats[w] = read_matrix(out / "distances.csv")[1]
     from rootshape_jax import limit_laterals

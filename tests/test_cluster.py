@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import scipy.cluster.hierarchy as sch
 import scipy.spatial.distance as ssd
+from helpers import random_root, rotation_matrix
 
 import rootshape_jax as rs
 from rootshape_jax._cluster import (
@@ -13,8 +14,6 @@ from rootshape_jax._cluster import (
     confusion_matrix,
     loo_accuracy,
 )
-
-from helpers import random_root, rotation_matrix
 
 
 def _points(seed=0, n=(5, 7), sep=3.0, dim=4):

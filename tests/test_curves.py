@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import rotation_matrix, smooth_curve
 
 from rootshape_jax._curves import (
     curve_length,
@@ -17,8 +18,6 @@ from rootshape_jax._curves import (
 )
 from rootshape_jax._rotation import optimal_rotation, rotate
 from rootshape_jax._tree import resample_polyline
-
-from helpers import rotation_matrix, smooth_curve
 
 
 def _analytic(T, d, dtype=np.float64):

@@ -12,11 +12,10 @@ import sys
 import jax
 import numpy as np
 import pytest
+from helpers import random_root
 
 import rootshape_jax as rs
 from rootshape_jax import StoreMismatchError
-
-from helpers import random_root
 
 # ~5 min on the 2-core dev machine, mostly compiling the kernels in fresh worker processes.
 pytestmark = pytest.mark.slow
@@ -235,8 +234,10 @@ def test_karcher_mean_on_cluster_matches_local(client):
     m = rs.karcher_mean(samples, client=client, block_size=2, **kw)
     assert int(m.steps) == int(m0.steps) and m.init_index == m0.init_index
     assert m.result == m0.result
-    for a, b in zip(jax.tree.leaves((m.fitted, m.registered, m.energies, m.energy_trace)),
-                    jax.tree.leaves((m0.fitted, m0.registered, m0.energies, m0.energy_trace))):
+    for a, b in zip(
+        jax.tree.leaves((m.fitted, m.registered, m.energies, m.energy_trace)),
+        jax.tree.leaves((m0.fitted, m0.registered, m0.energies, m0.energy_trace)),
+    ):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-12)
     with pytest.raises(ValueError, match="fixed_point"):
         rs.karcher_mean(samples, method="gradient", client=client)

@@ -46,9 +46,7 @@ def test_known_rotation_warp_and_translation_are_recovered():
     beta1 = _at_fraction(dense, t)
     beta2 = _at_fraction(dense, _phi(t)) @ R.T + np.array([3.0, -2.0])
     q1, q2 = srvf(beta1), srvf(beta2)
-    O, gamma, energy, n_it = _register(
-        q1, q2, rotation=True, neighbourhood=7, max_iterations=10, rtol=1e-6
-    )
+    O, gamma, energy, n_it = _register(q1, q2, rotation=True, neighbourhood=7, max_iterations=10, rtol=1e-6)
     # The grid optimum at the true rotation (O = Rᵀ, so q2 Oᵀ = q2 R) ...
     _, grid_optimum = dp_warp_and_energy(q1, q2 @ R)
     assert float(energy) <= float(grid_optimum) * (1 + 1e-9)

@@ -11,8 +11,8 @@ import warnings
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from helpers import random_root
+
 from rootshape_jax._errors import CoordinateRangeError, InvalidRootError, RSMLError, RSMLWarning
 from rootshape_jax._root import Root, coordinate_limit
 from rootshape_jax._tree import batch
@@ -30,8 +30,9 @@ def _read(text: str | bytes, **kw):
 
 def _two_plants(big: str, *, lateral: bool, meta: str = "") -> str:
     lat = (
-        '<root id="l"><geometry><polyline><point x="0" y="15"/><point x="3" y="15"/>'
-        "</polyline></geometry></root>" if lateral else ""
+        '<root id="l"><geometry><polyline><point x="0" y="15"/><point x="3" y="15"/></polyline></geometry></root>'
+        if lateral
+        else ""
     )
     return f"""<rsml>{meta}<scene>
 <plant id="bad"><root id="m"><geometry><polyline><point x="0" y="0"/><point x="0" y="10"/>
@@ -278,7 +279,9 @@ def test_dtd_retrieval_is_refused_and_nothing_is_fetched(http_recorder, tmp_path
     with pytest.raises(RSMLError, match="refused to read.*<!DOCTYPE"):
         _read(doc)
     path = tmp_path / "dtd.rsml"
-    path.write_text(doc.replace("rsml.dtd", "other.dtd").replace("<!DOCTYPE rsml SYSTEM", '<!DOCTYPE rsml PUBLIC "-//x//y" '))
+    path.write_text(
+        doc.replace("rsml.dtd", "other.dtd").replace("<!DOCTYPE rsml SYSTEM", '<!DOCTYPE rsml PUBLIC "-//x//y" ')
+    )
     with pytest.raises(RSMLError, match="refused to read"):
         read_rsml(path)
     assert requests == []

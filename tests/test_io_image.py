@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 import pytest
-
 from helpers import render_root_image
+
 from rootshape_jax._errors import ImageError
 from rootshape_jax._root import polyline_length
 from rootshape_jax.io import roots_from_image

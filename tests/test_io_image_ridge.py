@@ -1,5 +1,5 @@
 """Ridge-filter extraction (issue 19): synthetic roots at several widths, contrasts and
-polarities, gaps, clutter that is not a plant, bad inputs, compare_to_tracing, run_extract."""
+polarities, gaps, clutter that is not a plant, bad inputs, compare_to_tracing, extract_images."""
 
 from __future__ import annotations
 
@@ -9,13 +9,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from helpers import render_root_image
+
 from rootshape_jax import Root
 from rootshape_jax._errors import ImageError
 from rootshape_jax._root import polyline_length
 from rootshape_jax.io import compare_to_tracing, read_rsml, roots_from_image, total_length
-from rootshape_jax.io._extract_cli import run_extract
+from rootshape_jax.io._extract_cli import extract_images
 
 
 def _seedling(seed, *, x0, y0=30.0, length=300.0, n_lat=3):
@@ -81,7 +81,12 @@ def test_ridge_sigmas_and_block_helpers():
     rng = np.random.default_rng(0)
     a = rng.random((2100, 37)).astype(np.float32)  # more rows than one band, odd sizes
     m = _block_mean(a, 4)
-    ref = np.array([[a[i : i + 4, j : j + 4].mean() if i + 4 <= 2100 and j + 4 <= 37 else np.nan for j in range(0, 37, 4)] for i in range(0, 2100, 4)])
+    ref = np.array(
+        [
+            [a[i : i + 4, j : j + 4].mean() if i + 4 <= 2100 and j + 4 <= 37 else np.nan for j in range(0, 37, 4)]
+            for i in range(0, 2100, 4)
+        ]
+    )
     ok = np.isfinite(ref)
     np.testing.assert_allclose(m[ok], ref[ok], rtol=1e-5)
     back = _repeat_to(m, 4, a.shape)
@@ -196,7 +201,9 @@ def test_blank_truncated_and_unsupported_files(tmp_path):
         roots_from_image(np.full((80, 80, 3), 200, np.uint8))
     good = tmp_path / "good.jpg"
     main, lats = _seedling(0, x0=150)
-    skimage.io.imsave(good, (_draw([main, *lats], shape=(380, 300), width=3, contrast=0.3, noise=0.03) * 255).astype(np.uint8))
+    skimage.io.imsave(
+        good, (_draw([main, *lats], shape=(380, 300), width=3, contrast=0.3, noise=0.03) * 255).astype(np.uint8)
+    )
     data = good.read_bytes()
     bad = tmp_path / "truncated.jpg"
     bad.write_bytes(data[: len(data) // 3])
@@ -265,7 +272,7 @@ def test_compare_ratios_unmatched_and_distance_grows():
 
 
 # ------------------------------------------------------------------------------------------
-# run_extract (the `rootshape extract` command's logic)
+# extract_images (the `rootshape extract` command's logic)
 
 
 def test_run_extract_writes_rsml_and_overlay_and_skips_bad(tmp_path):
@@ -291,7 +298,7 @@ def test_run_extract_writes_rsml_and_overlay_and_skips_bad(tmp_path):
     out = tmp_path / "out"
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        rows = run_extract([src], out, tracing=tr, progress=False)
+        rows = extract_images([src], out, tracing=tr, progress=False)
     by = {Path(r["image"]).stem: r for r in rows}
     assert by["p0"]["status"] == by["p1"]["status"] == "ok"
     assert by["broken"]["status"] == "skipped" and "broken.png" in by["broken"]["reason"]
@@ -307,17 +314,17 @@ def test_run_extract_writes_rsml_and_overlay_and_skips_bad(tmp_path):
     assert "comparison" not in by["p1"]
     assert (out / "summary.json").is_file()
     # pixels_per_mm: RSML in mm, overlay still in pixels.
-    rows = run_extract([src / "p1.png"], tmp_path / "mm", pixels_per_mm=20.0, progress=False)
+    rows = extract_images([src / "p1.png"], tmp_path / "mm", pixels_per_mm=20.0, progress=False)
     (r,) = read_rsml(tmp_path / "mm" / "p1.rsml")
     assert r.metadata["unit"] == "mm"
     assert r.main_length == pytest.approx(polyline_length(mains["p1"][0]) / 20.0, rel=0.05)
     # A missing file is named and skipped like a bad one; an empty folder is an error.
     with pytest.warns(UserWarning, match="missing.png"):
-        (row,) = run_extract([tmp_path / "missing.png"], tmp_path / "o2", progress=False)
+        (row,) = extract_images([tmp_path / "missing.png"], tmp_path / "o2", progress=False)
     assert row["status"] == "skipped"
     (tmp_path / "empty").mkdir()
     with pytest.raises(FileNotFoundError, match="no image files"):
-        run_extract([tmp_path / "empty"], out, progress=False)
+        extract_images([tmp_path / "empty"], out, progress=False)
 
 
 def test_bad_options_name_the_option():
@@ -350,8 +357,12 @@ def test_cli_extract_writes_rsml_overlay_and_names_a_bad_image(tmp_path):
     skimage.io.imsave(src / "good.png", (img * 255).astype(np.uint8))
     (src / "broken.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 20)
     out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, "-m", "rootshape_jax", "extract", str(src), "--out", str(out), "--quiet"],
-                          capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-m", "rootshape_jax", "extract", str(src), "--out", str(out), "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "Traceback" not in proc.stderr
     assert len([ln for ln in proc.stderr.splitlines() if "broken.png" in ln]) == 1

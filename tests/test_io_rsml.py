@@ -190,14 +190,32 @@ _BAD = {
     "no geometry": ('<root id="bad"><properties><a>1</a></properties></root>', "no <geometry>"),
     "empty root": ('<root id="bad"/>', "empty"),
     "one point": ('<root id="bad"><geometry><polyline><point x="1" y="2"/></polyline></geometry></root>', "1 point"),
-    "nan": ('<root id="bad"><geometry><polyline><point x="1" y="nan"/><point x="1" y="2"/></polyline></geometry></root>', "not finite"),
-    "nan text": ('<root id="bad"><geometry><polyline><point><x>NaN</x><y>1</y></point><point x="1" y="2"/></polyline></geometry></root>', "not finite"),
-    "not a number": ('<root id="bad"><geometry><polyline><point x="one" y="1"/><point x="1" y="2"/></polyline></geometry></root>', "not a number"),
-    "no y": ('<root id="bad"><geometry><polyline><point x="1"/><point x="1" y="2"/></polyline></geometry></root>', "no y"),
+    "nan": (
+        '<root id="bad"><geometry><polyline><point x="1" y="nan"/><point x="1" y="2"/></polyline></geometry></root>',
+        "not finite",
+    ),
+    "nan text": (
+        '<root id="bad"><geometry><polyline><point><x>NaN</x><y>1</y></point><point x="1" y="2"/></polyline></geometry></root>',
+        "not finite",
+    ),
+    "not a number": (
+        '<root id="bad"><geometry><polyline><point x="one" y="1"/><point x="1" y="2"/></polyline></geometry></root>',
+        "not a number",
+    ),
+    "no y": (
+        '<root id="bad"><geometry><polyline><point x="1"/><point x="1" y="2"/></polyline></geometry></root>',
+        "no y",
+    ),
     "no polyline": ('<root id="bad"><geometry><rootnavspline/></geometry></root>', "no <polyline>"),
-    "zero length": ('<root id="bad"><geometry><polyline><point x="1" y="1"/><point x="1" y="1"/></polyline></geometry></root>', "coincide"),
-    "bad lateral": ('<root id="main2"><geometry><polyline><point x="5" y="0"/><point x="5" y="9"/></polyline></geometry>'
-                    '<root id="bad"><geometry><polyline><point x="5" y="3"/></polyline></geometry></root></root>', "1 point"),
+    "zero length": (
+        '<root id="bad"><geometry><polyline><point x="1" y="1"/><point x="1" y="1"/></polyline></geometry></root>',
+        "coincide",
+    ),
+    "bad lateral": (
+        '<root id="main2"><geometry><polyline><point x="5" y="0"/><point x="5" y="9"/></polyline></geometry>'
+        '<root id="bad"><geometry><polyline><point x="5" y="3"/></polyline></geometry></root></root>',
+        "1 point",
+    ),
 }
 
 
@@ -221,7 +239,11 @@ def test_bad_root_strict_and_non_strict(tmp_path, case):
 
 @pytest.mark.parametrize(
     "name, expected",
-    [("malformed.rsml", "not well-formed XML"), ("no_scene.rsml", "no <scene>"), ("no_geometry.rsml", "nothing readable")],
+    [
+        ("malformed.rsml", "not well-formed XML"),
+        ("no_scene.rsml", "no <scene>"),
+        ("no_geometry.rsml", "nothing readable"),
+    ],
 )
 def test_unreadable_files(name, expected):
     with pytest.raises(RSMLError, match=expected) as err:
@@ -280,7 +302,7 @@ def _random_root(rng, *, d=2, n_lat=3, name="r", plant=None, scale=1.0):
         main[:, 2] = 3 * t[:, 0] ** 2 * scale
     main += rng.normal(scale=0.3 * scale, size=main.shape)
     lats = []
-    for k in range(n_lat):
+    for _ in range(n_lat):
         i = int(rng.integers(2, 23))
         direction = rng.normal(size=d)
         direction /= np.linalg.norm(direction)
@@ -328,7 +350,7 @@ def test_round_trip_random_roots(tmp_path, d):
     assert len(pts) == 25 and (pts[0].get("z") is not None) == (d == 3)
     lats = first.findall("root")
     assert len(lats) == 3
-    for lat, a in zip(lats, roots[0].attach):
+    for lat in lats:
         node = int(lat.find("properties/parent-node").get("value"))
         assert 0 <= node < 25
     ids = [r.get("id") for r in top.iter("root")]

@@ -7,18 +7,17 @@ import numpy as np
 import optimistix as optx
 import pytest
 import scipy.optimize
+from helpers import random_root, rotation_matrix, transformed_copies
 
 import rootshape_jax as rs
 from rootshape_jax._mean import (
     KarcherMean,
     _exact_update,
-    lower_bound_distances,
     karcher_mean,
     karcher_objective,
+    lower_bound_distances,
 )
 from rootshape_jax._metric import preshape_distance_squared
-
-from helpers import random_root, rotation_matrix, transformed_copies
 
 T = 30
 W = rs.Weights()
@@ -125,17 +124,13 @@ def test_mean_of_copies_is_the_root(base_root, copies):
     res = karcher_mean(copies, max_steps=20)
     base = rs.batch(base_root, n_points=T, max_laterals=6)
     # Root-to-copy distances are not 0: arc-length resampling of reparameterised polylines.
-    d_copies = np.array(
-        [float(rs.distance(base, jax.tree.map(lambda x: x[i], copies))) for i in range(1, 5)]
-    )
+    d_copies = np.array([float(rs.distance(base, jax.tree.map(lambda x: x[i], copies))) for i in range(1, 5)])
     assert d_copies.max() > 0
     d_mean = float(rs.distance(base, res.mean_srvf))
     assert d_mean <= d_copies.max(), (d_mean, d_copies)
     assert int(res.mean_srvf.mask.sum()) == 3
     # The curves too: main root and lateral lengths match the root's.
-    np.testing.assert_allclose(
-        float(rs.curve_length(res.mean.main)), base_root.main_length, rtol=0.02
-    )
+    np.testing.assert_allclose(float(rs.curve_length(res.mean.main)), base_root.main_length, rtol=0.02)
     got = np.sort(np.asarray(res.lateral_lengths)[~np.asarray(res.dropped)])
     np.testing.assert_allclose(got, np.sort(base_root.lateral_lengths), rtol=0.03)
 

@@ -5,11 +5,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import random_root
 
 import rootshape_jax as rs
 from rootshape_jax import _pairwise
-
-from helpers import random_root
 
 T = 30
 K = 10  # the capacity the registration tests use: shared compilations

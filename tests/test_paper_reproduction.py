@@ -24,7 +24,9 @@ METHODS = ("ours", "qed", "fc_srvf", "ted")
 def _run(out: Path) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, str(SCRIPT), "--tiny", "--out", str(out)],
-        capture_output=True, text=True, timeout=900,
+        capture_output=True,
+        text=True,
+        timeout=900,
     )
 
 

@@ -4,12 +4,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import linear_srvf_population, random_root, transformed_copies
 
 import rootshape_jax as rs
 from rootshape_jax._mean import karcher_mean
 from rootshape_jax._pca import TangentPCA, modes, project, reconstruct, sample, tangent_pca
-
-from helpers import linear_srvf_population, random_root, transformed_copies
 
 T = 30
 
@@ -182,10 +181,14 @@ def test_synthesised_laterals_stay_in_the_data_range(two_mode):
     meet `plausibility`'s length criterion; a slow reference for the two thresholds."""
     _, _, x, mean, pc = two_mode
     reg = jax.tree.map(np.asarray, mean.registered)
-    lengths = np.array([
-        sum(np.sum(reg.q[i, k] ** 2, axis=-1)[j] * w for j, w in enumerate(_trapezoid(T)))
-        for i in range(reg.q.shape[0]) for k in range(reg.q.shape[1]) if reg.mask[i, k]
-    ])
+    lengths = np.array(
+        [
+            sum(np.sum(reg.q[i, k] ** 2, axis=-1)[j] * w for j, w in enumerate(_trapezoid(T)))
+            for i in range(reg.q.shape[0])
+            for k in range(reg.q.shape[1])
+            if reg.mask[i, k]
+        ]
+    )
     np.testing.assert_allclose(float(pc.min_lateral_length), np.quantile(lengths, 0.1), rtol=1e-9)
     np.testing.assert_allclose(float(pc.max_lateral_length), lengths.max(), rtol=1e-9)
     t = sample(pc, jax.random.PRNGKey(5), 64, srvf=True)

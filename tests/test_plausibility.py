@@ -54,6 +54,7 @@ def test_plausibility_of_a_batch():
     tangled = _root([2.0], bend=True)
     trees = rs.batch([good, too_long, tangled], n_points=40, max_laterals=4)
     p = rs.plausibility(trees, ref)
+
     # Lengths of the resampled polylines, slowly: one lateral at a time.
     def lengths(t):
         out = []

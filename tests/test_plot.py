@@ -14,14 +14,14 @@ import matplotlib.colors as mcolors
 import matplotlib.image as mimage
 import numpy as np
 import pytest
+from helpers import random_root
 from matplotlib.collections import LineCollection
 from scipy.cluster import hierarchy
 from scipy.spatial.distance import squareform
 
-from helpers import random_root
+from rootshape_jax import plot as P
 from rootshape_jax._errors import MissingDependencyError
 from rootshape_jax._tree import batch, stack, unstack
-from rootshape_jax import plot as P
 
 DPI = 50
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -81,12 +81,7 @@ def segments_and_colors(ax):
 
 def lerp_trees(a, b, taus):
     """A fake geodesic: straight line between two trees with the same slots."""
-    return stack(
-        [
-            jax.tree.map(lambda x, y: (1 - t) * x + t * y if x.dtype != bool else x | y, a, b)
-            for t in taus
-        ]
-    )
+    return stack([jax.tree.map(lambda x, y: (1 - t) * x + t * y if x.dtype != bool else x | y, a, b) for t in taus])
 
 
 # --------------------------------------------------------------------------------------------
@@ -251,7 +246,10 @@ def test_plot_samples_by_distance(roots, trees, tmp_path, rng):
 def test_plot_regression_sweep(roots, tmp_path):
     values = [10.0, 20.0, 30.0, 40.0]
     fig, axes = P.plot_regression_sweep(
-        roots[:4], values, trait_name="main root length", trait_unit="mm",
+        roots[:4],
+        values,
+        trait_name="main root length",
+        trait_unit="mm",
         measured=[11, 19, 31, 39],
     )
     check_png(fig, tmp_path / "regression.png", 4)
@@ -387,7 +385,10 @@ def _run_fresh(script: str) -> str:
     env = {k: v for k, v in os.environ.items() if k not in hidden}
     env["PYTHONPATH"] = REPO + os.pathsep + env.get("PYTHONPATH", "")
     out = subprocess.run(
-        [sys.executable, "-c", textwrap.dedent(script)], env=env, capture_output=True, text=True,
+        [sys.executable, "-c", textwrap.dedent(script)],
+        env=env,
+        capture_output=True,
+        text=True,
         timeout=300,
     )
     assert out.returncode == 0, out.stderr

@@ -11,9 +11,9 @@ import jax
 import matplotlib
 import numpy as np
 import pytest
+from helpers import random_root
 from matplotlib.collections import LineCollection
 
-from helpers import random_root
 from rootshape_jax._errors import InvalidRootError, RSMLError, RSMLWarning
 from rootshape_jax._root import Root
 from rootshape_jax._tree import RootTree, batch, to_roots
@@ -106,9 +106,7 @@ def test_batch_resamples_radii_like_coordinates(rng, normalise):
         )
         for k, (lat, rad) in enumerate(zip(r.laterals, r.lateral_radii)):
             # random_root laterals start on the main root: no joining segment is added.
-            np.testing.assert_allclose(
-                tree.lateral_radius[i, k], scale * _reference_resample(lat, rad, T), rtol=1e-10
-            )
+            np.testing.assert_allclose(tree.lateral_radius[i, k], scale * _reference_resample(lat, rad, T), rtol=1e-10)
         assert np.all(np.asarray(tree.lateral_radius[i, r.n_laterals :]) == 0.0)  # null slots
 
 
@@ -121,8 +119,7 @@ def _resampled_points(points, n):
 def test_batch_joining_segment_takes_lateral_base_radius():
     main = np.array([[0.0, 0.0], [0.0, 2.0]])
     lat = np.array([[1.0, 1.0], [3.0, 1.0]])  # starts 1 away from the main root at y = 1
-    r = Root(main=main, laterals=(lat,), attach=[0.5], main_radius=[2.0, 1.0],
-             lateral_radii=([0.4, 0.2],))
+    r = Root(main=main, laterals=(lat,), attach=[0.5], main_radius=[2.0, 1.0], lateral_radii=([0.4, 0.2],))
     tree = batch(r, n_points=4)
     # The lateral becomes (0,1)-(1,1)-(3,1) with radii 0.4, 0.4, 0.2, sampled at 0, 1, 2, 3.
     np.testing.assert_allclose(tree.lateral_radius[0], [0.4, 0.4, 0.3, 0.2], rtol=1e-12)
@@ -240,7 +237,9 @@ def test_read_rsml_diameter_radius_domains_and_units():
 
 
 def test_read_rsml_bad_diameter_is_reported():
-    bad = _FIXTURE.replace('<sample value="4"/>', "").replace('<sample value="6"/>', '<sample value="-6"/><sample value="4"/>')
+    bad = _FIXTURE.replace('<sample value="4"/>', "").replace(
+        '<sample value="6"/>', '<sample value="-6"/><sample value="4"/>'
+    )
     with pytest.warns(RSMLWarning) as record:
         a = _read(bad)[0]
     assert any("negative" in str(w.message) and "radius dropped" in str(w.message) for w in record)
@@ -251,9 +250,7 @@ def test_read_rsml_bad_diameter_is_reported():
 
 
 def test_read_rsml_diameter_property_is_constant():
-    text = _FIXTURE.replace(
-        '<root id="l3">', '<root id="l3"><properties><diameter value="3"/></properties>'
-    )
+    text = _FIXTURE.replace('<root id="l3">', '<root id="l3"><properties><diameter value="3"/></properties>')
     a = _read(text)[0]
     np.testing.assert_allclose(a.lateral_radii[2], [0.15, 0.15])
 
@@ -326,7 +323,8 @@ def test_plot_line_width_follows_radius(rng):
     assert sorted(set(_widths(ax))) == [2.0, 3.2]  # unknown radius: unchanged drawing
     main_r = np.linspace(1.0, 0.5, plain.main.shape[0])
     thick = dataclasses.replace(
-        plain, main_radius=main_r,
+        plain,
+        main_radius=main_r,
         lateral_radii=tuple(np.full(lat.shape[0], 0.001) for lat in plain.laterals),
     )
     _, ax = P.plot_root(thick, linewidth=2.0)

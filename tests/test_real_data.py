@@ -111,9 +111,7 @@ def test_real_round_trip(tmp_path, path):
 
 # The seedling region of the plate (rows, then columns), inside the plate's rim and above its
 # hand-written labels; thin roots on a photographed plate need background flattening.
-_PLATE_OPTS = dict(
-    roi=(450, 1200, 1450, 2950), background=15, threshold="triangle", min_root_length=150, close_gaps=7
-)
+_PLATE_OPTS = dict(roi=(450, 1200, 1450, 2950), background=15, threshold="triangle", min_root_length=150, close_gaps=7)
 
 
 @pytest.mark.slow

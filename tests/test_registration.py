@@ -9,13 +9,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.optimize
+from helpers import random_root, rotation_matrix
 
 import rootshape_jax as rs
 from rootshape_jax._engine import warp_preserving_norm
 from rootshape_jax._rotation import optimal_rotation
 from rootshape_jax._warp import dp_warp
-
-from helpers import random_root, reparameterise, rotation_matrix
 
 T = 30  # small grids keep the suite fast; the maths does not depend on T
 K = 10  # one capacity for (almost) every test: each new shape costs a compilation
@@ -125,7 +124,9 @@ def test_assignment_is_exact_by_brute_force():
             ma, mb = bool(sa.mask[i]), bool(sb.mask[j])
             if ma and mb:
                 w = warp_preserving_norm(sb.q[j], dp_warp(sa.q[i], sb.q[j]))
-                total += float(W.lateral * rs.l2_norm_squared(sa.q[i] - w)) + float(W.position * (sa.s[i] - sb.s[j]) ** 2)
+                total += float(W.lateral * rs.l2_norm_squared(sa.q[i] - w)) + float(
+                    W.position * (sa.s[i] - sb.s[j]) ** 2
+                )
             elif ma:
                 total += float(W.lateral * rs.l2_norm_squared(sa.q[i]))
             elif mb:
@@ -149,6 +150,7 @@ def test_pruning_is_exact(seed, turn):
     assert int(pruned.n_lateral_skipped) > 0
     assert int(pruned.n_lateral_dp) < int(full.n_lateral_dp)
     assert float(pruned.energy) == pytest.approx(float(full.energy), rel=1e-12)
+
     # The same real-real matches (which null slot a lateral goes to is an arbitrary tie).
     def real_pairs(reg):
         perm = np.asarray(reg.permutation)

@@ -4,13 +4,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import linear_srvf_population, random_root, tree_allclose
 
 import rootshape_jax as rs
 from rootshape_jax._mean import karcher_mean
 from rootshape_jax._pca import tangent_pca
 from rootshape_jax._regression import PAPER_TRAITS, TraitRegression
-
-from helpers import linear_srvf_population, random_root, tree_allclose
 
 T = 30
 
@@ -80,8 +79,9 @@ def test_synthesis_equals_the_pca_reconstruction(population, request):
     got = reg.synthesize(new)
     want = reconstruct(pc, reg.coefficients(new))
     assert tree_allclose(got, want, rtol=1e-10, atol=1e-12)
-    assert tree_allclose(reg.synthesize(new, srvf=True), reconstruct(pc, reg.coefficients(new), srvf=True),
-                         rtol=1e-10, atol=1e-12)
+    assert tree_allclose(
+        reg.synthesize(new, srvf=True), reconstruct(pc, reg.coefficients(new), srvf=True), rtol=1e-10, atol=1e-12
+    )
     assert tree_allclose(reg.synthesize(new[1]), jax.tree.map(lambda x: x[1], got), rtol=1e-12, atol=1e-14)
 
 
@@ -114,8 +114,9 @@ def test_constant_trait_is_ignored_and_float32_keeps_its_digits(linear):
     rng = np.random.default_rng(5)
     const = 1.0 + 1e-8 * rng.normal(size=(8, 1))
     with pytest.warns(UserWarning, match="do not vary"):
-        reg = TraitRegression.fit(pc, traits=(), covariates=np.concatenate([const, coef], axis=1),
-                                  covariate_names=["length", "a", "b"])
+        reg = TraitRegression.fit(
+            pc, traits=(), covariates=np.concatenate([const, coef], axis=1), covariate_names=["length", "a", "b"]
+        )
     assert reg.ignored == ("length",)
     plain = TraitRegression.fit(pc, traits=(), covariates=coef)
     new = np.array([[1.0, 0.3, -0.2], [1.0, -0.8, 0.4]])

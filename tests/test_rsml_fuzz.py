@@ -17,8 +17,12 @@ import numpy as np
 import pytest
 
 hypothesis = pytest.importorskip("hypothesis")
-from hypothesis import HealthCheck, given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
+from hypothesis import (  # noqa: E402
+    HealthCheck,
+    given,
+    settings,
+    strategies as st,  # noqa: E402
+)
 
 from rootshape_jax._errors import RSMLError, RSMLWarning  # noqa: E402
 from rootshape_jax._root import Root  # noqa: E402
@@ -63,18 +67,59 @@ _HANDWRITTEN = b"""<?xml version="1.0" encoding="UTF-8"?>
 
 # Fragments that exercise the reader's edge cases when spliced in anywhere.
 _SNIPPETS = [
-    b"<root>", b"</root>", b"<root/>", b"<root ID=''>", b"<geometry>", b"</geometry>",
-    b"<polyline>", b"</polyline>", b'<point x="1" y="2"/>', b'<point x="1e300" y="0"/>',
-    b'<point x="nan" y="inf"/>', b'<point x="1" y="2" z="3"/>', b'<point y="1"/>',
-    b'<function name="diameter" domain="length">', b'<function name="radius" domain="uniform">',
-    b'<function name="diameter" domain="weird">', b"</function>", b"<sample>-1</sample>",
-    b'<sample position="x">1</sample>', b"<sample>1e309</sample>", b'<parent-node value="99"/>',
-    b'<parent-node value="-3"/>', b"<parent-node>1.5</parent-node>", b'<diameter value="-2"/>',
-    b"<resolution>0</resolution>", b"<resolution>1e-300</resolution>", b"<unit>mm</unit>",
-    b"<unit></unit>", b"<plant>", b"</plant>", b"<scene>", b"</scene>", b"&amp;", b"&bogus;",
-    b"<!DOCTYPE rsml>", b'<!ENTITY a "b">', b"<![CDATA[x]]>", b"<!-- c -->", b"<?pi x?>",
-    b"\x00", b"\xff\xfe", b"\xc3\x28", b"\xe2\x82", b"9" * 5000, b"-", b".", b"e", b'"', b"'",
-    b"<", b">", b"=", b" ",
+    b"<root>",
+    b"</root>",
+    b"<root/>",
+    b"<root ID=''>",
+    b"<geometry>",
+    b"</geometry>",
+    b"<polyline>",
+    b"</polyline>",
+    b'<point x="1" y="2"/>',
+    b'<point x="1e300" y="0"/>',
+    b'<point x="nan" y="inf"/>',
+    b'<point x="1" y="2" z="3"/>',
+    b'<point y="1"/>',
+    b'<function name="diameter" domain="length">',
+    b'<function name="radius" domain="uniform">',
+    b'<function name="diameter" domain="weird">',
+    b"</function>",
+    b"<sample>-1</sample>",
+    b'<sample position="x">1</sample>',
+    b"<sample>1e309</sample>",
+    b'<parent-node value="99"/>',
+    b'<parent-node value="-3"/>',
+    b"<parent-node>1.5</parent-node>",
+    b'<diameter value="-2"/>',
+    b"<resolution>0</resolution>",
+    b"<resolution>1e-300</resolution>",
+    b"<unit>mm</unit>",
+    b"<unit></unit>",
+    b"<plant>",
+    b"</plant>",
+    b"<scene>",
+    b"</scene>",
+    b"&amp;",
+    b"&bogus;",
+    b"<!DOCTYPE rsml>",
+    b'<!ENTITY a "b">',
+    b"<![CDATA[x]]>",
+    b"<!-- c -->",
+    b"<?pi x?>",
+    b"\x00",
+    b"\xff\xfe",
+    b"\xc3\x28",
+    b"\xe2\x82",
+    b"9" * 5000,
+    b"-",
+    b".",
+    b"e",
+    b'"',
+    b"'",
+    b"<",
+    b">",
+    b"=",
+    b" ",
 ]
 
 
@@ -88,8 +133,12 @@ def _written_seed() -> bytes:
         lats = tuple(np.vstack([main[j], lat]) for j, lat in zip((1, 3), lats))
         roots.append(
             Root(
-                main=main, laterals=lats, name=f"r{i}", metadata={"plant_id": str(i % 2)},
-                main_radius=rng.uniform(0.1, 1, 6), lateral_radii=tuple(rng.uniform(0.1, 1, 5) for _ in lats),
+                main=main,
+                laterals=lats,
+                name=f"r{i}",
+                metadata={"plant_id": str(i % 2)},
+                main_radius=rng.uniform(0.1, 1, 6),
+                lateral_radii=tuple(rng.uniform(0.1, 1, 5) for _ in lats),
             )
         )
     buf = io.BytesIO()
@@ -141,9 +190,7 @@ _raw = st.one_of(
     st.tuples(st.just("duplicate"), st.floats(0, 1), st.integers(1, 400)),
     st.tuples(st.just("truncate"), st.floats(0, 1), st.just(b"")),
 )
-_mutations = st.builds(
-    lambda a, b: a + b, st.lists(_gentle, min_size=1, max_size=4), st.lists(_raw, max_size=1)
-)
+_mutations = st.builds(lambda a, b: a + b, st.lists(_gentle, min_size=1, max_size=4), st.lists(_raw, max_size=1))
 
 
 def _mutate(data: bytes, mutations) -> bytes:
@@ -206,7 +253,10 @@ def _fuzz(real: bool, n: int):
     @settings(
         # A mutated file that takes seconds to read is a bug too (e.g. an expansion blow-up):
         # each example has a 5 s deadline (they take ~3 ms).
-        max_examples=n, derandomize=True, deadline=datetime.timedelta(seconds=5), database=None,
+        max_examples=n,
+        derandomize=True,
+        deadline=datetime.timedelta(seconds=5),
+        database=None,
         suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
     )
     @given(
@@ -260,15 +310,25 @@ def test_cli_on_a_folder_of_mutated_files_keeps_going_and_summarises(tmp_path):
         muts = []
         for _ in range(rng.randint(1, 3)):
             kind = rng.choice(kinds)
-            arg = {"delete": rng.randint(1, 200), "insert": b"<root>", "bytes": bytes([rng.randrange(256)]),
-                   "truncate": b"", "drop_tag": b"", "duplicate_tag": rng.randint(1, 3),
-                   "number": rng.choice([b"nan", b"1e300", b"-", b"7"])}[kind]
+            arg = {
+                "delete": rng.randint(1, 200),
+                "insert": b"<root>",
+                "bytes": bytes([rng.randrange(256)]),
+                "truncate": b"",
+                "drop_tag": b"",
+                "duplicate_tag": rng.randint(1, 3),
+                "number": rng.choice([b"nan", b"1e300", b"-", b"7"]),
+            }[kind]
             muts.append((kind, rng.random(), arg))
         (folder / f"m{k:02d}.rsml").write_bytes(_mutate(data, muts))
     (folder / "z_good.rsml").write_bytes(data)
     out = tmp_path / "o"
-    proc = subprocess.run([sys.executable, "-m", "rootshape_jax", "traits", str(folder), "--out", str(out)],
-                          capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-m", "rootshape_jax", "traits", str(folder), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "Traceback" not in proc.stderr
     summary = proc.stdout.strip().splitlines()[-1]

@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import random_root
 
 import rootshape_jax as rs
-
-from helpers import random_root
 
 
 @pytest.fixture(scope="module")

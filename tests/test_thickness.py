@@ -10,10 +10,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import random_root
 
 import rootshape_jax as rs
-
-from helpers import random_root
 
 T, K = 24, 6
 
@@ -62,18 +61,23 @@ def test_extended_srvf_round_trip_gives_the_radii_back():
         main = np.stack([0.2 * np.sin(3 * t), t], axis=1)
         lat = np.stack([0.3 * t, 0.5 + 0.1 * t**2], axis=1) + main[n // 2]
         tree = rs.RootTree(
-            main=jnp.asarray(main), laterals=jnp.asarray(lat[None]), attach=jnp.asarray([t[n // 2]]),
-            mask=jnp.asarray([True]), main_radius=jnp.asarray(0.05 * (1.2 - t) + 0.01 * np.sin(5 * t)),
+            main=jnp.asarray(main),
+            laterals=jnp.asarray(lat[None]),
+            attach=jnp.asarray([t[n // 2]]),
+            mask=jnp.asarray([True]),
+            main_radius=jnp.asarray(0.05 * (1.2 - t) + 0.01 * np.sin(5 * t)),
             lateral_radius=jnp.asarray((0.02 * (1.1 - t))[None]),
         )
         s = rs.to_srvf(tree, weights=rs.Weights(thickness=0.5))
         assert s.has_thickness and s.q0.shape[-1] == 3 and s.dim == 2
         back = rs.to_curves(s)
-        errors.append([
-            np.max(np.abs(np.asarray(back.main) - main)),
-            np.max(np.abs(np.asarray(back.main_radius) - np.asarray(tree.main_radius))),
-            np.max(np.abs(np.asarray(back.lateral_radius) - np.asarray(tree.lateral_radius))),
-        ])
+        errors.append(
+            [
+                np.max(np.abs(np.asarray(back.main) - main)),
+                np.max(np.abs(np.asarray(back.main_radius) - np.asarray(tree.main_radius))),
+                np.max(np.abs(np.asarray(back.lateral_radius) - np.asarray(tree.lateral_radius))),
+            ]
+        )
     coarse, fine = np.asarray(errors)
     assert np.all(fine < 1e-4), fine
     assert np.all(fine < coarse / 8), (coarse, fine)  # 4× finer grid: ~16× smaller error
@@ -113,7 +117,9 @@ def test_thinner_twin_moves_away_as_thickness_weight_grows(trees):
 def test_gradients_finite_at_zero_radius(trees):
     _, thick = trees
     a, b = rs.unstack(thick)[:2]
-    b = dataclasses.replace(b, main_radius=jnp.zeros_like(b.main_radius), lateral_radius=jnp.zeros_like(b.lateral_radius))
+    b = dataclasses.replace(
+        b, main_radius=jnp.zeros_like(b.main_radius), lateral_radius=jnp.zeros_like(b.lateral_radius)
+    )
     w = rs.Weights(thickness=0.5)
 
     def dist(r):

@@ -194,8 +194,14 @@ def test_invariances():
         assert t1[k] == pytest.approx(t0[k], rel=1e-9), k
     # Scaling by 2: lengths ×2, areas ×4, volume ×8, density ÷2, angles and counts unchanged.
     t2 = traits(root.scaled(2.0))
-    power = {"n_laterals": 0, "lateral_density": -1, "main_tortuosity": 0, "mean_insertion_angle": 0,
-             "convex_hull_area": 2, "convex_hull_volume": 3}
+    power = {
+        "n_laterals": 0,
+        "lateral_density": -1,
+        "main_tortuosity": 0,
+        "mean_insertion_angle": 0,
+        "convex_hull_area": 2,
+        "convex_hull_volume": 3,
+    }
     for k in TRAIT_NAMES:
         assert t2[k] == pytest.approx(t0[k] * 2.0 ** power.get(k, 1), rel=1e-9), k
 

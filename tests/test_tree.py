@@ -6,11 +6,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import random_root, tree_allclose
 
 import rootshape_jax as rs
 from rootshape_jax._metric import preshape_terms
-
-from helpers import random_root, smooth_curve, tree_allclose
 
 
 def test_attach_computed_by_projection():

@@ -377,9 +377,7 @@ print("ok")
 @pytest.mark.slow
 def test_batch_split_over_two_devices_equals_a_loop():
     # Several host devices must be configured before JAX starts: use a fresh interpreter.
-    out = subprocess.run(
-        [sys.executable, "-c", _TWO_DEVICES], capture_output=True, text=True, timeout=600
-    )
+    out = subprocess.run([sys.executable, "-c", _TWO_DEVICES], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]
 
 

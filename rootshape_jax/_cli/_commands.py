@@ -101,8 +101,12 @@ def cmd_extract(args) -> None:
         # A skipped image is named in its row and summarised below: one line each, no repeat.
         warnings.simplefilter("ignore", UserWarning)
         rows = extract_images(
-            args.images, args.out, tracing=args.tracing, pixels_per_mm=args.pixels_per_mm,
-            progress=not args.quiet, **options,
+            args.images,
+            args.out,
+            tracing=args.tracing,
+            pixels_per_mm=args.pixels_per_mm,
+            progress=not args.quiet,
+            **options,
         )
     ok = [r for r in rows if r.get("status") == "ok"]
     skipped = [r for r in rows if r.get("status") != "ok"]
@@ -111,8 +115,12 @@ def cmd_extract(args) -> None:
     if not ok:
         raise CLIError(f"no roots could be extracted from {len(rows)} image(s); see the lines above.")
     plants = sum(int(r.get("plants", 0)) for r in ok)
-    say(args, f"extracted {plants} root system(s) from {len(ok)} image(s)"
-              + (f"; skipped {len(skipped)}" if skipped else "") + f"; results in {args.out}")
+    say(
+        args,
+        f"extracted {plants} root system(s) from {len(ok)} image(s)"
+        + (f"; skipped {len(skipped)}" if skipped else "")
+        + f"; results in {args.out}",
+    )
 
 
 def cmd_demo(args) -> None:
@@ -145,9 +153,17 @@ def cmd_demo(args) -> None:
         "shape metric of Wang et al. (main root, laterals and their positions; rotation, "
         "re-parameterisation and lateral correspondence optimised for every pair).",
         f"Each branch is resampled to T = {args.points} points"
-        + (" (the demo's reduced resolution, chosen so it runs in a few minutes on a 2-core "
-           "machine; use --points 100 for the library's usual resolution)" if args.points < 100 else "")
-        + (f"; {len(pop.names)} of the {len(all_roots)} roots used (--samples)" if len(pop.names) < len(all_roots) else "")
+        + (
+            " (the demo's reduced resolution, chosen so it runs in a few minutes on a 2-core "
+            "machine; use --points 100 for the library's usual resolution)"
+            if args.points < 100
+            else ""
+        )
+        + (
+            f"; {len(pop.names)} of the {len(all_roots)} roots used (--samples)"
+            if len(pop.names) < len(all_roots)
+            else ""
+        )
         + ".",
         f"Total time {time.perf_counter() - start:.0f} s, including compilation (see the timings).",
     ]

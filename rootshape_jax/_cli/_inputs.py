@@ -16,9 +16,7 @@ from ._common import IMAGE_SUFFIXES, PAPER_TRAITS, RSML_SUFFIXES, CLIError, warn
 
 
 def files_in(folder: Path) -> list[Path]:
-    return sorted(
-        p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in RSML_SUFFIXES + IMAGE_SUFFIXES
-    )
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in RSML_SUFFIXES + IMAGE_SUFFIXES)
 
 
 @dataclasses.dataclass
@@ -44,7 +42,7 @@ def short_reason(message: str, path: Path) -> str:
     text = message.strip().splitlines()[0] if message.strip() else "unreadable"
     for prefix in (f"{path}: ", f"{path.name}: "):
         if text.startswith(prefix):
-            text = text[len(prefix):]
+            text = text[len(prefix) :]
     cut = min((i for i in (text.find(" ("), text.find(": "), text.find("; ")) if i > 0), default=len(text))
     text = text[:cut].rstrip(".")
     return text if len(text) <= 70 else text[:69] + "…"
@@ -74,8 +72,11 @@ def read_file(path: Path, args, reading: Reading | None = None) -> list:
                 reading.log.append(f"warning: {_about(path, str(w.message))}")
         if caught:
             where = f" (details in {reading.log_path})" if reading is not None and reading.log_path else ""
-            warn(f"{path}: {short_reason(str(caught[0].message), path)}"
-                 + (f" and {len(caught) - 1} more warning(s)" if len(caught) > 1 else "") + where)
+            warn(
+                f"{path}: {short_reason(str(caught[0].message), path)}"
+                + (f" and {len(caught) - 1} more warning(s)" if len(caught) > 1 else "")
+                + where
+            )
     elif suffix in IMAGE_SUFFIXES:
         pixel_size = getattr(args, "pixel_size", None)
         unit = getattr(args, "unit", None) or ("mm" if pixel_size else "pixel")
@@ -106,8 +107,7 @@ def expand(paths: Sequence[str]) -> list[tuple[Path, bool]]:
             found = files_in(p)
             if not found:
                 raise CLIError(
-                    f"{text}: the folder contains no RSML files (.rsml) or images "
-                    f"({', '.join(IMAGE_SUFFIXES)})."
+                    f"{text}: the folder contains no RSML files (.rsml) or images ({', '.join(IMAGE_SUFFIXES)})."
                 )
             files.extend((f, True) for f in found)
         else:
@@ -122,8 +122,7 @@ def unique_names(roots: list) -> list:
     for r in roots:
         counts[r.name] = counts.get(r.name, 0) + 1
     names = [
-        f"{Path(r.metadata.get('source_file', '')).stem}/{r.name}" if counts[r.name] > 1 else r.name
-        for r in roots
+        f"{Path(r.metadata.get('source_file', '')).stem}/{r.name}" if counts[r.name] > 1 else r.name for r in roots
     ]
     seen: dict[str, int] = {}
     out = []
@@ -155,9 +154,7 @@ def load_roots(args, *, paths: Sequence[str] | None = None, reading: Reading | N
             roots.extend(synthetic_roots(synthetic, condition=c, seed=args.seed))
         return roots
     if not paths:
-        raise CLIError(
-            "no input: give RSML files, folders or images, or --synthetic N for example roots."
-        )
+        raise CLIError("no input: give RSML files, folders or images, or --synthetic N for example roots.")
     reading = Reading() if reading is None else reading
     roots = []
     for f, in_folder in expand(paths):

@@ -44,8 +44,7 @@ def _plain_warnings():
     """Library warnings (e.g. skipped parts of an RSML file) as one line each, no source."""
 
     def show(message, category, filename, lineno, file=None, line=None):
-        print(f"{PROG}: warning: {one_line(message) if isinstance(message, Warning) else message}",
-              file=sys.stderr)
+        print(f"{PROG}: warning: {one_line(message) if isinstance(message, Warning) else message}", file=sys.stderr)
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
@@ -118,7 +117,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if isinstance(e, known):
             print(f"{PROG}: error: {one_line(e)}", file=sys.stderr)
         else:
-            print(f"{PROG}: error: {type(e).__name__}: {one_line(e)} (this looks like a bug; "
-                  "run again with --debug and report the traceback)", file=sys.stderr)
+            print(
+                f"{PROG}: error: {type(e).__name__}: {one_line(e)} (this looks like a bug; "
+                "run again with --debug and report the traceback)",
+                file=sys.stderr,
+            )
         return EXIT_ERROR
     return EXIT_OK

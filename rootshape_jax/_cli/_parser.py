@@ -19,6 +19,7 @@ from ._commands import (
 )
 from ._common import PAPER_TRAITS, PROG, version
 
+
 def _positive_int(text: str) -> int:
     try:
         value = int(text)
@@ -63,7 +64,7 @@ def _weights(text: str):
             f"expected {len(names) - 1} or {len(names)} non-negative numbers {','.join(names)} "
             f"(e.g. 0.02,1,1 or 0.02,1,1,0.5), got {text!r}"
         )
-    return tuple(values) + tuple(t.default_weight for t in rs.TERMS[len(values):])
+    return tuple(values) + tuple(t.default_weight for t in rs.TERMS[len(values) :])
 
 
 _DESCRIPTION = """\
@@ -84,109 +85,194 @@ _EPILOG = "Run 'rootshape COMMAND --help' for the options of one command."
 def _add_common(p: argparse.ArgumentParser, *, inputs: bool = True, default_out: str = "rootshape_output") -> None:
     if inputs:
         p.add_argument(
-            "inputs", nargs="*", metavar="INPUT",
+            "inputs",
+            nargs="*",
+            metavar="INPUT",
             help="RSML files (.rsml), folders (every .rsml file and image inside), or scanned "
-                 "images (.png, .jpg, .tif) of roots on a contrasting background",
+            "images (.png, .jpg, .tif) of roots on a contrasting background",
         )
         g = p.add_argument_group("example roots instead of files")
-        g.add_argument("--synthetic", type=_positive_int, metavar="N",
-                       help="use N built-in synthetic roots per condition instead of files")
-        g.add_argument("--condition", action="append", metavar="NAME",
-                       help="condition of the synthetic roots: control, drought, high_nitrate, "
-                            "low_phosphate (repeat for several; default control)")
+        g.add_argument(
+            "--synthetic",
+            type=_positive_int,
+            metavar="N",
+            help="use N built-in synthetic roots per condition instead of files",
+        )
+        g.add_argument(
+            "--condition",
+            action="append",
+            metavar="NAME",
+            help="condition of the synthetic roots: control, drought, high_nitrate, "
+            "low_phosphate (repeat for several; default control)",
+        )
         img = p.add_argument_group("images")
-        img.add_argument("--pixel-size", type=_positive_float, metavar="SIZE",
-                         help="length of one image pixel (e.g. 0.0423 for 600 dpi in mm); default: "
-                              "keep pixels")
+        img.add_argument(
+            "--pixel-size",
+            type=_positive_float,
+            metavar="SIZE",
+            help="length of one image pixel (e.g. 0.0423 for 600 dpi in mm); default: keep pixels",
+        )
         img.add_argument("--unit", metavar="UNIT", help="unit of --pixel-size (default mm)")
-        g.add_argument("--strict", action="store_true",
-                       help="stop at the first unreadable file of a folder (default: skip it, "
-                            "name it, and go on with the others)")
+        g.add_argument(
+            "--strict",
+            action="store_true",
+            help="stop at the first unreadable file of a folder (default: skip it, name it, and go on with the others)",
+        )
     g = p.add_argument_group("analysis")
-    g.add_argument("--out", default=default_out, metavar="DIR",
-                   help=f"folder for the results (created if needed; default {default_out}); a "
-                        "folder holding earlier results is refused unless --overwrite")
-    g.add_argument("--overwrite", action="store_true",
-                   help="replace the results of an earlier run in the --out folder")
+    g.add_argument(
+        "--out",
+        default=default_out,
+        metavar="DIR",
+        help=f"folder for the results (created if needed; default {default_out}); a "
+        "folder holding earlier results is refused unless --overwrite",
+    )
+    g.add_argument("--overwrite", action="store_true", help="replace the results of an earlier run in the --out folder")
     if inputs:
-        g.add_argument("--samples", type=_positive_int, metavar="N",
-                       help="use only N of the roots, evenly spread through the input order (faster)")
-    g.add_argument("--laterals", type=_positive_int, metavar="N",
-                   help="keep at most the N longest laterals of each root (faster; default: all)")
-    g.add_argument("--points", type=_points, default=100, metavar="T",
-                   help="points per root branch after resampling (default 100; 50 is faster)")
-    g.add_argument("--weights", type=_weights, default=(0.02, 1.0, 1.0, 0.0), metavar="M,L,P[,R]",
-                   help="importance of main-root shape, lateral shape, lateral positions and (R) "
-                        "radius along the roots, where the files give diameters, in the distance "
-                        "(default 0.02,1,1,0: the paper's; R > 0 compares thickness too)")
-    g.add_argument("--normalise-scale", dest="normalise_scale", action=argparse.BooleanOptionalAction,
-                   default=True,
-                   help="scale every root to the same main-root length, so only shape counts "
-                        "(default on; use --no-normalise-scale for growth studies where size matters)")
+        g.add_argument(
+            "--samples",
+            type=_positive_int,
+            metavar="N",
+            help="use only N of the roots, evenly spread through the input order (faster)",
+        )
+    g.add_argument(
+        "--laterals",
+        type=_positive_int,
+        metavar="N",
+        help="keep at most the N longest laterals of each root (faster; default: all)",
+    )
+    g.add_argument(
+        "--points",
+        type=_points,
+        default=100,
+        metavar="T",
+        help="points per root branch after resampling (default 100; 50 is faster)",
+    )
+    g.add_argument(
+        "--weights",
+        type=_weights,
+        default=(0.02, 1.0, 1.0, 0.0),
+        metavar="M,L,P[,R]",
+        help="importance of main-root shape, lateral shape, lateral positions and (R) "
+        "radius along the roots, where the files give diameters, in the distance "
+        "(default 0.02,1,1,0: the paper's; R > 0 compares thickness too)",
+    )
+    g.add_argument(
+        "--normalise-scale",
+        dest="normalise_scale",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="scale every root to the same main-root length, so only shape counts "
+        "(default on; use --no-normalise-scale for growth studies where size matters)",
+    )
     g.add_argument("--seed", type=int, default=0, help="random seed (synthetic and random roots; default 0)")
     r = p.add_argument_group("computation")
     r.add_argument("--float64", action="store_true", help="compute in double precision (slower)")
-    r.add_argument("--devices", type=_positive_int, metavar="N",
-                   help="number of CPU devices to split the work over (default: one per core)")
+    r.add_argument(
+        "--devices",
+        type=_positive_int,
+        metavar="N",
+        help="number of CPU devices to split the work over (default: one per core)",
+    )
     r.add_argument("--quiet", action="store_true", help="no progress messages or bars")
     r.add_argument("--debug", action="store_true", help="show the full Python traceback on errors")
 
 
 def _add_store_option(p):
-    p.add_argument("--store", metavar="DIR",
-                   help="keep every finished block of distances in DIR; after an interruption, the "
-                        "same command with the same --store computes only the missing ones (needs "
-                        "Dask: pip install 'rootshape_jax[dask]')")
+    p.add_argument(
+        "--store",
+        metavar="DIR",
+        help="keep every finished block of distances in DIR; after an interruption, the "
+        "same command with the same --store computes only the missing ones (needs "
+        "Dask: pip install 'rootshape_jax[dask]')",
+    )
 
 
 def _add_mean_options(p):
     g = p.add_argument_group("mean root")
-    g.add_argument("--max-steps", type=_positive_int, default=30, metavar="N",
-                   help="maximum number of solver steps of the mean (default 30)")
+    g.add_argument(
+        "--max-steps",
+        type=_positive_int,
+        default=30,
+        metavar="N",
+        help="maximum number of solver steps of the mean (default 30)",
+    )
 
 
 def _add_pca_options(p):
     g = p.add_argument_group("modes of variation")
-    g.add_argument("--modes", type=_positive_int, default=3, metavar="N",
-                   help="number of principal modes to draw (default 3)")
+    g.add_argument(
+        "--modes", type=_positive_int, default=3, metavar="N", help="number of principal modes to draw (default 3)"
+    )
 
 
 def _add_sample_options(p, *, n_default=12):
     g = p.add_argument_group("random roots")
-    g.add_argument("-n", "--n", type=_positive_int, default=n_default, metavar="N",
-                   help=f"number of random roots (default {n_default})")
-    g.add_argument("--truncate", type=_positive_float, default=None, metavar="C",
-                   help="keep each random coefficient within ±C standard deviations (e.g. 2)")
+    g.add_argument(
+        "-n",
+        "--n",
+        type=_positive_int,
+        default=n_default,
+        metavar="N",
+        help=f"number of random roots (default {n_default})",
+    )
+    g.add_argument(
+        "--truncate",
+        type=_positive_float,
+        default=None,
+        metavar="C",
+        help="keep each random coefficient within ±C standard deviations (e.g. 2)",
+    )
 
 
 def _add_regress_options(p):
     g = p.add_argument_group("trait regression")
-    g.add_argument("--requested", metavar="CSV",
-                   help="CSV with columns main_length, mean_lateral_length, std_lateral_length "
-                        "(input units): one predicted root per row. Default: vary one trait (--vary)")
-    g.add_argument("--vary", choices=PAPER_TRAITS, default="mean_lateral_length",
-                   help="trait varied from its 10th to 90th percentile when --requested is not "
-                        "given, the others at their median (default mean_lateral_length)")
+    g.add_argument(
+        "--requested",
+        metavar="CSV",
+        help="CSV with columns main_length, mean_lateral_length, std_lateral_length "
+        "(input units): one predicted root per row. Default: vary one trait (--vary)",
+    )
+    g.add_argument(
+        "--vary",
+        choices=PAPER_TRAITS,
+        default="mean_lateral_length",
+        help="trait varied from its 10th to 90th percentile when --requested is not "
+        "given, the others at their median (default mean_lateral_length)",
+    )
 
 
 def _add_cluster_options(p):
     g = p.add_argument_group("clusters")
-    g.add_argument("--clusters", type=_positive_int, metavar="K",
-                   help="number of clusters (default: the number of conditions of synthetic "
-                        "roots, otherwise 2)")
-    g.add_argument("--linkage", choices=("average", "complete", "single", "weighted", "ward"),
-                   default="average", help="how cluster distances are measured (default average)")
+    g.add_argument(
+        "--clusters",
+        type=_positive_int,
+        metavar="K",
+        help="number of clusters (default: the number of conditions of synthetic roots, otherwise 2)",
+    )
+    g.add_argument(
+        "--linkage",
+        choices=("average", "complete", "single", "weighted", "ward"),
+        default="average",
+        help="how cluster distances are measured (default average)",
+    )
 
 
 def _add_geodesic_options(p):
     g = p.add_argument_group("geodesic")
-    g.add_argument("--steps", type=_positive_int, default=7, metavar="N",
-                   help="number of intermediate roots drawn, including both ends (default 7)")
+    g.add_argument(
+        "--steps",
+        type=_positive_int,
+        default=7,
+        metavar="N",
+        help="number of intermediate roots drawn, including both ends (default 7)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
+        prog=PROG,
+        description=_DESCRIPTION,
+        epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {version()}")
@@ -197,18 +283,25 @@ def build_parser() -> argparse.ArgumentParser:
         p.set_defaults(func=func)
         return p
 
-    p = add("distances", "distance between every pair of roots (CSV matrix + heat map)",
-            "Elastic shape distance between every pair of roots: 0 for identical shapes, larger "
-            "the more bending, stretching, growing and moving of laterals it takes to turn one "
-            "root into the other. Writes distances.csv and a heat map distances.png.", cmd_distances)
+    p = add(
+        "distances",
+        "distance between every pair of roots (CSV matrix + heat map)",
+        "Elastic shape distance between every pair of roots: 0 for identical shapes, larger "
+        "the more bending, stretching, growing and moving of laterals it takes to turn one "
+        "root into the other. Writes distances.csv and a heat map distances.png.",
+        cmd_distances,
+    )
     _add_common(p)
     _add_store_option(p)
 
-    p = add("geodesic", "optimal deformation of one root into another (PNG strip + RSML per step)",
-            "The optimal (shortest) deformation of root A into root B: a strip of intermediate "
-            "roots in geodesic.png, each step as RSML, and the distance. Each of A and B is an "
-            "RSML file or an image; --root-a/--root-b choose a root in a file with several.",
-            cmd_geodesic)
+    p = add(
+        "geodesic",
+        "optimal deformation of one root into another (PNG strip + RSML per step)",
+        "The optimal (shortest) deformation of root A into root B: a strip of intermediate "
+        "roots in geodesic.png, each step as RSML, and the distance. Each of A and B is an "
+        "RSML file or an image; --root-a/--root-b choose a root in a file with several.",
+        cmd_geodesic,
+    )
     p.add_argument("a", metavar="A", help="file with the first root (RSML or image)")
     p.add_argument("b", metavar="B", help="file with the second root (RSML or image)")
     p.add_argument("--root-a", type=int, default=0, metavar="I", help="which root of file A (0 = first)")
@@ -219,77 +312,127 @@ def build_parser() -> argparse.ArgumentParser:
     img.add_argument("--pixel-size", type=_positive_float, metavar="SIZE", help="length of one image pixel")
     img.add_argument("--unit", metavar="UNIT", help="unit of --pixel-size (default mm)")
 
-    p = add("mean", "the mean root (RSML + PNG + energy trace)",
-            "The mean root of a population (Karcher mean): the root closest on average to all "
-            "inputs. Writes mean.rsml, mean.png (inputs and mean) and the solver's energy per "
-            "step (mean_energy.csv/png).", cmd_mean)
+    p = add(
+        "mean",
+        "the mean root (RSML + PNG + energy trace)",
+        "The mean root of a population (Karcher mean): the root closest on average to all "
+        "inputs. Writes mean.rsml, mean.png (inputs and mean) and the solver's energy per "
+        "step (mean_energy.csv/png).",
+        cmd_mean,
+    )
     _add_common(p)
     _add_mean_options(p)
 
-    p = add("pca", "main modes of shape variation (modes PNG + explained-variance CSV)",
-            "Principal modes of variation around the mean root: modes.png shows the mean pushed "
-            "±1 and ±2 standard deviations along each mode; explained_variance.csv says how much "
-            "of the variation each mode explains. Also writes the mean.", cmd_pca)
+    p = add(
+        "pca",
+        "main modes of shape variation (modes PNG + explained-variance CSV)",
+        "Principal modes of variation around the mean root: modes.png shows the mean pushed "
+        "±1 and ±2 standard deviations along each mode; explained_variance.csv says how much "
+        "of the variation each mode explains. Also writes the mean.",
+        cmd_pca,
+    )
     _add_common(p)
     _add_mean_options(p)
     _add_pca_options(p)
 
-    p = add("sample", "random new roots from the population's variation (RSML + PNG)",
-            "Random new roots drawn from the population's modes of variation (a Gaussian model "
-            "around the mean). Writes random_roots.rsml, a figure grouped by distance to the "
-            "mean, and the mean and modes it is based on.", cmd_sample)
+    p = add(
+        "sample",
+        "random new roots from the population's variation (RSML + PNG)",
+        "Random new roots drawn from the population's modes of variation (a Gaussian model "
+        "around the mean). Writes random_roots.rsml, a figure grouped by distance to the "
+        "mean, and the mean and modes it is based on.",
+        cmd_sample,
+    )
     _add_common(p)
     _add_mean_options(p)
     _add_pca_options(p)
     _add_sample_options(p)
 
-    p = add("regress", "roots predicted from traits (main and lateral lengths)",
-            "Learn how root shape depends on three traits (main-root length, mean and standard "
-            "deviation of lateral length) and predict roots with requested traits. Writes "
-            "predicted_roots.rsml/png/csv and regression_report.csv (how well the predicted roots "
-            "have the requested traits).", cmd_regress)
+    p = add(
+        "regress",
+        "roots predicted from traits (main and lateral lengths)",
+        "Learn how root shape depends on three traits (main-root length, mean and standard "
+        "deviation of lateral length) and predict roots with requested traits. Writes "
+        "predicted_roots.rsml/png/csv and regression_report.csv (how well the predicted roots "
+        "have the requested traits).",
+        cmd_regress,
+    )
     _add_common(p)
     _add_mean_options(p)
     _add_pca_options(p)
     _add_regress_options(p)
 
-    p = add("cluster", "group similar roots (dendrogram PNG + CSV labels)",
-            "Hierarchical clustering of the roots from their distances: dendrogram.png and "
-            "clusters.csv (cluster of each root). Synthetic roots also get a leave-one-out "
-            "classification of their condition (classification.csv).", cmd_cluster)
+    p = add(
+        "cluster",
+        "group similar roots (dendrogram PNG + CSV labels)",
+        "Hierarchical clustering of the roots from their distances: dendrogram.png and "
+        "clusters.csv (cluster of each root). Synthetic roots also get a leave-one-out "
+        "classification of their condition (classification.csv).",
+        cmd_cluster,
+    )
     _add_common(p)
     _add_store_option(p)
     _add_cluster_options(p)
 
-    p = add("traits", "classical root traits (CSV)",
-            "Classical architecture traits of each root (main-root length, number and density "
-            "of laterals, lateral lengths, insertion angles, depth, width, convex hull) in "
-            "traits.csv, in the input's units.", cmd_traits)
+    p = add(
+        "traits",
+        "classical root traits (CSV)",
+        "Classical architecture traits of each root (main-root length, number and density "
+        "of laterals, lateral lengths, insertion angles, depth, width, convex hull) in "
+        "traits.csv, in the input's units.",
+        cmd_traits,
+    )
     _add_common(p)
 
-    p = add("extract", "roots from photographs or scans (one RSML + overlay PNG per image)",
-            "Find the root systems in each image (plates with several seedlings, seedlings on "
-            "germination paper, dark-on-light or light-on-dark): one RSML and an overlay PNG "
-            "(the extraction drawn on the photo, one colour per root) per image, and "
-            "summary.json. With --tracing, the hand tracing is drawn too and compared (lengths, "
-            "lateral counts, elastic distance). A bad image is named and skipped.", cmd_extract)
+    p = add(
+        "extract",
+        "roots from photographs or scans (one RSML + overlay PNG per image)",
+        "Find the root systems in each image (plates with several seedlings, seedlings on "
+        "germination paper, dark-on-light or light-on-dark): one RSML and an overlay PNG "
+        "(the extraction drawn on the photo, one colour per root) per image, and "
+        "summary.json. With --tracing, the hand tracing is drawn too and compared (lengths, "
+        "lateral counts, elastic distance). A bad image is named and skipped.",
+        cmd_extract,
+    )
     p.add_argument("images", nargs="+", metavar="IMAGE", help="image files or folders of images")
     p.add_argument("--out", default="rootshape_output", metavar="DIR", help="output folder")
-    p.add_argument("--tracing", nargs="+", metavar="RSML",
-                   help="hand tracings: an RSML file, a folder of <image name>.rsml, or several files")
-    p.add_argument("--pixels-per-mm", dest="pixels_per_mm", type=_positive_float, metavar="X",
-                   help="image scale; the RSML is then written in mm")
-    p.add_argument("--root-width", dest="root_width", type=_positive_float, metavar="PX",
-                   help="typical root width in pixels (default 6; set it for thick roots)")
+    p.add_argument(
+        "--tracing",
+        nargs="+",
+        metavar="RSML",
+        help="hand tracings: an RSML file, a folder of <image name>.rsml, or several files",
+    )
+    p.add_argument(
+        "--pixels-per-mm",
+        dest="pixels_per_mm",
+        type=_positive_float,
+        metavar="X",
+        help="image scale; the RSML is then written in mm",
+    )
+    p.add_argument(
+        "--root-width",
+        dest="root_width",
+        type=_positive_float,
+        metavar="PX",
+        help="typical root width in pixels (default 6; set it for thick roots)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
-    p = add("demo", "everything on the bundled 53-root data set, with an index.html",
-            "Run every analysis on the bundled data set of 53 synthetic roots (control, drought, "
-            "high nitrate) and write one folder with all figures, tables and an index.html that "
-            "shows them.", cmd_demo)
+    p = add(
+        "demo",
+        "everything on the bundled 53-root data set, with an index.html",
+        "Run every analysis on the bundled data set of 53 synthetic roots (control, drought, "
+        "high nitrate) and write one folder with all figures, tables and an index.html that "
+        "shows them.",
+        cmd_demo,
+    )
     _add_common(p, inputs=False, default_out="demo_output")
-    p.add_argument("--samples", type=_positive_int, metavar="N",
-                   help="use only N of the 53 roots, evenly spread over the conditions (faster)")
+    p.add_argument(
+        "--samples",
+        type=_positive_int,
+        metavar="N",
+        help="use only N of the 53 roots, evenly spread over the conditions (faster)",
+    )
     _add_mean_options(p)
     _add_pca_options(p)
     _add_sample_options(p)
@@ -298,4 +441,3 @@ def build_parser() -> argparse.ArgumentParser:
     _add_geodesic_options(p)
     p.set_defaults(points=50)  # measured: keeps the demo within a few minutes on 2 cores
     return parser
-

@@ -38,12 +38,30 @@ class Section:
 
 # Every name the command line writes (a folder holding any of them holds earlier results).
 OUTPUT_NAMES = (
-    "index.html", "rootshape.log", "traits.csv", "distances.csv", "distances.png",
-    "geodesic.png", "geodesic_step_*.rsml", "mean.rsml", "mean.png", "mean_energy.csv",
-    "mean_energy.png", "explained_variance.csv", "explained_variance.png", "modes.png",
-    "random_roots.rsml", "random_roots.csv", "random_roots.png", "regression_report.csv",
-    "predicted_roots.rsml", "predicted_roots.csv", "predicted_roots.png", "clusters.csv",
-    "dendrogram.png", "classification.csv",
+    "index.html",
+    "rootshape.log",
+    "traits.csv",
+    "distances.csv",
+    "distances.png",
+    "geodesic.png",
+    "geodesic_step_*.rsml",
+    "mean.rsml",
+    "mean.png",
+    "mean_energy.csv",
+    "mean_energy.png",
+    "explained_variance.csv",
+    "explained_variance.png",
+    "modes.png",
+    "random_roots.rsml",
+    "random_roots.csv",
+    "random_roots.png",
+    "regression_report.csv",
+    "predicted_roots.rsml",
+    "predicted_roots.csv",
+    "predicted_roots.png",
+    "clusters.csv",
+    "dendrogram.png",
+    "classification.csv",
 )
 LOG_NAME = "rootshape.log"
 
@@ -124,8 +142,16 @@ class Output:
 
     # Writers: each writes one file and lists it (with its caption) in `section`.
 
-    def csv(self, section: Section, name: str, header: Sequence[str], rows: Sequence[Sequence],
-            caption: str, *, table_html: str = "") -> Item:
+    def csv(
+        self,
+        section: Section,
+        name: str,
+        header: Sequence[str],
+        rows: Sequence[Sequence],
+        caption: str,
+        *,
+        table_html: str = "",
+    ) -> Item:
         self.write(name, lambda p: write_csv(p, header, rows))
         return self.file(section, name, caption, "table", table_html)
 
@@ -235,9 +261,7 @@ def html_table(header: Sequence[str], rows: Sequence[Sequence], max_rows: int = 
         return html.escape(str(v))
 
     head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
-    body = "".join(
-        "<tr>" + "".join(f"<td>{show(v)}</td>" for v in row) + "</tr>" for row in rows[:max_rows]
-    )
+    body = "".join("<tr>" + "".join(f"<td>{show(v)}</td>" for v in row) + "</tr>" for row in rows[:max_rows])
     more = f"<p class='more'>… {len(rows) - max_rows} more rows in the CSV file.</p>" if len(rows) > max_rows else ""
     return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>{more}"
 
@@ -273,8 +297,9 @@ def write_index(out: Output, *, title: str, intro: Sequence[str], settings: Sequ
             src = html.escape(item.path, quote=True)
             cap = html.escape(item.caption)
             if item.kind == "figure":
-                parts.append(f"<figure><a href='{src}'><img src='{src}' alt='{cap}'></a>"
-                             f"<figcaption>{cap}</figcaption></figure>")
+                parts.append(
+                    f"<figure><a href='{src}'><img src='{src}' alt='{cap}'></a><figcaption>{cap}</figcaption></figure>"
+                )
             else:
                 parts.append(f"<p><a href='{src}'>{html.escape(item.path)}</a> — {cap}</p>")
                 if item.html:

@@ -13,7 +13,7 @@ import numpy as np
 
 import rootshape_jax as rs
 
-from ._common import PAPER_TRAITS, CLIError, fmt, make_weights, say
+from ._common import PAPER_TRAITS, fmt, make_weights, say
 from ._inputs import Population, common_unit, in_input_units, prepare, to_output_roots
 from ._report import Output, html_table, write_dict_csv
 
@@ -42,24 +42,39 @@ def run_distances(ctx: Context, out: Output, args) -> None:
         store = getattr(args, "store", None)
         # With --store every finished block is saved atomically; a rerun computes only the rest.
         D, stats = rs.pairwise_distances(
-            pop.tree, weights=make_weights(args), progress=not args.quiet, return_stats=True,
-            store=store, block_size=STORE_BLOCK if store else None,
+            pop.tree,
+            weights=make_weights(args),
+            progress=not args.quiet,
+            return_stats=True,
+            store=store,
+            block_size=STORE_BLOCK if store else None,
         )
         D = np.asarray(D, dtype=np.float64)
         ctx.distances = D
-        out.csv(sec, "distances.csv", ["root"] + pop.names, [[n] + list(row) for n, row in zip(pop.names, D)],
-                f"elastic distance between every pair of roots ({len(D)} × {len(D)})")
+        out.csv(
+            sec,
+            "distances.csv",
+            ["root"] + pop.names,
+            [[n] + list(row) for n, row in zip(pop.names, D)],
+            f"elastic distance between every pair of roots ({len(D)} × {len(D)})",
+        )
         fig, _ = plot_distance_matrix(D, labels=pop.names)
-        out.figure(sec, fig, "distances.png", "heat map of the distance matrix, rows ordered by hierarchical clustering")
+        out.figure(
+            sec, fig, "distances.png", "heat map of the distance matrix, rows ordered by hierarchical clustering"
+        )
         done = stats.get("lateral_dp")
         skipped = stats.get("lateral_skipped", stats.get("lateral_pruned"))
         note = f"{len(D) * (len(D) - 1) // 2} pairs registered"
         if done is not None and skipped is not None:
-            note += (f"; {done} lateral-pair alignments computed, {skipped} skipped by an exact "
-                     "bound (they could not change the result)")
+            note += (
+                f"; {done} lateral-pair alignments computed, {skipped} skipped by an exact "
+                "bound (they could not change the result)"
+            )
         if store:
-            note += (f"; --store {store}: {stats['blocks_from_store']} of {stats['blocks']} blocks "
-                     f"of {STORE_BLOCK} pairs read from earlier runs, {stats['blocks_computed']} computed")
+            note += (
+                f"; --store {store}: {stats['blocks_from_store']} of {stats['blocks']} blocks "
+                f"of {STORE_BLOCK} pairs read from earlier runs, {stats['blocks_computed']} computed"
+            )
         sec.notes.append(note + ".")
 
 
@@ -70,18 +85,26 @@ def run_mean(ctx: Context, out: Output, args) -> None:
 
     pop = ctx.pop
     with out.step("Mean root (Karcher mean)") as sec:
-        say(args, f"Fitting the mean root of {len(pop.names)} roots (each step registers every root "
-                  "onto the current mean)...")
+        say(
+            args,
+            f"Fitting the mean root of {len(pop.names)} roots (each step registers every root "
+            "onto the current mean)...",
+        )
         km = rs.karcher_mean(
-            pop.tree, weights=make_weights(args), distances=ctx.distances, max_steps=args.max_steps,
-            throw=False, progress=not args.quiet,
+            pop.tree,
+            weights=make_weights(args),
+            distances=ctx.distances,
+            max_steps=args.max_steps,
+            throw=False,
+            progress=not args.quiet,
         )
         ctx.mean = km
         trace = np.asarray(km.energy_trace, dtype=np.float64)
         mean_roots = to_output_roots(in_input_units(rs.stack([km.mean]), pop), pop, ["mean"])
         out.rsml(sec, mean_roots, "mean.rsml", "the mean root (RSML)", unit=pop.unit)
-        out.csv(sec, "mean_energy.csv", ["step", "energy"], list(enumerate(trace)),
-                "Karcher energy F(μ) after each step")
+        out.csv(
+            sec, "mean_energy.csv", ["step", "energy"], list(enumerate(trace)), "Karcher energy F(μ) after each step"
+        )
         fig, _ = plot_mean(pop.tree, km.mean, title=f"Mean of {len(pop.names)} roots")
         out.figure(sec, fig, "mean.png", "input roots (left) and their mean root (right)")
         fig, _ = plot_energy_trace(trace)
@@ -106,16 +129,23 @@ def run_pca(ctx: Context, out: Output, args) -> None:
         ratio = np.asarray(pc.explained_variance_ratio, dtype=np.float64)
         rows = [[i + 1, eig[i], ratio[i], float(np.sum(ratio[: i + 1]))] for i in range(len(eig))]
         header = ["component", "variance", "explained_ratio", "cumulative_ratio"]
-        out.csv(sec, "explained_variance.csv", header, rows, "variance explained by each principal component",
-                table_html=html_table(header, rows, max_rows=8))
+        out.csv(
+            sec,
+            "explained_variance.csv",
+            header,
+            rows,
+            "variance explained by each principal component",
+            table_html=html_table(header, rows, max_rows=8),
+        )
         fig, _ = plot_explained_variance(eig)
         out.figure(sec, fig, "explained_variance.png", "variance explained per component and cumulated")
         n_modes = max(1, min(args.modes, len(eig)))
         alphas = [-2.0, -1.0, 0.0, 1.0, 2.0]
         trees = rs.modes(pc, alphas, component=list(range(n_modes)))
         fig, _ = plot_modes(trees, alphas, explained=ratio[:n_modes])
-        out.figure(sec, fig, "modes.png",
-                   f"first {n_modes} modes: mean ± 1 and 2 standard deviations along each component")
+        out.figure(
+            sec, fig, "modes.png", f"first {n_modes} modes: mean ± 1 and 2 standard deviations along each component"
+        )
         sec.notes.append(
             f"{pc.n_components} components explain {100 * pc.variance:.0f} % of the variance "
             f"(first: {100 * ratio[0]:.1f} %)."
@@ -143,14 +173,21 @@ def run_sample(ctx: Context, out: Output, args) -> None:
         names = [f"random_{i:03d}" for i in range(n)]
         roots = to_output_roots(in_input_units(trees, pop), pop, names)
         out.rsml(sec, roots, "random_roots.rsml", f"{n} random roots (RSML)", unit=pop.unit)
-        out.csv(sec, "random_roots.csv", ["root", "model_distance_to_mean"], list(zip(names, d)),
-                "distance of each random root to the mean in the PCA model")
+        out.csv(
+            sec,
+            "random_roots.csv",
+            ["root", "model_distance_to_mean"],
+            list(zip(names, d)),
+            "distance of each random root to the mean in the PCA model",
+        )
         fig, _ = plot_samples_by_distance(trees, d, n_groups=min(3, n))
-        out.figure(sec, fig, "random_roots.png",
-                   "random roots, in rows of increasing distance to the mean (in the PCA model)")
+        out.figure(
+            sec, fig, "random_roots.png", "random roots, in rows of increasing distance to the mean (in the PCA model)"
+        )
         sec.notes.append(
             f"coefficients drawn from N(0, 1) on the {m} kept components"
-            + (f", truncated to ±{args.truncate}" if args.truncate else "") + f", seed {args.seed}; "
+            + (f", truncated to ±{args.truncate}" if args.truncate else "")
+            + f", seed {args.seed}; "
             "the distance to the mean is measured in the model, sqrt(Σ σ_i b_i²)."
         )
 
@@ -188,9 +225,14 @@ def run_regress(ctx: Context, out: Output, args) -> None:
             rel = float(np.mean(np.abs(yhat - y) / np.maximum(np.abs(y), 1e-12)))
             report.append([name, r2, rel])
         header = ["trait", "r2_requested_vs_measured", "mean_relative_error"]
-        out.csv(sec, "regression_report.csv", header, report,
-                "traits requested (those of the input roots) vs traits measured on the predicted roots",
-                table_html=html_table(header, report))
+        out.csv(
+            sec,
+            "regression_report.csv",
+            header,
+            report,
+            "traits requested (those of the input roots) vs traits measured on the predicted roots",
+            table_html=html_table(header, report),
+        )
 
         if getattr(args, "requested_values", None) is not None:
             values, vary = args.requested_values, None
@@ -201,18 +243,28 @@ def run_regress(ctx: Context, out: Output, args) -> None:
             values[:, vary] = np.percentile(P[:, vary], [10, 30, 50, 70, 90])
         names = [f"predicted_{i:03d}" for i in range(len(values))]
         trees, roots = predict(values, names)
-        out.rsml(sec, roots, "predicted_roots.rsml", f"{len(roots)} roots predicted from requested traits (RSML)",
-                 unit=pop.unit)
+        out.rsml(
+            sec,
+            roots,
+            "predicted_roots.rsml",
+            f"{len(roots)} roots predicted from requested traits (RSML)",
+            unit=pop.unit,
+        )
         measured = trait_matrix(roots)
         rows = [[n] + list(v) + list(m) for n, v, m in zip(names, values, measured)]
         header = ["root"] + [f"requested_{k}" for k in PAPER_TRAITS] + [f"measured_{k}" for k in PAPER_TRAITS]
         out.csv(sec, "predicted_roots.csv", header, rows, "requested and measured traits of each predicted root")
         k = 0 if vary is None else vary
         fig, _ = plot_regression_sweep(
-            trees, values[:, k], trait_name=PAPER_TRAITS[k].replace("_", " "), unit=pop.unit,
+            trees,
+            values[:, k],
+            trait_name=PAPER_TRAITS[k].replace("_", " "),
+            unit=pop.unit,
             measured=measured[:, k],
         )
-        what = "requested" if vary is None else f"{PAPER_TRAITS[k].replace('_', ' ')} varied, other traits at their median"
+        what = (
+            "requested" if vary is None else f"{PAPER_TRAITS[k].replace('_', ' ')} varied, other traits at their median"
+        )
         out.figure(sec, fig, "predicted_roots.png", f"roots predicted from traits ({what}); measured value below")
         if pop.normalised:
             sec.notes.append(
@@ -241,12 +293,24 @@ def run_cluster(ctx: Context, out: Output, args) -> None:
         cl = rs.cluster(D, n_clusters=k, method=args.linkage)
         numbers = [cluster_number(c) for c in cl.labels]
         header = ["root", "cluster"] + (["condition"] if pop.conditions else [])
-        rows = [[n, c] + ([pop.conditions[i]] if pop.conditions else []) for i, (n, c) in enumerate(zip(pop.names, numbers))]
-        item = out.csv(sec, "clusters.csv", header, rows,
-                       f"cluster of each root ({cl.n_clusters} clusters, {args.linkage} linkage; numbered "
-                       "left to right in the dendrogram)")
+        rows = [
+            [n, c] + ([pop.conditions[i]] if pop.conditions else []) for i, (n, c) in enumerate(zip(pop.names, numbers))
+        ]
+        item = out.csv(
+            sec,
+            "clusters.csv",
+            header,
+            rows,
+            f"cluster of each root ({cl.n_clusters} clusters, {args.linkage} linkage; numbered "
+            "left to right in the dendrogram)",
+        )
         fig, _ = plot_dendrogram(cl.linkage, labels=pop.names, n_clusters=cl.n_clusters, roots=pop.tree)
-        out.figure(sec, fig, "dendrogram.png", "dendrogram of the distance matrix, coloured by cluster, with members of each cluster")
+        out.figure(
+            sec,
+            fig,
+            "dendrogram.png",
+            "dendrogram of the distance matrix, coloured by cluster, with members of each cluster",
+        )
         if len(known) >= 2:
             # Which conditions ended up in which cluster (the CSV has the same per root).
             cond, num = np.asarray(pop.conditions), np.asarray(numbers)
@@ -258,9 +322,14 @@ def run_cluster(ctx: Context, out: Output, args) -> None:
                 res = rs.loo_accuracy(D, np.asarray(pop.conditions), rule=rule)
                 acc_rows.append([label, res["accuracy"], int(np.sum(res["correct"])), len(pop.names)])
             header = ["rule", "accuracy", "correct", "roots"]
-            out.csv(sec, "classification.csv", header, acc_rows,
-                    f"leave-one-out classification of the conditions ({', '.join(known)}) from distances alone",
-                    table_html=html_table(header, acc_rows))
+            out.csv(
+                sec,
+                "classification.csv",
+                header,
+                acc_rows,
+                f"leave-one-out classification of the conditions ({', '.join(known)}) from distances alone",
+                table_html=html_table(header, acc_rows),
+            )
             sec.notes.append(
                 "classification accuracy (leave-one-out): "
                 + "; ".join(f"{r[0]} {100 * r[1]:.0f} %" for r in acc_rows)
@@ -277,9 +346,13 @@ def run_traits(roots: list, out: Output, args) -> None:
                     r[key] = root.metadata[key]
         out.write("traits.csv", lambda p: write_dict_csv(p, rows))
         show = ["name", "main_length", "n_laterals", "mean_lateral_length", "total_length", "depth", "width"]
-        out.file(sec, "traits.csv", f"architecture traits of the {len(rows)} input roots (lengths in "
-                 f"{common_unit(roots) or 'input units'})", "table",
-                 html_table(show, [[r[k] for k in show] for r in rows], max_rows=10))
+        out.file(
+            sec,
+            "traits.csv",
+            f"architecture traits of the {len(rows)} input roots (lengths in {common_unit(roots) or 'input units'})",
+            "table",
+            html_table(show, [[r[k] for k in show] for r in rows], max_rows=10),
+        )
 
 
 def run_geodesic(a_root, b_root, out: Output, args) -> None:
@@ -298,10 +371,18 @@ def run_geodesic(a_root, b_root, out: Output, args) -> None:
         names = [f"step_{i:02d}" for i in range(args.steps)]
         for i, r in enumerate(to_output_roots(path_out, pop, names)):
             out.rsml(None, [r], f"geodesic_step_{i:02d}.rsml", "", unit=pop.unit)
-        out.file(sec, "geodesic_step_00.rsml",
-                 f"each step of the deformation as RSML: geodesic_step_00.rsml … geodesic_step_{args.steps - 1:02d}.rsml")
-        fig, _ = plot_geodesic(path, title=f"{pair[0].name} → {pair[1].name}: optimal deformation "
-                                           "(colour = corresponding lateral)")
-        out.figure(sec, fig, "geodesic.png", f"optimal deformation of {pair[0].name} into {pair[1].name}, "
-                   "one colour per matched lateral")
+        out.file(
+            sec,
+            "geodesic_step_00.rsml",
+            f"each step of the deformation as RSML: geodesic_step_00.rsml … geodesic_step_{args.steps - 1:02d}.rsml",
+        )
+        fig, _ = plot_geodesic(
+            path, title=f"{pair[0].name} → {pair[1].name}: optimal deformation (colour = corresponding lateral)"
+        )
+        out.figure(
+            sec,
+            fig,
+            "geodesic.png",
+            f"optimal deformation of {pair[0].name} into {pair[1].name}, one colour per matched lateral",
+        )
         sec.notes.append(f"elastic distance {pair[0].name} → {pair[1].name}: {fmt(float(reg.distance))}.")

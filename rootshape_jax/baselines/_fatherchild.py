@@ -38,8 +38,7 @@ def check_root(root, what: str) -> Root:
     attach = np.asarray(root.attach)
     if attach.shape != (root.n_laterals,) or not np.all(np.isfinite(attach)):
         raise InvalidRootError(
-            f"{what}: attachment fractions must be {root.n_laterals} finite numbers in [0, 1], "
-            f"got {attach.tolist()}."
+            f"{what}: attachment fractions must be {root.n_laterals} finite numbers in [0, 1], got {attach.tolist()}."
         )
     return root
 
@@ -59,9 +58,7 @@ def check_roots(roots, what: str) -> list[Root]:
 def check_same_dim(roots: Sequence[Root], what: str) -> int:
     dims = {r.dim for r in roots}
     if len(dims) != 1:
-        raise InvalidRootError(
-            f"{what}: roots mix dimensions {sorted(dims)}; convert 2D roots to 3D (z = 0) first."
-        )
+        raise InvalidRootError(f"{what}: roots mix dimensions {sorted(dims)}; convert 2D roots to 3D (z = 0) first.")
     return dims.pop()
 
 
@@ -140,9 +137,7 @@ def edge_slots(root: Root, capacity: int, n_points: int) -> tuple[np.ndarray, np
     return out, origin
 
 
-def assemble(
-    origin: np.ndarray, edges: np.ndarray, *, dtype, name: str = "", metadata: dict | None = None
-) -> Root:
+def assemble(origin: np.ndarray, edges: np.ndarray, *, dtype, name: str = "", metadata: dict | None = None) -> Root:
     """Rebuild a `Root` from relative edge curves in the slot layout (father to child).
 
     Main edge ``k`` starts where main edge ``k − 1`` ends (edge 0 at `origin`); lateral ``k``
@@ -165,9 +160,7 @@ def assemble(
     # Node k (end of main edge k) is the last point of piece k in the concatenated polyline.
     ends = np.cumsum([len(p) for p in pieces]) - 1
     attach = np.array([cum[ends[k]] / total if total > 0 else 0.0 for k in range(capacity)])
-    lats = [
-        nodes[k] + (edges[capacity + 1 + k] - edges[capacity + 1 + k][0]) for k in range(capacity)
-    ]
+    lats = [nodes[k] + (edges[capacity + 1 + k] - edges[capacity + 1 + k][0]) for k in range(capacity)]
     return Root(
         main=main.astype(dtype),
         laterals=tuple(lat.astype(dtype) for lat in lats),

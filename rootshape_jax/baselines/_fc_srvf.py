@@ -67,9 +67,7 @@ def _srvf_tables(roots: list[Root], n_points: int):
     return srvf(curves), np.stack([o for _, o in reps])
 
 
-def _match(
-    table1, i1, table2, i2, *, neighbourhood, chunk_size, keep=True, progress=False, desc=""
-):
+def _match(table1, i1, table2, i2, *, neighbourhood, chunk_size, keep=True, progress=False, desc=""):
     """Register ``table2[i2[k]]`` onto ``table1[i1[k]]`` for every k.
 
     Returns ``(energy (P,), gamma (P, T), registered (P, T, d))`` as numpy (the last two are
@@ -100,9 +98,7 @@ def _match(
                 rows = todo[start : start + chunk]
                 m = len(rows)
                 padded = np.concatenate([rows, np.full(chunk - m, rows[0])])
-                g, e, r = _register_chunk(
-                    table1[i1[padded]], table2[i2[padded]], neighbourhood=neighbourhood
-                )
+                g, e, r = _register_chunk(table1[i1[padded]], table2[i2[padded]], neighbourhood=neighbourhood)
                 energy[rows] = np.asarray(e)[:m]
                 if keep:
                     gamma[rows] = np.asarray(g)[:m]
@@ -126,18 +122,14 @@ def _register_pair(a: Root, b: Root, *, n_points, neighbourhood, what):
     E = Q.shape[1]
     flat = Q.reshape((-1,) + Q.shape[2:])
     slots = np.arange(E)
-    energy, gamma, registered = _match(
-        flat, slots, flat, E + slots, neighbourhood=neighbourhood, chunk_size=256
-    )
+    energy, gamma, registered = _match(flat, slots, flat, E + slots, neighbourhood=neighbourhood, chunk_size=256)
     return Q, origins, energy, gamma, registered
 
 
 def fc_srvf_distance(a: Root, b: Root, *, n_points: int = 50, neighbourhood: int = 7) -> float:
     """Father–child elastic distance: ``sqrt`` of the summed DP warp energies of the
     corresponding edges (b's edges registered onto a's; fixed correspondence)."""
-    _, _, energy, _, _ = _register_pair(
-        a, b, n_points=n_points, neighbourhood=neighbourhood, what="fc_srvf_distance"
-    )
+    _, _, energy, _, _ = _register_pair(a, b, n_points=n_points, neighbourhood=neighbourhood, what="fc_srvf_distance")
     return float(np.sqrt(max(float(np.sum(energy)), 0.0)))
 
 
@@ -163,17 +155,22 @@ def fc_srvf_distance_matrix(
     i1 = (I[:, None] * E + e[None]).reshape(-1)
     i2 = (J[:, None] * E + e[None]).reshape(-1)
     energy, _, _ = _match(
-        flat, i1, flat, i2, neighbourhood=neighbourhood, chunk_size=chunk_size,
-        keep=False, progress=progress, desc="fc-SRVF distances",
+        flat,
+        i1,
+        flat,
+        i2,
+        neighbourhood=neighbourhood,
+        chunk_size=chunk_size,
+        keep=False,
+        progress=progress,
+        desc="fc-SRVF distances",
     )
     D = np.zeros((n, n), dtype=energy.dtype)
     D[I, J] = np.sqrt(np.maximum(energy.reshape(len(I), E).sum(1), 0.0))
     return D + D.T
 
 
-def fc_srvf_geodesic(
-    a: Root, b: Root, *, n_steps: int = 9, n_points: int = 50, neighbourhood: int = 7
-) -> list[Root]:
+def fc_srvf_geodesic(a: Root, b: Root, *, n_steps: int = 9, n_points: int = 50, neighbourhood: int = 7) -> list[Root]:
     """The straight line ``(1 − τ) q_a + τ q̃_b`` for every edge (``q̃_b`` = b's edge registered
     onto a's), integrated back father to child. Slot k of every step is the k-th lateral along
     the main root (padded laterals grow from zero). The first step is a resampled (through its
@@ -189,8 +186,11 @@ def fc_srvf_geodesic(
     dtype = result_dtype([a, b])
     return [
         assemble(
-            (1 - t) * origins[0] + t * origins[1], curves[i], dtype=dtype,
-            name=f"fc_srvf_geodesic_{i}", metadata={"method": "fc_srvf", "tau": float(t)},
+            (1 - t) * origins[0] + t * origins[1],
+            curves[i],
+            dtype=dtype,
+            name=f"fc_srvf_geodesic_{i}",
+            metadata={"method": "fc_srvf", "tau": float(t)},
         )
         for i, t in enumerate(taus)
     ]
@@ -220,15 +220,16 @@ def fc_srvf_mean(
     i2 = np.arange(n * E)
     energies = []
     for _ in range(max_steps):
-        energy, _, registered = _match(
-            mu, i1, flat, i2, neighbourhood=neighbourhood, chunk_size=512
-        )
+        energy, _, registered = _match(mu, i1, flat, i2, neighbourhood=neighbourhood, chunk_size=512)
         energies.append(float(energy.sum() / n))
         mu = registered.reshape((n, E) + registered.shape[1:]).mean(0)
         if len(energies) > 1 and abs(energies[-2] - energies[-1]) <= rtol * energies[-2]:
             break
     curves = np.asarray(srvf_to_curve(jnp.asarray(mu)))
     return assemble(
-        origins.mean(0), curves, dtype=result_dtype(roots), name="fc_srvf_mean",
+        origins.mean(0),
+        curves,
+        dtype=result_dtype(roots),
+        name="fc_srvf_mean",
         metadata={"method": "fc_srvf", "n_roots": n, "energies": energies, "steps": len(energies)},
     )

@@ -92,7 +92,10 @@ def qed_geodesic(a: Root, b: Root, *, n_steps: int = 9, n_landmarks: int = 20) -
         origin = (1 - tau) * origins[0] + tau * origins[1]
         out.append(
             assemble(
-                origin, edges, dtype=dtype, name=f"qed_geodesic_{i}",
+                origin,
+                edges,
+                dtype=dtype,
+                name=f"qed_geodesic_{i}",
                 metadata={"method": "qed", "tau": float(tau)},
             )
         )
@@ -106,7 +109,10 @@ def qed_mean(roots, *, n_landmarks: int = 20) -> Root:
     n_landmarks = check_count(n_landmarks, "n_landmarks", 1)
     X, origins = _representations(roots, n_landmarks)
     return assemble(
-        origins.mean(0), X.mean(0), dtype=result_dtype(roots), name="qed_mean",
+        origins.mean(0),
+        X.mean(0),
+        dtype=result_dtype(roots),
+        name="qed_mean",
         metadata={"method": "qed", "n_roots": len(roots)},
     )
 

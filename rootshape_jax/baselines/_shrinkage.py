@@ -49,9 +49,7 @@ def geodesic_shrinkage(path: Sequence[Root] | RootTree) -> Shrinkage:
         roots = list(path)
     if len(roots) < 2:
         raise ValueError(f"geodesic_shrinkage: a path needs at least 2 steps, got {len(roots)}.")
-    lengths = np.array(
-        [total_length(check_root(r, f"geodesic_shrinkage: step {i}")) for i, r in enumerate(roots)]
-    )
+    lengths = np.array([total_length(check_root(r, f"geodesic_shrinkage: step {i}")) for i, r in enumerate(roots)])
     taus = np.linspace(0.0, 1.0, len(roots))
     interpolated = (1 - taus) * lengths[0] + taus * lengths[-1]
     positive = interpolated > 0

@@ -173,9 +173,7 @@ def _to_library_frame(root: Root, scale: float, dim: int) -> Root:
         laterals=tuple(lat @ m for lat in root.laterals),
         children=tuple(_to_library_frame(c, scale, dim) for c in root.children),
         main_radius=None if root.main_radius is None else root.main_radius * scale,
-        lateral_radii=(
-            None if root.lateral_radii is None else tuple(r * scale for r in root.lateral_radii)
-        ),
+        lateral_radii=(None if root.lateral_radii is None else tuple(r * scale for r in root.lateral_radii)),
     )
 
 
@@ -271,7 +269,5 @@ def simulated_roots(
                 unit="mm",
                 source="cplantbox",
             )
-            roots.append(
-                dataclasses.replace(root, name=f"{param_file.stem}_s{seed}_{i:03d}", metadata=metadata)
-            )
+            roots.append(dataclasses.replace(root, name=f"{param_file.stem}_s{seed}_{i:03d}", metadata=metadata))
     return roots

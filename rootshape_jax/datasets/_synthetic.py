@@ -103,9 +103,7 @@ class RootParameters:
             value = getattr(self, f.name)
             if f.name == "side_pattern":
                 if value not in _SIDE_PATTERNS:
-                    raise ValueError(
-                        f"RootParameters.side_pattern must be one of {_SIDE_PATTERNS}, got {value!r}."
-                    )
+                    raise ValueError(f"RootParameters.side_pattern must be one of {_SIDE_PATTERNS}, got {value!r}.")
                 continue
             if not isinstance(value, (int, float, np.integer, np.floating)) or not math.isfinite(value):
                 raise ValueError(f"RootParameters.{f.name} must be a finite number, got {value!r}.")
@@ -115,9 +113,7 @@ class RootParameters:
             if getattr(self, name) <= 0:
                 raise ValueError(f"RootParameters.{name} must be > 0, got {getattr(self, name)!r}.")
         if int(self.max_laterals) != self.max_laterals:
-            raise ValueError(
-                f"RootParameters.max_laterals must be an integer, got {self.max_laterals!r}."
-            )
+            raise ValueError(f"RootParameters.max_laterals must be an integer, got {self.max_laterals!r}.")
         if self.insertion_angle_mean > 180:
             raise ValueError(
                 "RootParameters.insertion_angle_mean is in degrees and must lie in [0, 180], "
@@ -182,16 +178,12 @@ def _resolve(condition, overrides: dict) -> tuple[str, RootParameters]:
             )
         name, params = condition, CONDITIONS[condition]
     else:
-        raise ValueError(
-            f"`condition` must be a condition name or a RootParameters, got {type(condition).__name__}."
-        )
+        raise ValueError(f"`condition` must be a condition name or a RootParameters, got {type(condition).__name__}.")
     if overrides:
         valid = {f.name for f in dataclasses.fields(RootParameters)}
         unknown = sorted(set(overrides) - valid)
         if unknown:
-            raise ValueError(
-                f"Unknown root parameter(s) {unknown}; valid names are {sorted(valid)}."
-            )
+            raise ValueError(f"Unknown root parameter(s) {unknown}; valid names are {sorted(valid)}.")
         params = dataclasses.replace(params, **overrides)
     return name, params
 
@@ -222,11 +214,7 @@ def _grow(
     d = heading / np.linalg.norm(heading)
     for k in range(n_seg):
         points[k + 1] = points[k] + h * d
-        d = (
-            d
-            + gravitropism * h * (down - (d @ down) * d)
-            + tortuosity * math.sqrt(h) * _perpendicular_noise(rng, d)
-        )
+        d = d + gravitropism * h * (down - (d @ down) * d) + tortuosity * math.sqrt(h) * _perpendicular_noise(rng, d)
         d = d / np.linalg.norm(d)
     return points
 

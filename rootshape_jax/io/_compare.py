@@ -162,7 +162,15 @@ def _elastic(a: Root, b: Root, n_points: int) -> float:
     from .._tree import batch, unstack
 
     # 2-D: drop a z column (RSML tracings are often 2-D stored with z = 0).
-    a2 = dataclasses.replace(a, main=a.main[:, :2], laterals=tuple(l[:, :2] for l in a.laterals)) if a.main.shape[1] > 2 else a
-    b2 = dataclasses.replace(b, main=b.main[:, :2], laterals=tuple(l[:, :2] for l in b.laterals)) if b.main.shape[1] > 2 else b
+    a2 = (
+        dataclasses.replace(a, main=a.main[:, :2], laterals=tuple(l[:, :2] for l in a.laterals))
+        if a.main.shape[1] > 2
+        else a
+    )
+    b2 = (
+        dataclasses.replace(b, main=b.main[:, :2], laterals=tuple(l[:, :2] for l in b.laterals))
+        if b.main.shape[1] > 2
+        else b
+    )
     ta, tb = unstack(batch([a2, b2], n_points=n_points, normalise_scale=True))
     return float(distance(ta, tb))

@@ -1,7 +1,7 @@
 """The `rootshape extract` command: photographs → one RSML and one overlay PNG per image.
 
 The command-line parser lives with the other subcommands; this module holds the logic,
-`run_extract`, so it can be called and tested directly.
+`extract_images`, so it can be called and tested directly.
 """
 
 from __future__ import annotations
@@ -50,7 +50,15 @@ def _tracing_for(image: Path, tracing, n_images: int) -> Path | None:
     return None
 
 
-def draw_overlay(image_path: Path, roots: Sequence[Root], out_png: Path, *, tracing: Sequence[Root] = (), scale: float = 1.0, max_side: int = 2000) -> None:
+def draw_overlay(
+    image_path: Path,
+    roots: Sequence[Root],
+    out_png: Path,
+    *,
+    tracing: Sequence[Root] = (),
+    scale: float = 1.0,
+    max_side: int = 2000,
+) -> None:
     """The photograph with the extraction on top (one colour per root system; laterals thinner)
     and, when given, the tracing as white dashed lines. `scale` converts root coordinates to
     pixels (pixels per unit). The photograph is shown subsampled to at most `max_side` px."""
@@ -83,7 +91,7 @@ def draw_overlay(image_path: Path, roots: Sequence[Root], out_png: Path, *, trac
     plt.close(fig)
 
 
-def run_extract(
+def extract_images(
     images: Sequence[str | os.PathLike],
     out: str | os.PathLike,
     *,

@@ -54,7 +54,6 @@ def _to_gray(arr: np.ndarray, source: str) -> np.ndarray:
         raise ImageError(f"{source}: pixels must be numbers, got dtype {arr.dtype}.")
     if arr.ndim == 3 and arr.shape[-1] in (3, 4):
         from skimage.color import rgb2gray
-
         from skimage.util import img_as_float
 
         arr = rgb2gray(img_as_float(arr[..., :3]))
@@ -62,8 +61,7 @@ def _to_gray(arr: np.ndarray, source: str) -> np.ndarray:
         arr = arr[..., 0]
     if arr.ndim != 2:
         raise ImageError(
-            f"{source}: expected a 2D grayscale/binary image or an (H, W, 3|4) colour image, "
-            f"got shape {arr.shape}."
+            f"{source}: expected a 2D grayscale/binary image or an (H, W, 3|4) colour image, got shape {arr.shape}."
         )
     if min(arr.shape) < 3:
         raise ImageError(f"{source}: image of shape {arr.shape} is too small.")
@@ -163,8 +161,7 @@ def gray_float32(arr: np.ndarray, source: str) -> np.ndarray:
         arr = arr[..., 0]
     if not (arr.ndim == 2 or (arr.ndim == 3 and arr.shape[-1] in (3, 4))):
         raise ImageError(
-            f"{source}: expected a 2D grayscale/binary image or an (H, W, 3|4) colour image, "
-            f"got shape {arr.shape}."
+            f"{source}: expected a 2D grayscale/binary image or an (H, W, 3|4) colour image, got shape {arr.shape}."
         )
     if min(arr.shape[:2]) < 3:
         raise ImageError(f"{source}: image of shape {arr.shape} is too small.")
@@ -215,7 +212,9 @@ def _robust_stats(x: np.ndarray) -> tuple[float, float]:
     return med, max(mad, 1e-12)
 
 
-def ridge_filter(gray: np.ndarray, sigmas: Sequence[float], *, edge_weight: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+def ridge_filter(
+    gray: np.ndarray, sigmas: Sequence[float], *, edge_weight: float = 0.5
+) -> tuple[np.ndarray, np.ndarray]:
     """Line strength of bright and of dark lines, in units of the background's noise.
 
     Returns ``(bright, dark)`` float16 maps: the maximum over `sigmas` of the standardised
@@ -274,7 +273,9 @@ def _repeat_to(a: np.ndarray, f: int, shape: tuple[int, int]) -> np.ndarray:
     return out
 
 
-def _ridge_filter_direct(gray: np.ndarray, sigmas: Sequence[float], *, edge_weight: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+def _ridge_filter_direct(
+    gray: np.ndarray, sigmas: Sequence[float], *, edge_weight: float = 0.5
+) -> tuple[np.ndarray, np.ndarray]:
     """`ridge_filter` at the image's own resolution.
 
     For each scale the measure of `_ridge_measures` is standardised by its median and MAD over
@@ -630,7 +631,9 @@ def _plant_checks(nodes, rc, sub, base_local, gray, halfwidth, axis_sign):
     bh, bw = r1 - r0, c1 - c0
     if min(bh, bw) >= 20 * max(hw, 1.0):
         tol = max(3.0 * hw + 3.0, 0.05 * min(bh, bw))
-        d_box = np.minimum(np.minimum(pix[:, 0] - r0, r1 - 1 - pix[:, 0]), np.minimum(pix[:, 1] - c0, c1 - 1 - pix[:, 1]))
+        d_box = np.minimum(
+            np.minimum(pix[:, 0] - r0, r1 - 1 - pix[:, 0]), np.minimum(pix[:, 1] - c0, c1 - 1 - pix[:, 1])
+        )
         frame = frame or bool(np.mean(d_box <= tol) >= 0.9)
     # Ruler-straight: an unbranched line of 300 px or more that never leaves its chord by
     # more than a couple of pixels is an edge of the set-up (a rim side, a ruler), not a grown
@@ -755,7 +758,11 @@ def roots_from_image(
         raise ValueError(f"pixel_size must be a positive number, got {pixel_size!r}.")
     if pixel_size is not None and unit.lower() in ("pixel", "pixels", "px"):
         raise ValueError("pixel_size given: pass the physical unit too, e.g. unit='mm'.")
-    for opt, val in (("close_gaps", close_gaps), ("min_object_size", min_object_size), ("max_hole_size", max_hole_size)):
+    for opt, val in (
+        ("close_gaps", close_gaps),
+        ("min_object_size", min_object_size),
+        ("max_hole_size", max_hole_size),
+    ):
         if int(val) != val or val < 0:
             raise ValueError(f"{opt} must be a non-negative integer, got {val!r}.")
     if not (root_width > 0):
@@ -834,10 +841,17 @@ def roots_from_image(
         t = "ridge"
 
     opts = dict(
-        close_gaps=int(close_gaps), max_hole_size=int(max_hole_size), min_object_size=int(min_object_size),
-        spur_factor=float(spur_factor), min_lateral_length=float(min_lateral_length),
-        bridge_gaps=float(bridge_gaps), root_width=float(root_width), min_root_length=float(min_root_length),
-        min_plant_fraction=float(min_plant_fraction), base=base, offset=(c0, r0),
+        close_gaps=int(close_gaps),
+        max_hole_size=int(max_hole_size),
+        min_object_size=int(min_object_size),
+        spur_factor=float(spur_factor),
+        min_lateral_length=float(min_lateral_length),
+        bridge_gaps=float(bridge_gaps),
+        root_width=float(root_width),
+        min_root_length=float(min_root_length),
+        min_plant_fraction=float(min_plant_fraction),
+        base=base,
+        offset=(c0, r0),
     )
     if t == "ridge":
         # Polarity: when not given, trace both and keep the one whose accepted plants carry
@@ -867,7 +881,7 @@ def roots_from_image(
 
     scale = 1.0 if pixel_size is None else float(pixel_size)
     results = []
-    for nodes, sub, b, base_node, pred, tip, _ in candidates:
+    for nodes, sub, _b, base_node, pred, tip, _ in candidates:
         main_idx = _path_to(pred, tip)
         lat_paths = _lateral_paths(sub, main_idx, halfwidth, rc[nodes], min_lateral_length)
         xy = rc[nodes][:, ::-1].astype(np.float64) + np.array([c0, r0], dtype=np.float64)
@@ -921,8 +935,22 @@ def roots_from_image(
     return [Root(name=f"{stem}/{k + 1}", **kw) for k, (_, kw) in enumerate(results)]
 
 
-def _trace(mask, gray, *, close_gaps, max_hole_size, min_object_size, spur_factor, min_lateral_length,
-           bridge_gaps, root_width, min_root_length, min_plant_fraction, base, offset):
+def _trace(
+    mask,
+    gray,
+    *,
+    close_gaps,
+    max_hole_size,
+    min_object_size,
+    spur_factor,
+    min_lateral_length,
+    bridge_gaps,
+    root_width,
+    min_root_length,
+    min_plant_fraction,
+    base,
+    offset,
+):
     """Mask → cleaned skeleton → graph → accepted plants.
 
     Returns (candidates, rc, halfwidth, why): candidates are (nodes, subgraph, base index,
@@ -952,7 +980,9 @@ def _trace(mask, gray, *, close_gaps, max_hole_size, min_object_size, spur_facto
         return [], rc, halfwidth, f"no skeleton reaches min_root_length={min_root_length} px"
 
     auto_base = isinstance(base, str)
-    axis_sign = {"top": (0, 1), "bottom": (0, -1), "left": (1, 1), "right": (1, -1)}[base.lower()] if auto_base else None
+    axis_sign = (
+        {"top": (0, 1), "bottom": (0, -1), "left": (1, 1), "right": (1, -1)}[base.lower()] if auto_base else None
+    )
     candidates = []
     for c, base_node in _base_nodes(base, rc, comp, eligible, (c0, r0)):
         nodes = np.nonzero(comp == c)[0]
@@ -1003,7 +1033,6 @@ def _trace(mask, gray, *, close_gaps, max_hole_size, min_object_size, spur_facto
         candidates = kept
     why = f"no elongated root-like structure reaches min_root_length={min_root_length} px"
     return candidates, rc, halfwidth, why
-
 
 
 def _ridge_sigmas(root_width: float) -> tuple[float, ...]:

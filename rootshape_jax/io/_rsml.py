@@ -26,8 +26,7 @@ from typing import Any
 from xml.sax.saxutils import escape, quoteattr
 
 import numpy as np
-from defusedxml import DefusedXmlException
-from defusedxml import ElementTree as DET
+from defusedxml import DefusedXmlException, ElementTree as DET
 
 from .._errors import InvalidRootError, RSMLError, RSMLWarning
 from .._root import ROOT_COORDINATE_LIMIT, Root, check_range
@@ -238,8 +237,7 @@ def _radius_of(node: _Node) -> tuple[np.ndarray | None, str | None]:
         if domain == "polyline":
             if values.size != pts.shape[0]:
                 return None, (
-                    f"{what} (domain polyline) has {values.size} samples for {pts.shape[0]} "
-                    "points; radius dropped"
+                    f"{what} (domain polyline) has {values.size} samples for {pts.shape[0]} points; radius dropped"
                 )
             r = values
         elif domain == "uniform":
@@ -343,9 +341,7 @@ def _closest(poly: np.ndarray, p: np.ndarray) -> tuple[float, float]:
     return float(cum[best] + u[best] * np.sqrt(seg_len2[best])), float(dist[best])
 
 
-def attachment_fraction(
-    parent: np.ndarray, lateral: np.ndarray, parent_node: int | None
-) -> tuple[float, str]:
+def attachment_fraction(parent: np.ndarray, lateral: np.ndarray, parent_node: int | None) -> tuple[float, str]:
     """Arc-length fraction of a lateral's attachment on its parent, and how it was found.
 
     The RSML ``parent-node`` (index of a parent polyline point) is used when it agrees with the
@@ -429,9 +425,7 @@ def _file_metadata(meta_el: ET.Element | None, problems: _Problems, physical_uni
         info["unit"] = "pixel"
     elif resolution is None:
         if res_raw is None:
-            problems.report(
-                "<metadata>", f"unit {unit_raw!r} without <resolution>; coordinates kept in pixels"
-            )
+            problems.report("<metadata>", f"unit {unit_raw!r} without <resolution>; coordinates kept in pixels")
         info["unit"] = "pixel"
     else:
         info["unit"] = unit_raw
@@ -534,9 +528,7 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
         pid = pid.strip() if pid and pid.strip() else str(i + 1)
         plabel = _attr(plant_el, "label")
         prefix = f"plant {pid!r}"
-        nodes = [
-            _parse_root(r, prefix, str(k + 1)) for k, r in enumerate(_children(plant_el, "root"))
-        ]
+        nodes = [_parse_root(r, prefix, str(k + 1)) for k, r in enumerate(_children(plant_el, "root"))]
         plant_info = {"plant_id": pid, "plant_label": plabel.strip() if plabel else None}
         pprops = _parse_properties(plant_el)
         species = pprops.get("species", _attr(plant_el, "species"))
@@ -553,9 +545,7 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
         plants.append(({"plant_id": str(len(plants) + 1), "plant_label": None}, nodes))
 
     all_nodes = [n for _, nodes in plants for n in _walk(nodes)]
-    is_3d = any(
-        n.points is not None and n.has_z and np.any(n.points[:, 2] != 0) for n in all_nodes
-    )
+    is_3d = any(n.points is not None and n.has_z and np.any(n.points[:, 2] != 0) for n in all_nodes)
     dim = 3 if is_3d else 2
     label_count: dict[str, int] = {}
     for n in all_nodes:
@@ -602,10 +592,10 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
         with np.errstate(over="ignore"):
             pts = node.points[:, :dim] * scale
         check_range(
-            np.where(np.isfinite(pts), pts, np.inf), limit=ROOT_COORDINATE_LIMIT,
+            np.where(np.isfinite(pts), pts, np.inf),
+            limit=ROOT_COORDINATE_LIMIT,
             what=f"{node.where}: in {info['unit']!r}",
-            fix="The file's <resolution> is too small for its coordinates; fix it, or read "
-            "with physical_units=False.",
+            fix="The file's <resolution> is too small for its coordinates; fix it, or read with physical_units=False.",
         )
         return pts
 
@@ -657,9 +647,13 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
 
     top_nodes = [n for _, nodes in plants for n in nodes]
     if strict and all(n.problem is not None for n in top_nodes):
-        what = "no root" if not top_nodes else (
-            f"none of its {len(top_nodes)} top-level root(s) has usable geometry "
-            f"(first: {top_nodes[0].where}: {top_nodes[0].problem})"
+        what = (
+            "no root"
+            if not top_nodes
+            else (
+                f"none of its {len(top_nodes)} top-level root(s) has usable geometry "
+                f"(first: {top_nodes[0].where}: {top_nodes[0].problem})"
+            )
         )
         raise RSMLError(f"{source}: nothing readable: {what}.")
     roots = []
@@ -856,9 +850,7 @@ def write_rsml(
             attrs["label"] = str(first.metadata["plant_label"])
         plant_el = ET.SubElement(scene, "plant", attrs)
         for k, r in enumerate(members):
-            _write_root(
-                plant_el, r.main, r, f"{pid}.{k + 1}", None, resolution, dim3, used_ids, r.main_radius
-            )
+            _write_root(plant_el, r.main, r, f"{pid}.{k + 1}", None, resolution, dim3, used_ids, r.main_radius)
 
     data = _serialise(top)
     if hasattr(path, "write"):
@@ -908,9 +900,7 @@ def _unique_id(wanted: Any, fallback: str, used: set[str]) -> str:
     return rid
 
 
-def _write_root(
-    parent_el, polyline, root, fallback_id, parent_node, resolution, dim3, used_ids, radius=None
-):
+def _write_root(parent_el, polyline, root, fallback_id, parent_node, resolution, dim3, used_ids, radius=None):
     """A ``<root>`` and all its nested laterals, depth first in order, with an explicit stack
     (any nesting depth)."""
     stack = [(parent_el, polyline, root, fallback_id, parent_node, radius)]
@@ -946,9 +936,7 @@ def _write_one_root(
     functions = dict(meta.get("functions") or {})
     if radius is not None:
         # The radii are the truth now: drop stale diameter/radius functions read from a file.
-        functions = {
-            n: f for n, f in functions.items() if str(n).strip().lower() not in ("diameter", "radius")
-        }
+        functions = {n: f for n, f in functions.items() if str(n).strip().lower() not in ("diameter", "radius")}
         functions["diameter"] = {
             "domain": "polyline",
             "values": 2.0 * np.asarray(radius, dtype=np.float64) * resolution,

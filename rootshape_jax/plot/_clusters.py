@@ -56,7 +56,8 @@ def check_distance_matrix(D: Any, *, what: str) -> np.ndarray:
 
 def _linkage_from(D: np.ndarray, method: str) -> np.ndarray:
     return hierarchy.linkage(
-        squareform(D, checks=False), method=method,
+        squareform(D, checks=False),
+        method=method,
         optimal_ordering=D.shape[0] <= _MAX_OPTIMAL_ORDERING,
     )
 
@@ -132,7 +133,11 @@ def plot_distance_matrix(
         fig = ax.figure
         cax = None
     im = ax.imshow(
-        ordered, cmap=cmap, vmin=0.0, interpolation="nearest", aspect="auto",
+        ordered,
+        cmap=cmap,
+        vmin=0.0,
+        interpolation="nearest",
+        aspect="auto",
         extent=(-0.5, n - 0.5, n - 0.5, -0.5),
     )
     cbar = fig.colorbar(im, cax=cax, ax=None if cax is not None else ax)
@@ -150,9 +155,7 @@ def plot_distance_matrix(
     for spine in ax.spines.values():
         spine.set_visible(False)
     if dax is not None:
-        hierarchy.dendrogram(
-            Z, ax=dax, no_labels=True, color_threshold=-1, above_threshold_color=NEUTRAL_COLOR
-        )
+        hierarchy.dendrogram(Z, ax=dax, no_labels=True, color_threshold=-1, above_threshold_color=NEUTRAL_COLOR)
         dax.set_xlim(0, 10 * n)  # scipy puts leaf i at 10 i + 5: aligned with the cells below
         dax.set_axis_off()
     if title:
@@ -245,9 +248,7 @@ def plot_dendrogram(
         if len(drawings) != n:
             raise ValueError(f"plot_dendrogram: {len(drawings)} roots for {n} leaves.")
         if not isinstance(max_roots_per_cluster, int) or max_roots_per_cluster < 1:
-            raise ValueError(
-                f"max_roots_per_cluster must be a positive integer, got {max_roots_per_cluster!r}."
-            )
+            raise ValueError(f"max_roots_per_cluster must be a positive integer, got {max_roots_per_cluster!r}.")
         check_positive("linewidth", linewidth)
 
     # Leaves under every node, to colour a link by its cluster when it stays inside one.
@@ -283,11 +284,17 @@ def plot_dendrogram(
             for j, i in enumerate(idx):
                 rax = fig.add_subplot(gs[1 + c, j], **subplot_kw(projection))
                 draw(
-                    rax, drawings[i], projection=projection, colors=cluster_color(c),
+                    rax,
+                    drawings[i],
+                    projection=projection,
+                    colors=cluster_color(c),
                     linewidth=linewidth,
                 )
                 apply_frame(
-                    rax, frame, projection=projection, invert_y=invert_y,
+                    rax,
+                    frame,
+                    projection=projection,
+                    invert_y=invert_y,
                     offset=panel_offset(drawings[i], projection),
                 )
                 clean_panel(rax, projection)
@@ -296,16 +303,25 @@ def plot_dendrogram(
             size = int(np.sum(ids == c))
             if projection != "3d":
                 row[0].set_ylabel(
-                    f"cluster {c + 1}\nn = {size}", color=cluster_color(c), fontsize=9,
-                    rotation=0, ha="right", va="center",
+                    f"cluster {c + 1}\nn = {size}",
+                    color=cluster_color(c),
+                    fontsize=9,
+                    rotation=0,
+                    ha="right",
+                    va="center",
                 )
             rows.append(row)
         add_scale_bar(rows[-1][-1], frame, unit, projection=projection)
 
     show_labels = n <= _MAX_LEAF_LABELS
     hierarchy.dendrogram(
-        Z, ax=ax, labels=labels, link_color_func=link_color, no_labels=not show_labels,
-        leaf_rotation=90, leaf_font_size=max(5, min(9, int(500 / n))),
+        Z,
+        ax=ax,
+        labels=labels,
+        link_color_func=link_color,
+        no_labels=not show_labels,
+        leaf_rotation=90,
+        leaf_font_size=max(5, min(9, int(500 / n))),
     )
     if cut is not None:
         ax.axhline(cut, color="#999999", linestyle="--", linewidth=0.8, zorder=0)

@@ -13,9 +13,7 @@ from ._draw import new_figure, slot_color
 def _as_trace(trace: Any, what: str) -> tuple[np.ndarray, np.ndarray]:
     y = np.asarray(trace, dtype=float)
     if y.ndim != 1:
-        raise ValueError(
-            f"{what}: expected a 1D array of energies per iteration, got shape {y.shape}."
-        )
+        raise ValueError(f"{what}: expected a 1D array of energies per iteration, got shape {y.shape}.")
     # Solvers pad the steps they did not take with NaN / inf: those are not iterations.
     steps = np.flatnonzero(np.isfinite(y))
     if steps.size == 0:
@@ -46,10 +44,7 @@ def plot_energy_trace(
     traces = dict(trace) if isinstance(trace, Mapping) else {None: trace}
     if not traces:
         raise ValueError("plot_energy_trace: no trace given.")
-    data = {
-        k: _as_trace(v, f"plot_energy_trace: trace {k!r}" if k else "plot_energy_trace")
-        for k, v in traces.items()
-    }
+    data = {k: _as_trace(v, f"plot_energy_trace: trace {k!r}" if k else "plot_energy_trace") for k, v in traces.items()}
     if ax is None:
         fig = new_figure((5.5, 3.6))
         ax = fig.add_subplot()
@@ -71,11 +66,16 @@ def plot_energy_trace(
     if any(k is not None for k in data):
         ax.legend(frameon=False)
     if len(data) == 1:
-        (x, y), = data.values()
+        ((x, y),) = data.values()
         change = (y[0] - y[-1]) / abs(y[0]) if y[0] != 0 else np.nan
         ax.annotate(
             f"{x.size} iterations, final {y[-1]:.4g} ({100 * change:.1f} % below the start)",
-            xy=(1, 1), xycoords="axes fraction", ha="right", va="top", fontsize=8, color="#555555",
+            xy=(1, 1),
+            xycoords="axes fraction",
+            ha="right",
+            va="top",
+            fontsize=8,
+            color="#555555",
         )
     if title:
         ax.set_title(title, fontsize=11)
@@ -107,8 +107,7 @@ def plot_explained_variance(
         raise ValueError("plot_explained_variance: eigenvalues must be a non-empty finite array.")
     if np.any(ev < -1e-12 * max(float(np.abs(ev).max()), 1e-300)):
         raise ValueError(
-            f"plot_explained_variance: eigenvalues are variances and must be >= 0, got minimum "
-            f"{ev.min():.3g}."
+            f"plot_explained_variance: eigenvalues are variances and must be >= 0, got minimum {ev.min():.3g}."
         )
     ev = np.sort(np.clip(ev, 0.0, None))[::-1]
     if ev.sum() <= 0:
@@ -126,7 +125,12 @@ def plot_explained_variance(
         fig = ax.figure
     ax.bar(x, 100 * ratio[:m], color="#7aa6c8", width=0.8, label="each component")
     ax.plot(
-        x, 100 * cum[:m], color="#1a1a1a", marker="o", markersize=3, linewidth=1.3,
+        x,
+        100 * cum[:m],
+        color="#1a1a1a",
+        marker="o",
+        markersize=3,
+        linewidth=1.3,
         label="cumulative",
     )
     if threshold is not None:
@@ -136,7 +140,11 @@ def plot_explained_variance(
             ax.axvline(needed, color="#c0392b", linestyle=":", linewidth=0.9)
         ax.annotate(
             f"{needed} component{'s' if needed > 1 else ''} explain \u2265 {100 * threshold:g} %",
-            xy=(1, 0.5), xycoords="axes fraction", ha="right", va="center", fontsize=9,
+            xy=(1, 0.5),
+            xycoords="axes fraction",
+            ha="right",
+            va="center",
+            fontsize=9,
             color="#c0392b",
         )
     ax.set_xlabel("principal component")

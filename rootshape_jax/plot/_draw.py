@@ -169,16 +169,12 @@ def as_drawing_list(xs: Any, *, what: str) -> list[Drawing]:
     elif isinstance(xs, Sequence) or isinstance(xs, np.ndarray):
         out = [as_drawing(x, what=f"{what}[{i}]") for i, x in enumerate(xs)]
     else:
-        raise TypeError(
-            f"{what}: expected a batched RootTree or a list of roots, got {type(xs).__name__}."
-        )
+        raise TypeError(f"{what}: expected a batched RootTree or a list of roots, got {type(xs).__name__}.")
     if not out:
         raise ValueError(f"{what}: no roots to draw.")
     dims = {d.dim for d in out}
     if len(dims) != 1:
-        raise ValueError(
-            f"{what}: roots mix dimensions {sorted(dims)}; draw 2D and 3D roots apart."
-        )
+        raise ValueError(f"{what}: roots mix dimensions {sorted(dims)}; draw 2D and 3D roots apart.")
     return out
 
 
@@ -187,16 +183,12 @@ def as_drawing_grid(xs: Any, *, what: str) -> list[list[Drawing]]:
     if isinstance(xs, (RootTree, SRVFTree)):
         tree = _curves(xs, what)
         if len(tree.batch_shape) != 2:
-            raise ValueError(
-                f"{what}: expected a RootTree with batch shape (rows, columns), got "
-                f"{tree.batch_shape}."
-            )
+            raise ValueError(f"{what}: expected a RootTree with batch shape (rows, columns), got {tree.batch_shape}.")
         grid = _tree_drawings(tree)
         return [list(row) for row in grid]
     if isinstance(xs, Root) or not isinstance(xs, Sequence):
         raise TypeError(
-            f"{what}: expected a RootTree of batch shape (rows, columns) or a list of rows, got "
-            f"{type(xs).__name__}."
+            f"{what}: expected a RootTree of batch shape (rows, columns) or a list of rows, got {type(xs).__name__}."
         )
     rows = [as_drawing_list(row, what=f"{what}[{i}]") for i, row in enumerate(xs)]
     if not rows:
@@ -243,11 +235,7 @@ def axis_labels(dim: int, projection: str, unit: str | None) -> tuple[str, ...]:
 def _is_single_color(colors: Any) -> bool:
     if isinstance(colors, str):
         return True
-    return (
-        isinstance(colors, tuple)
-        and len(colors) in (3, 4)
-        and all(isinstance(c, (int, float)) for c in colors)
-    )
+    return isinstance(colors, tuple) and len(colors) in (3, 4) and all(isinstance(c, (int, float)) for c in colors)
 
 
 def check_colors(colors: Any) -> None:
@@ -288,14 +276,11 @@ def segment_widths(radius: np.ndarray, reference: float, linewidth: float) -> np
     radius of the segment relative to ``reference`` (the root's largest radius), clipped to
     ``[MIN_WIDTH, RADIUS_WIDTH] x linewidth`` so that thin laterals stay visible."""
     r = 0.5 * (radius[:-1] + radius[1:])
-    return np.clip(RADIUS_WIDTH * linewidth * r / reference, MIN_WIDTH * linewidth,
-                   RADIUS_WIDTH * linewidth)
+    return np.clip(RADIUS_WIDTH * linewidth * r / reference, MIN_WIDTH * linewidth, RADIUS_WIDTH * linewidth)
 
 
 def _radius_reference(drawing: Drawing) -> float:
-    rs = ([drawing.main_radius] if drawing.main_radius is not None else []) + [
-        r for _, r in drawing.lateral_radii
-    ]
+    rs = ([drawing.main_radius] if drawing.main_radius is not None else []) + [r for _, r in drawing.lateral_radii]
     ref = max((float(np.max(r)) for r in rs if r.size), default=0.0)
     return ref if np.isfinite(ref) and ref > 0 else 0.0
 
@@ -348,7 +333,12 @@ def draw(
 
         def add(lines, cs, lw, z):
             lc = LineCollection(
-                lines, colors=cs, linewidths=lw, alpha=alpha, zorder=z, capstyle="round",
+                lines,
+                colors=cs,
+                linewidths=lw,
+                alpha=alpha,
+                zorder=z,
+                capstyle="round",
                 joinstyle="round",
             )
             ax.add_collection(lc, autolim=True)
@@ -366,8 +356,13 @@ def draw(
         pts = np.stack([p[cols] for _, p in drawing.nulls])
         ncol = [_lateral_color(k, colors, slot_colors) for k, _ in drawing.nulls]
         ax.scatter(
-            *pts.T, s=(3.5 * linewidth) ** 2, facecolors="none", edgecolors=ncol,
-            linewidths=0.8 * linewidth, alpha=alpha, zorder=zorder + 0.2,
+            *pts.T,
+            s=(3.5 * linewidth) ** 2,
+            facecolors="none",
+            edgecolors=ncol,
+            linewidths=0.8 * linewidth,
+            alpha=alpha,
+            zorder=zorder + 0.2,
         )
 
 
@@ -491,8 +486,16 @@ def add_scale_bar(ax, frame: Frame, unit: str | None, *, projection: str) -> Non
     length = nice_length(float(frame.span[0]))
     label = f"{length:g} {unit}" if unit else f"{length:g}"
     bar = AnchoredSizeBar(
-        ax.transData, length, label, loc="lower right", frameon=False, pad=0.1, sep=2,
-        size_vertical=0, color="#333333", fontproperties={"size": 8},
+        ax.transData,
+        length,
+        label,
+        loc="lower right",
+        frameon=False,
+        pad=0.1,
+        sep=2,
+        size_vertical=0,
+        color="#333333",
+        fontproperties={"size": 8},
     )
     ax.add_artist(bar)
 

@@ -15,7 +15,6 @@ Conventions shared by every function here:
 from __future__ import annotations
 
 import dataclasses
-
 from collections.abc import Sequence
 from typing import Any
 
@@ -108,8 +107,13 @@ def plot_root(
                 "pass ax=None or an Axes made with the matching projection."
             )
     draw(
-        ax, drawing, projection=projection, colors=colors, slot_colors=slot_colors,
-        linewidth=linewidth, show_nulls=show_nulls,
+        ax,
+        drawing,
+        projection=projection,
+        colors=colors,
+        slot_colors=slot_colors,
+        linewidth=linewidth,
+        show_nulls=show_nulls,
     )
     apply_frame(ax, frame, projection=projection, invert_y=invert_y)
     if own_axes:
@@ -157,9 +161,7 @@ def _panel_grid(fig, nrows: int, ncols: int, n_used: int, projection: str, grids
     return axes
 
 
-def _draw_panels(
-    axes, drawings, frame, *, projection, invert_y, align_bases, style, unit, scale_bar=True
-):
+def _draw_panels(axes, drawings, frame, *, projection, invert_y, align_bases, style, unit, scale_bar=True):
     for ax, d in zip(axes, drawings):
         draw(ax, d, projection=projection, **style)
         offset = panel_offset(d, projection) if align_bases else None
@@ -241,8 +243,14 @@ def plot_geodesic(
             raise ValueError(f"plot_geodesic: {len(axes)} axes for {n} steps; give one per step.")
         fig = axes[0].figure
     _draw_panels(
-        axes, drawings, frame, projection=projection, invert_y=invert_y, align_bases=False,
-        style=style, unit=unit if unit is not None else common_unit(drawings),
+        axes,
+        drawings,
+        frame,
+        projection=projection,
+        invert_y=invert_y,
+        align_bases=False,
+        style=style,
+        unit=unit if unit is not None else common_unit(drawings),
     )
     for i, (ax, tau) in enumerate(zip(axes, taus)):
         label = f"\u03c4 = {_fmt(tau, 2)}"
@@ -290,9 +298,7 @@ def plot_mean(
     drawings = as_drawing_list(samples, what="plot_mean: samples")
     mean_d = as_drawing(mean, what="plot_mean: mean")
     if mean_d.dim != drawings[0].dim:
-        raise ValueError(
-            f"plot_mean: the mean is {mean_d.dim}D but the samples are {drawings[0].dim}D."
-        )
+        raise ValueError(f"plot_mean: the mean is {mean_d.dim}D but the samples are {drawings[0].dim}D.")
     style = _style(colors, slot_colors, linewidth, False)
     projection = resolve_projection(mean_d.dim, projection)
     if not isinstance(max_samples, int) or max_samples < 1:
@@ -322,19 +328,37 @@ def plot_mean(
     inner = outer[0, 0].subgridspec(nrows, ncols)
     sample_axes = _panel_grid(fig, nrows, ncols, n, projection, gridspec=inner)
     _draw_panels(
-        sample_axes, shown, frame, projection=projection, invert_y=invert_y, align_bases=True,
-        style=style, unit=unit,
+        sample_axes,
+        shown,
+        frame,
+        projection=projection,
+        invert_y=invert_y,
+        align_bases=True,
+        style=style,
+        unit=unit,
     )
     mean_ax = fig.add_subplot(outer[0, 1], **subplot_kw(projection))
     mean_style = dict(style, linewidth=1.6 * linewidth)
     _draw_panels(
-        [mean_ax], [mean_d], frame, projection=projection, invert_y=invert_y, align_bases=True,
-        style=mean_style, unit=unit,
+        [mean_ax],
+        [mean_d],
+        frame,
+        projection=projection,
+        invert_y=invert_y,
+        align_bases=True,
+        style=mean_style,
+        unit=unit,
     )
     more = f" (first {n} of {len(drawings)})" if n < len(drawings) else ""
     sample_axes[0].annotate(
-        f"Input roots, n = {len(drawings)}{more}", xy=(0, 1), xycoords="axes fraction",
-        xytext=(0, 6), textcoords="offset points", fontsize=10, ha="left", va="bottom",
+        f"Input roots, n = {len(drawings)}{more}",
+        xy=(0, 1),
+        xycoords="axes fraction",
+        xytext=(0, 6),
+        textcoords="offset points",
+        fontsize=10,
+        ha="left",
+        va="bottom",
     )
     mean_ax.set_title("Mean", fontsize=11)
     _suptitle(fig, title)
@@ -403,9 +427,7 @@ def plot_modes(
     if explained is not None:
         explained = np.asarray(explained, dtype=float).reshape(-1)
         if explained.shape[0] < len(rows):
-            raise ValueError(
-                f"plot_modes: explained has {explained.shape[0]} values for {len(rows)} components."
-            )
+            raise ValueError(f"plot_modes: explained has {explained.shape[0]} values for {len(rows)} components.")
     flat = [d for row in rows for d in row]
     style = _style(colors, True, linewidth, False)
     projection = resolve_projection(flat[0].dim, projection)
@@ -419,8 +441,15 @@ def plot_modes(
     for i, row in enumerate(rows):
         axes = [fig.add_subplot(gs[i, j], **subplot_kw(projection)) for j in range(ncols)]
         _draw_panels(
-            axes, row, frame, projection=projection, invert_y=invert_y, align_bases=True,
-            style=style, unit=unit, scale_bar=(i == nrows - 1),
+            axes,
+            row,
+            frame,
+            projection=projection,
+            invert_y=invert_y,
+            align_bases=True,
+            style=style,
+            unit=unit,
+            scale_bar=(i == nrows - 1),
         )
         label = f"PC {i + 1}"
         if explained is not None:
@@ -467,15 +496,12 @@ def plot_samples_by_distance(
     drawings = as_drawing_list(samples, what="plot_samples_by_distance: samples")
     dist = np.asarray(distances_to_mean, dtype=float).reshape(-1)
     if dist.shape[0] != len(drawings):
-        raise ValueError(
-            f"plot_samples_by_distance: {dist.shape[0]} distances for {len(drawings)} samples."
-        )
+        raise ValueError(f"plot_samples_by_distance: {dist.shape[0]} distances for {len(drawings)} samples.")
     if not np.all(np.isfinite(dist)):
         raise ValueError("plot_samples_by_distance: distances must be finite.")
     if not isinstance(n_groups, int) or not 1 <= n_groups <= len(drawings):
         raise ValueError(
-            f"n_groups must be an integer between 1 and the number of samples ({len(drawings)}), "
-            f"got {n_groups!r}."
+            f"n_groups must be an integer between 1 and the number of samples ({len(drawings)}), got {n_groups!r}."
         )
     if not isinstance(max_per_group, int) or max_per_group < 1:
         raise ValueError(f"max_per_group must be a positive integer, got {max_per_group!r}.")
@@ -497,8 +523,13 @@ def plot_samples_by_distance(
     for g, members in enumerate(groups):
         axes = [fig.add_subplot(gs[g, j], **subplot_kw(projection)) for j in range(len(members))]
         _draw_panels(
-            axes, [drawings[i] for i in members], frame, projection=projection,
-            invert_y=invert_y, align_bases=True, style=style,
+            axes,
+            [drawings[i] for i in members],
+            frame,
+            projection=projection,
+            invert_y=invert_y,
+            align_bases=True,
+            style=style,
             unit=unit if unit is not None else common_unit(drawings),
             scale_bar=(g == n_groups - 1),
         )
@@ -507,7 +538,10 @@ def plot_samples_by_distance(
         lo, hi = dist[members].min(), dist[members].max()
         if projection != "3d":
             axes[0].set_ylabel(
-                f"{names[g]}\nd {_fmt(lo)}\u2013{_fmt(hi)}", fontsize=9, rotation=0, ha="right",
+                f"{names[g]}\nd {_fmt(lo)}\u2013{_fmt(hi)}",
+                fontsize=9,
+                rotation=0,
+                ha="right",
                 va="center",
             )
         grid.append(axes)
@@ -558,16 +592,11 @@ def plot_regression_sweep(
     drawings = as_drawing_list(trees, what="plot_regression_sweep: trees")
     values = np.asarray(values, dtype=float).reshape(-1)
     if values.shape[0] != len(drawings):
-        raise ValueError(
-            f"plot_regression_sweep: {values.shape[0]} values for {len(drawings)} roots."
-        )
+        raise ValueError(f"plot_regression_sweep: {values.shape[0]} values for {len(drawings)} roots.")
     if measured is not None:
         measured = np.asarray(measured, dtype=float).reshape(-1)
         if measured.shape[0] != len(drawings):
-            raise ValueError(
-                f"plot_regression_sweep: {measured.shape[0]} measured values for "
-                f"{len(drawings)} roots."
-            )
+            raise ValueError(f"plot_regression_sweep: {measured.shape[0]} measured values for {len(drawings)} roots.")
     style = _style(colors, True, linewidth, False)
     projection = resolve_projection(drawings[0].dim, projection)
     frame = base_frame(drawings, projection, False)
@@ -576,8 +605,14 @@ def plot_regression_sweep(
     fig = new_figure((n * w + 0.3, h + 0.6 + (0.45 if title != "" else 0)))
     axes = _panel_grid(fig, 1, n, n, projection)
     _draw_panels(
-        axes, drawings, frame, projection=projection, invert_y=invert_y, align_bases=True,
-        style=style, unit=unit if unit is not None else common_unit(drawings),
+        axes,
+        drawings,
+        frame,
+        projection=projection,
+        invert_y=invert_y,
+        align_bases=True,
+        style=style,
+        unit=unit if unit is not None else common_unit(drawings),
     )
     u = f" {trait_unit}" if trait_unit else ""
     for i, ax in enumerate(axes):
