@@ -105,7 +105,9 @@ _SWEEP_CHUNK = 64
 
 
 @functools.partial(jax.jit, static_argnames="curves")
-def _synthesize(offset, slopes, s_offset, s_slopes, origin, min_len, trait_mean, trait_scale, v, curves, thick=None):
+def _synthesize(
+    offset, slopes, s_offset, s_slopes, origin, min_len, max_len, trait_mean, trait_scale, v, curves, thick=None
+):
     # Plain jax.jit on the arrays it needs: one regressed root is dispatch-bound, so no Module
     # flattening, and the affine map is unrolled over the few traits (XLA:CPU's
     # dot for a (l,) × (l, p) product costs more than the whole root).
@@ -115,6 +117,9 @@ def _synthesize(offset, slopes, s_offset, s_slopes, origin, min_len, trait_mean,
         s = jnp.clip(s_offset + sum(z[i] * s_slopes[i] for i in range(s_slopes.shape[0])), 0.0, 1.0)
         w = trapezoid_weights(qa.shape[1], qa.dtype)
         length = jnp.sum(jnp.sum(qa * qa, axis=0) * w[:, None], axis=0)
+        # As `_tangent.exp_map`: laterals longer than the data's longest are scaled down to it.
+        too_long = (jnp.arange(qa.shape[-1]) > 0) & (length > max_len)
+        qa = qa * jnp.where(too_long, jnp.sqrt(max_len / jnp.where(too_long, length, 1.0)), 1.0)
         keep = (length >= min_len).at[0].set(True)  # slot 0 is the main root
         real = keep[1:]
         if curves and thick is None:
@@ -181,6 +186,7 @@ def _synthesize_method(reg: "TraitRegression", values, *, srvf: bool = False) ->
         reg.s_slopes,
         pc.mean.origin,
         pc.min_lateral_length,
+        pc.max_lateral_length,
         reg.trait_mean,
         reg.trait_scale,
         _check_values(reg, values),
