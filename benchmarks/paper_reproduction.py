@@ -318,7 +318,8 @@ def limit_laterals(roots, n: int | None):
     """The roots with only their first `n` laterals (all of them when n is None)."""
     if n is None:
         return list(roots)
-    return [dataclasses.replace(r, laterals=r.laterals[:n], attach=r.attach[:n], children=()) for r in roots]
+    # select_laterals keeps radii with their laterals; deeper orders are dropped here.
+    return [dataclasses.replace(r.select_laterals(range(min(n, r.n_laterals))), children=()) for r in roots]
 
 
 def dataset(cfg: Config):
