@@ -35,7 +35,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ._assignment import linear_assignment
 from ._curves import l2_norm_squared, safe_norm, safe_normalise, safe_sqrt, tiny
 from ._devices import split_over_devices
-from ._metric import TERMS, MetricTerms, Weights, level_weight, pair_costs, preshape_terms
+from ._metric import MetricTerms, Weights, level_weight, null_costs, pair_costs, pair_lower_bounds, preshape_terms
 from ._rotation import optimal_rotation
 from ._tree import SRVFTree
 from ._warp import apply_warp_srvf, dp_warp
@@ -114,14 +114,16 @@ class RegistrationOptions(eqx.Module):
         return self
 
 
+OPTION_NAMES = ("rotation", "max_iterations", "rtol", "neighbourhood", "prune", "dp_batch_size", "assignment")
+
+
 def _with_static(o: RegistrationOptions, **static) -> RegistrationOptions:
+    # Not through __init__: inside jit the array fields are tracers, which it would not accept.
     new = object.__new__(RegistrationOptions)
-    for f in ("rotation", "max_iterations", "rtol", "neighbourhood", "prune", "dp_batch_size", "assignment"):
+    for f in OPTION_NAMES:
         object.__setattr__(new, f, static.get(f, getattr(o, f)))
     return new
 
-
-OPTION_NAMES = ("rotation", "max_iterations", "rtol", "neighbourhood", "prune", "dp_batch_size", "assignment")
 
 #: The Karcher mean's registration settings: more alternation rounds and a tighter tolerance than
 #: `register`'s defaults (the mean compares energies across steps, so each must be converged),
@@ -280,12 +282,7 @@ def prepare(a: SRVFTree, b: SRVFTree, weights: Weights) -> Prepared:
     La = l2_norm_squared(a.q) * a.mask
     Lb = l2_norm_squared(b.q) * b.mask
     both = a.mask[:, :, None] & b.mask[:, None, :]
-    # A real lateral matched to a null costs its whole λ-weighted norm; null–null costs 0.
-    others = jnp.where(
-        a.mask[:, :, None],
-        (lam_s * La)[:, :, None],
-        jnp.where(b.mask[:, None, :], (lam_s * Lb)[:, None, :], 0.0),
-    )
+    others = null_costs(weights, a, b, La, Lb)
     fixed = pair_costs(weights, a, b).astype(dtype)
     return Prepared(a, b, weights, lam_m, lam_s, La, Lb, fixed, others, both, direction_cone(a.q), direction_cone(b.q))
 
@@ -300,9 +297,10 @@ def lower_bounds(p: Prepared, O: Float[Array, "B d d"]) -> Float[Array, "B K K"]
     ``<qa, w> ≤ max(cos φ, 0) √(La Lb)``, where ``φ = angle(axes) − half_a − half_b``. With
     φ ≤ 0 this is plain Cauchy–Schwarz. Each metric term turns this bound of the branch energy
     into its share of the pair's cost (`MetricTerm.pair_lower_bound`: λ times it for the
-    lateral DP terms, the exact DP-free cost for the others), and null costs are exact. So every entry is at most the true cost, and an assignment that
-    is optimal with bounds in place of unknown costs, and picks only known ones, is optimal for
-    the true costs (`lazy_assignment`).
+    lateral DP terms, the exact DP-free cost for the others), and null costs are exact. So
+    every entry is at most the true cost, and an assignment that is optimal with bounds in
+    place of unknown costs, and picks only known ones, is optimal for the true costs
+    (`lazy_assignment`).
     """
     (ca, half_a), (cb, half_b) = p.cone_a, p.cone_b
     dtype = p.La.dtype
@@ -317,10 +315,7 @@ def lower_bounds(p: Prepared, O: Float[Array, "B d d"]) -> Float[Array, "B K K"]
     cos_cap = jnp.where(convex, jnp.clip(jnp.cos(jnp.maximum(phi, 0.0)), 0.0, 1.0), 1.0)
     sqrt_LaLb = jnp.sqrt(p.La)[:, :, None] * jnp.sqrt(p.Lb)[:, None, :]
     dp_bound = jnp.maximum(p.La[:, :, None] + p.Lb[:, None, :] - 2 * cos_cap * sqrt_LaLb, 0.0)
-    lower = 0.0
-    for term in TERMS:  # each term's share: λ·dp_bound for the lateral DP terms, exact otherwise
-        lower = lower + term.pair_lower_bound(p.weights, p.a, p.b, dp_bound)
-    return jnp.where(p.both, lower, p.others)
+    return jnp.where(p.both, pair_lower_bounds(p.weights, p.a, p.b, dp_bound), p.others)
 
 
 def run_dp_slabs(need, pair_of, E, G=None, *, neighbourhood: int, dp_batch_size: int):

@@ -71,7 +71,7 @@ from ._engine import (
 )
 from ._errors import ConvergenceError
 from ._executor import executor_for
-from ._metric import Weights, level_weight, pair_costs, preshape_terms
+from ._metric import Weights, level_weight, null_costs, pair_lower_bounds, preshape_terms
 from ._rotation import optimal_rotation
 from ._tangent import TreeParams, params_of, params_to_tree, unwhiten, whiten, whitening
 from ._tree import RootTree, SRVFTree, batch_size, check_compatible, to_curves, to_srvf
@@ -194,18 +194,12 @@ def _lower_bound_energy(a: SRVFTree, b: SRVFTree, weights: Weights, assignment: 
     """A lower bound of ``min_g d²(a, g·b)`` needing no DP: ``λm(||q0a|| − ||q0b||)²`` plus the
     optimal assignment of the laterals' lower bounds (exact null and DP-free pair costs).
     Cauchy–Schwarz bounds every DP term from below for any rotation and reparameterisation."""
-    dtype = a.q0.dtype
-    lam_m = level_weight(weights, "main", dtype)
-    lam_s = level_weight(weights, "lateral", dtype)
+    lam_m = level_weight(weights, "main", a.q0.dtype)
     La = l2_norm_squared(a.q) * a.mask
     Lb = l2_norm_squared(b.q) * b.mask
     both = a.mask[:, None] & b.mask[None, :]
-    lower = lam_s * (jnp.sqrt(La)[:, None] - jnp.sqrt(Lb)[None, :]) ** 2 + pair_costs(weights, a, b)
-    C = jnp.where(
-        both,
-        lower,
-        jnp.where(a.mask[:, None], lam_s * La[:, None], jnp.where(b.mask[None, :], lam_s * Lb[None, :], 0.0)),
-    )
+    cauchy_schwarz = (jnp.sqrt(La)[:, None] - jnp.sqrt(Lb)[None, :]) ** 2  # of ||qa − w||², any warp
+    C = jnp.where(both, pair_lower_bounds(weights, a, b, cauchy_schwarz), null_costs(weights, a, b, La, Lb))
     perm = linear_assignment(C, method=assignment)
     lap = jnp.sum(jnp.take_along_axis(C, perm[:, None], axis=1))
     L0a = l2_norm_squared(a.q0)

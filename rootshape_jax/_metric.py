@@ -114,6 +114,26 @@ def pair_costs(weights: Weights, a: SRVFTree, b: SRVFTree) -> Float[Array, "*B K
     return sum(parts[1:], parts[0])
 
 
+def pair_lower_bounds(weights: Weights, a: SRVFTree, b: SRVFTree, dp_bound: Array) -> Float[Array, "*B K K"]:
+    """A DP-free lower bound of every real–real lateral pair's cost, summed over the terms
+    (`MetricTerm.pair_lower_bound`), from `dp_bound`, a lower bound of the branch energy."""
+    lower = 0.0
+    for term in TERMS:
+        lower = lower + term.pair_lower_bound(weights, a, b, dp_bound)
+    return lower
+
+
+def null_costs(weights: Weights, a: SRVFTree, b: SRVFTree, La: Array, Lb: Array) -> Float[Array, "*B K K"]:
+    """Exact cost of the lateral pairs that are not both real: a real lateral matched to a null
+    costs its whole λ-weighted norm (`La`, `Lb`: lengths ``||q||²``, 0 for nulls); null–null 0."""
+    lam = level_weight(weights, "lateral", La.dtype)
+    return jnp.where(
+        a.mask[..., :, None],
+        (lam * La)[..., :, None],
+        jnp.where(b.mask[..., None, :], (lam * Lb)[..., None, :], 0.0),
+    )
+
+
 def preshape_terms(a: SRVFTree, b: SRVFTree, weights: Weights | None = None) -> MetricTerms:
     """Weighted terms of the squared pre-shape distance, slot by slot (no registration).
 
