@@ -33,12 +33,12 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ._assignment import linear_assignment
-from ._curves import l2_norm_squared, safe_norm, safe_normalise, safe_sqrt, tiny
+from ._curves import l2_norm_squared, safe_norm, safe_normalise, safe_sqrt, tiny, trapezoid_weights
 from ._devices import split_over_devices
 from ._metric import MetricTerms, Weights, level_weight, null_costs, pair_costs, pair_lower_bounds, preshape_terms
 from ._rotation import optimal_rotation
 from ._tree import SRVFTree
-from ._warp import apply_warp_srvf, dp_warp
+from ._warp import apply_warp_srvf, dp_warp_if
 
 # --------------------------------------------------------------------------------------------
 # Options and result
@@ -249,6 +249,42 @@ def direction_cone(q: Float[Array, "*B T C"]) -> tuple[Array, Array]:
     return axis, jnp.where(has_axis, half, jnp.pi)
 
 
+#: Blocks per branch for the refined bound (`refined_energy_bounds`); 8 measured best (fewer
+#: DPs saved at 4, no more at 16 on CPlantBox pea).
+N_BLOCKS = 8
+
+
+def block_cones(q: Float[Array, "*B T C"], n_blocks: int) -> tuple[Array, Array]:
+    """`direction_cone` of each of `n_blocks` consecutive node ranges of q.
+
+    Block j holds nodes ``e_j … e_{j+1}`` inclusive (``e = round(linspace(0, T−1, n+1))``):
+    neighbouring blocks share their end node, so any point interpolated between two adjacent
+    nodes lies in one block's cone. Returns axes ``[*B, n, C]`` and half-angles ``[*B, n]``.
+    """
+    T = q.shape[-2]
+    edges = np.round(np.linspace(0, T - 1, n_blocks + 1)).astype(int)
+    member = np.zeros((n_blocks, T), bool)
+    for j in range(n_blocks):
+        member[j, edges[j] : edges[j + 1] + 1] = True
+    n = safe_norm(q)
+    u = safe_normalise(q)
+    axis = safe_normalise(jnp.einsum("jt,...tc->...jc", member.astype(q.dtype), q * n[..., None]))
+    cos = jnp.einsum("...tc,...jc->...jt", u, axis)
+    angle = jnp.arccos(jnp.clip(cos, -1.0, 1.0))
+    half = jnp.max(jnp.where(member & (n[..., None, :] > 0), angle, 0.0), axis=-1)
+    has_axis = safe_norm(axis) > 0
+    return axis, jnp.where(has_axis, half, jnp.pi)
+
+
+def _cone_cap(cos_axes: Array, half: Array, dtype) -> Array:
+    """``max(cos(angle − half), 0)`` at angle ``arccos(cos_axes)``: a cap of the cosine between
+    directions of two convex cones whose axes are that far apart and whose half-angles sum to
+    `half` (callers use 1 where a cone is not convex). arccos near ±1 loses half the digits, so
+    the angle is shrunk by ``4√ε`` to stay on the safe side."""
+    phi = jnp.arccos(jnp.clip(cos_axes, -1.0, 1.0)) - half - 4 * float(jnp.finfo(dtype).eps) ** 0.5
+    return jnp.clip(jnp.cos(jnp.maximum(phi, 0.0)), 0.0, 1.0)
+
+
 def _identity_grid(T: int, dtype) -> Array:
     return jnp.linspace(0.0, 1.0, T, dtype=dtype)
 
@@ -272,6 +308,9 @@ class Prepared(eqx.Module):
     both: Array  # [B, K, K] both slots real
     cone_a: tuple
     cone_b: tuple
+    dir_a: Array  # [B, K, T, C] unit direction of each node of a (0 where q = 0)
+    mass_a: Array  # [B, K, T] trapezoid weight times |q|² of each node of a
+    blocks_b: tuple  # block cones of b (`block_cones`): axes [B, K, N_BLOCKS, C], half-angles
 
 
 def prepare(a: SRVFTree, b: SRVFTree, weights: Weights) -> Prepared:
@@ -284,11 +323,30 @@ def prepare(a: SRVFTree, b: SRVFTree, weights: Weights) -> Prepared:
     both = a.mask[:, :, None] & b.mask[:, None, :]
     others = null_costs(weights, a, b, La, Lb)
     fixed = pair_costs(weights, a, b).astype(dtype)
-    return Prepared(a, b, weights, lam_m, lam_s, La, Lb, fixed, others, both, direction_cone(a.q), direction_cone(b.q))
+    T = a.q.shape[-2]
+    mass_a = jnp.sum(a.q**2, axis=-1) * trapezoid_weights(T, dtype)
+    return Prepared(
+        a,
+        b,
+        weights,
+        lam_m,
+        lam_s,
+        La,
+        Lb,
+        fixed,
+        others,
+        both,
+        direction_cone(a.q),
+        direction_cone(b.q),
+        safe_normalise(a.q),
+        mass_a,
+        block_cones(b.q, min(N_BLOCKS, T - 1)),
+    )
 
 
 def lower_bounds(p: Prepared, O: Float[Array, "B d d"]) -> Float[Array, "B K K"]:
-    """A lower bound of every lateral pair's cost at rotations O, without any DP.
+    """A lower bound of every lateral pair's branch energy ``||qa − w||²`` at rotations O,
+    without any DP (the cost bounds are `bound_costs` of it).
 
     Why pruning with it is exact: ``||qa − w||² = La + Lb − 2<qa, w>`` for the warped,
     norm-preserved w (`warp_preserving_norm`). Every value of w is a positive multiple of an
@@ -300,7 +358,8 @@ def lower_bounds(p: Prepared, O: Float[Array, "B d d"]) -> Float[Array, "B K K"]
     lateral DP terms, the exact DP-free cost for the others), and null costs are exact. So
     every entry is at most the true cost, and an assignment that is optimal with bounds in
     place of unknown costs, and picks only known ones, is optimal for the true costs
-    (`lazy_assignment`).
+    (`lazy_assignment`). `refined_energy_bounds` is a tighter bound for the pairs the
+    assignment keeps picking.
     """
     (ca, half_a), (cb, half_b) = p.cone_a, p.cone_b
     dtype = p.La.dtype
@@ -308,57 +367,115 @@ def lower_bounds(p: Prepared, O: Float[Array, "B d d"]) -> Float[Array, "B K K"]
         cos_axes = jnp.einsum("bie,bjd,bed->bij", ca, cb, O)
     else:
         cos_axes = jnp.einsum("bie,bje->bij", ca, rotate_batch(cb, O))
-    phi = jnp.arccos(jnp.clip(cos_axes, -1.0, 1.0)) - half_a[:, :, None] - half_b[:, None, :]
-    # Rounding margin (arccos near ±1 loses half the digits): keep the bound on the safe side.
-    phi = phi - 4 * float(jnp.finfo(dtype).eps) ** 0.5
+    # The angle between the cones is at least the angle of the axes minus both half-angles.
+    cos_cap = _cone_cap(cos_axes, half_a[:, :, None] + half_b[:, None, :], dtype)
     convex = (half_a[:, :, None] < jnp.pi / 2) & (half_b[:, None, :] < jnp.pi / 2)
-    cos_cap = jnp.where(convex, jnp.clip(jnp.cos(jnp.maximum(phi, 0.0)), 0.0, 1.0), 1.0)
+    cos_cap = jnp.where(convex, cos_cap, 1.0)
     sqrt_LaLb = jnp.sqrt(p.La)[:, :, None] * jnp.sqrt(p.Lb)[:, None, :]
-    dp_bound = jnp.maximum(p.La[:, :, None] + p.Lb[:, None, :] - 2 * cos_cap * sqrt_LaLb, 0.0)
-    return jnp.where(p.both, pair_lower_bounds(p.weights, p.a, p.b, dp_bound), p.others)
+    return jnp.maximum(p.La[:, :, None] + p.Lb[:, None, :] - 2 * cos_cap * sqrt_LaLb, 0.0)
+
+
+def bound_costs(p: Prepared, energy_bound: Float[Array, "B K K"]) -> Float[Array, "B K K"]:
+    """Lower bounds of the pair costs from lower bounds of the branch energies (exact null
+    costs where a slot is null)."""
+    return jnp.where(p.both, pair_lower_bounds(p.weights, p.a, p.b, energy_bound), p.others)
+
+
+def refined_energy_bounds(p: Prepared, axes_b: Array, lanes: Array) -> Array:
+    """A tighter lower bound of the branch energy of the lateral pairs `lanes` (flat indices
+    into ``[B, K, K]``), given b's block-cone axes rotated into place (`axes_b`).
+
+    Why it is a bound: in ``<qa, w> = Σ_t h_t <qa_t, w_t>`` (trapezoid weights h, the grid
+    nodes t of a), each w_t is a positive multiple of an interpolation between two adjacent
+    nodes of b, so it lies in the cone of one block j(t) of b (`block_cones`), and j(t) can be
+    taken nondecreasing in t because the warp is. So ``<qa_t, w_t> ≤ |qa_t| |w_t| c(t, j(t))``
+    with ``c`` the cap of the angle between qa_t's direction and block j's cone, and by
+    Cauchy–Schwarz ``<qa, w> ≤ √(Σ_t h_t |qa_t|² c²) · √(Σ_t h_t |w_t|²) ≤ √(M Lb)``, where
+    ``M`` is the largest ``Σ_t h_t |qa_t|² c(t, j(t))²`` over nondecreasing maps j — a small
+    DP over (t, j) — and ``Σ_t h_t |w_t|² = Lb`` since w keeps qb's norm. Hence
+    ``||qa − w||² ≥ La + Lb − 2√(M Lb)``, with a margin of a few ε for rounding. Unlike
+    `lower_bounds` it sees where along the branches the directions differ.
+    """
+    B, K = p.La.shape
+    dtype = p.La.dtype
+    bi, rem = jnp.divmod(lanes, K * K)
+    i, j = jnp.divmod(rem, K)
+    u = p.dir_a[bi, i]  # [S, T, C]
+    mass = p.mass_a[bi, i]  # [S, T]
+    axes = axes_b[bi, j]  # [S, n, C]
+    half = p.blocks_b[1][bi, j]  # [S, n]
+    cap = _cone_cap(jnp.einsum("stc,snc->stn", u, axes), half[:, None, :], dtype)
+    cap = jnp.where(half[:, None, :] < jnp.pi / 2, cap, 1.0)
+    gain = mass[:, :, None] * cap**2  # [S, T, n]
+
+    def node(best, g):
+        return lax.cummax(best, axis=1) + g, None
+
+    best, _ = lax.scan(node, jnp.zeros_like(gain[:, 0]), jnp.moveaxis(gain, 1, 0))
+    M = jnp.max(best, axis=1)
+    La, Lb = p.La[bi, i], p.Lb[bi, j]
+    margin = 16 * float(jnp.finfo(dtype).eps) * (La + Lb)
+    return jnp.maximum(La + Lb - 2 * jnp.sqrt(Lb * M) - margin, 0.0)
+
+
+def _slab_size(n_items: int, largest: int) -> int:
+    # Small slabs: the DP is as efficient at 32 lanes as at 256, and less padding is solved.
+    return min(largest, max(8, -(-n_items // 16)))
+
+
+def run_in_slabs(need, step, carry, *, slab: int):
+    """``step(lanes, carry)`` over the items flagged in `need`, `slab` lanes at a time.
+
+    One call site, compiled once, whatever the number of items needed (a loop with a
+    data-dependent trip count): skipped items cost nothing. Padding lanes hold index
+    ``len(need)``; `step` clips them for reading and drops them when scattering.
+    """
+    n_items = need.shape[0]
+    n_pad = -(-n_items // slab) * slab
+    (lanes_all,) = jnp.nonzero(need, size=n_pad, fill_value=n_items)
+
+    def body(k, carry):
+        return step(lax.dynamic_slice(lanes_all, (k * slab,), (slab,)), carry)
+
+    return lax.fori_loop(0, (jnp.sum(need) + slab - 1) // slab, body, carry)
 
 
 def run_dp_slabs(need, pair_of, E, G=None, *, neighbourhood: int, dp_batch_size: int):
-    """Solve the DPs of the items flagged in `need` in slabs of a fixed size.
+    """Solve the DPs of the items flagged in `need` in slabs (`run_in_slabs`).
 
-    `pair_of(lanes)` gives the (q1, q2) of each item. One DP call site, compiled once, whatever
-    the number of DPs needed (a loop with a data-dependent trip count): padding and skipped
-    pairs cost nothing. Returns the energies ``||q1 − w||²`` (and warps, when G is given)
-    scattered into E (and G).
+    `pair_of(lanes)` gives the (q1, q2) of each item. Returns the energies ``||q1 − w||²``
+    (and warps, when G is given) scattered into E (and G).
     """
     n_items = need.shape[0]
-    # Small slabs: the DP is as efficient at 32 lanes as at 256, and less padding is solved.
-    S = min(dp_batch_size, max(8, -(-n_items // 16)))
-    n_pad = -(-n_items // S) * S
-    (lanes_all,) = jnp.nonzero(need, size=n_pad, fill_value=n_items)
-    dp = jax.vmap(functools.partial(dp_warp, neighbourhood=neighbourhood))
+    dp = jax.vmap(functools.partial(dp_warp_if, neighbourhood=neighbourhood))
 
-    def slab(k, carry):
+    def step(lanes, carry):
         E, G = carry
-        lanes = lax.dynamic_slice(lanes_all, (k * S,), (S,))
         q1, q2 = pair_of(jnp.clip(lanes, 0, n_items - 1))
-        g = dp(q1, q2)
+        # Padding lanes are skipped by the DP kernel (it packs the active lanes into blocks).
+        g, _ = dp(q1, q2, lanes < n_items)
         w = jax.vmap(warp_preserving_norm)(q2, g)
         E = E.at[lanes].set(l2_norm_squared(q1 - w), mode="drop")
         if G is not None:
             G = G.at[lanes].set(g, mode="drop")
         return E, G
 
-    return lax.fori_loop(0, (jnp.sum(need) + S - 1) // S, slab, (E, G))
+    return run_in_slabs(need, step, (E, G), slab=_slab_size(n_items, dp_batch_size))
 
 
-def lazy_assignment(p: Prepared, qb: Array, base_cost: Array, rows: Array, options: RegistrationOptions):
+def lazy_assignment(p: Prepared, qb: Array, axes_b: Array, energy_bound: Array, rows: Array, options):
     """Exact optimal lateral correspondence at one rotation, running as few DPs as possible.
 
-    The assignment is solved with lower bounds in place of the lateral costs not computed yet;
-    the DPs of the real–real pairs it picks are run and the assignment solved again, until it
-    picks only computed pairs. It is then optimal for the true costs too, since every
-    uncomputed cost is at least its bound (`lower_bounds`). With ``prune=False`` every
-    real–real DP is run up front (the reference behaviour). Returns (cost matrix, permutation,
-    pairs computed).
+    The assignment is solved with lower bounds in place of the lateral costs not computed yet.
+    A real–real pair it picks first gets its tighter bound (`refined_energy_bounds`, cheap);
+    picked again, its DP is run. The assignment is solved again until it picks only computed
+    pairs: it is then optimal for the true costs too, since every uncomputed cost is at least
+    its bound (`lower_bounds`). With ``prune=False`` every real–real DP is run up front (the
+    reference behaviour). Returns (cost matrix, permutation, pairs computed).
     """
     B, K = p.La.shape
     dtype = p.La.dtype
+    n_items = B * K * K
     solve = jax.vmap(lambda c: linear_assignment(c, method=options.assignment))
     slabs = functools.partial(run_dp_slabs, neighbourhood=options.neighbourhood, dp_batch_size=options.dp_batch_size)
 
@@ -367,27 +484,40 @@ def lazy_assignment(p: Prepared, qb: Array, base_cost: Array, rows: Array, optio
         i, j = jnp.divmod(rem, K)
         return p.a.q[bi, i], qb[bi, j]
 
-    def costs(E, computed):
-        return jnp.where(computed, p.lam_lateral * E.reshape(B, K, K) + p.fixed, base_cost)
+    def refine(need, bound):
+        def step(lanes, bound):
+            new = refined_energy_bounds(p, axes_b, jnp.clip(lanes, 0, n_items - 1))
+            safe = jnp.clip(lanes, 0, n_items - 1)
+            return bound.at[lanes].set(jnp.maximum(bound[safe], new), mode="drop")
+
+        return run_in_slabs(need, step, bound, slab=_slab_size(n_items, 128))
+
+    def costs(E, computed, bound):
+        known = p.lam_lateral * E.reshape(B, K, K) + p.fixed
+        return jnp.where(computed.reshape(B, K, K), known, bound_costs(p, bound.reshape(B, K, K)))
 
     def picks(perm, computed):
         chosen = jax.nn.one_hot(perm, K, dtype=bool)
-        return chosen & p.both & ~computed & rows[:, None, None]
+        return (chosen & p.both & ~computed.reshape(B, K, K) & rows[:, None, None]).reshape(-1)
 
     computed = p.both & rows[:, None, None] if not options.prune else jnp.zeros_like(p.both)
-    E, _ = slabs(computed.reshape(-1), lateral_pair, jnp.zeros((B * K * K,), dtype))
+    computed = computed.reshape(-1)
+    E, _ = slabs(computed, lateral_pair, jnp.zeros((n_items,), dtype))
+    bound = energy_bound.reshape(-1)
 
     def body(state):
-        E, computed, perm, chosen = state
-        E, _ = slabs(chosen.reshape(-1), lateral_pair, E)
-        computed = computed | chosen
-        perm = solve(costs(E, computed))
-        return E, computed, perm, picks(perm, computed)
+        E, computed, refined, bound, _, chosen = state
+        bound = refine(chosen & ~refined, bound)
+        E, _ = slabs(chosen & refined, lateral_pair, E)
+        computed = computed | (chosen & refined)
+        refined = refined | chosen
+        perm = solve(costs(E, computed, bound))
+        return E, computed, refined, bound, perm, picks(perm, computed)
 
-    perm = solve(costs(E, computed))
-    state = (E, computed, perm, picks(perm, computed))
-    E, computed, perm, _ = lax.while_loop(lambda s: jnp.any(s[-1]), body, state)
-    return costs(E, computed), perm, computed
+    perm = solve(costs(E, computed, bound))
+    state = (E, computed, jnp.zeros_like(computed), bound, perm, picks(perm, computed))
+    E, computed, _, bound, perm, _ = lax.while_loop(lambda s: jnp.any(s[-1]), body, state)
+    return costs(E, computed, bound), perm, computed.reshape(B, K, K)
 
 
 def evaluate(p: Prepared, O: Array, rows: Array, options: RegistrationOptions):
@@ -402,7 +532,8 @@ def evaluate(p: Prepared, O: Array, rows: Array, options: RegistrationOptions):
     dtype = a.q0.dtype
     qb0 = rotate_batch(b.q0, O)
     qb = rotate_batch(b.q, O)
-    C, perm, computed = lazy_assignment(p, qb, lower_bounds(p, O), rows, options)
+    axes_b = rotate_batch(p.blocks_b[0], O)
+    C, perm, computed = lazy_assignment(p, qb, axes_b, lower_bounds(p, O), rows, options)
     lap = jnp.sum(jnp.take_along_axis(C, perm[:, :, None], axis=2)[:, :, 0], axis=1)
 
     # Warps of the final matching: the B main roots, then the matched real-real slots.

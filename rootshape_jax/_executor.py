@@ -4,7 +4,7 @@ The maths and statistics layers cut their work into blocks (a list of pairs, or 
 samples for one mean step) and give a pure, module-level function that computes one block. An
 executor maps that function over the blocks:
 
-- `LocalExecutor` (the default) runs them here, one after another, with a progress bar;
+- `LocalExecutor` (the default) runs them here, on one thread per free core, with a progress bar;
 - `rootshape_jax._dask.DaskExecutor` (when a ``dask.distributed.Client`` is given) runs them on
   a cluster. It registers itself with `register_client_executor` when the package is imported,
   so no maths module imports Dask.
@@ -22,6 +22,7 @@ import os
 import re
 import uuid
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
@@ -184,12 +185,50 @@ class Executor:
         raise NotImplementedError
 
 
+def usable_cores() -> int:
+    """CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
 class LocalExecutor(Executor):
-    """Runs every block in this process, in order (Ctrl-C stops between blocks)."""
+    """Runs every block in this process, on `workers` threads (Ctrl-C stops between blocks).
+
+    XLA:CPU runs one compiled call on about one core, and releases the GIL while it runs, so
+    blocks on several threads use several cores with no global JAX setting. The default,
+    ``workers=None``, takes one thread per usable core left over by the devices: with
+    `use_all_cores` each call is already split over every core, so one thread. The first block
+    runs alone, so its compilation is done once and then shared by the threads.
+    """
+
+    def __init__(self, workers: int | None = None):
+        if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+            raise ValueError(f"workers must be an integer >= 1 or None, got {workers!r}.")
+        self.workers = workers
+
+    def n_workers(self) -> int:
+        if self.workers is not None:
+            return self.workers
+        return max(1, usable_cores() // max(1, jax.local_device_count()))
 
     def _run(self, fn, blocks, todo, shared):
-        for b in todo:
-            yield b, fn(*blocks[b], *shared)
+        todo = list(todo)
+        workers = min(self.n_workers(), len(todo))
+        if workers <= 1:
+            for b in todo:
+                yield b, fn(*blocks[b], *shared)
+            return
+        yield todo[0], fn(*blocks[todo[0]], *shared)
+        pool = ThreadPoolExecutor(workers, thread_name_prefix="rootshape")
+        try:
+            pending = {pool.submit(fn, *blocks[b], *shared): b for b in todo[1:]}
+            for future in as_completed(pending):
+                yield pending[future], future.result()
+        finally:
+            # On Ctrl-C (or an error) drop the blocks not started; running ones finish.
+            pool.shutdown(wait=False, cancel_futures=True)
 
 
 _CLIENT_EXECUTORS: list[Callable[[Any], Executor | None]] = []

@@ -70,7 +70,7 @@ from ._engine import (
     rotate_batch,
 )
 from ._errors import ConvergenceError
-from ._executor import executor_for
+from ._executor import LocalExecutor, executor_for
 from ._metric import Weights, level_weight, null_costs, pair_lower_bounds, preshape_terms
 from ._rotation import optimal_rotation
 from ._tangent import TreeParams, params_of, params_to_tree, unwhiten, whiten, whitening
@@ -770,7 +770,9 @@ def karcher_mean(
                 "method='fixed_point' needs an optimistix fixed-point solver (e.g. "
                 f"optx.FixedPointIteration), got {type(inner).__name__}."
             )
-        blocks = _SampleBlocks(executor, samples, block_size if client is not None else None)
+        # Locally one block per worker thread (every core); on a cluster blocks of `block_size`.
+        local_size = -(-n // executor.n_workers()) if isinstance(executor, LocalExecutor) else block_size
+        blocks = _SampleBlocks(executor, samples, local_size)
         mu0s = [params_of(jax.tree.map(lambda x, i=i: x[i], samples)) for i in starts]
         mu, trace, steps, result, registered, energies, chosen = _fixed_point(
             mu0s,
