@@ -68,7 +68,9 @@ def test_separate_laterals_and_short_bumps_are_unchanged():
     lat1 = np.array([[150.0, 120.0], [260.0, 200.0]])
     lat2 = np.array([[150.0, 250.0], [40.0, 320.0]])
     mid = lat1[0] + 0.6 * (lat1[1] - lat1[0])
-    bump = np.array([mid, mid + 12.0 * np.array([0.6, -0.8])])  # 12 px nub at a right angle
+    # A 20 px nub at a right angle: it survives spur pruning (max(10 px, 4 × half-width)) and
+    # is a skeleton tip, but is shorter than 10 px + 4 × half-width beyond its junction.
+    bump = np.array([mid, mid + 20.0 * np.array([0.6, -0.8])])
     img, _ = render_root_image([main, lat1, lat2, bump], shape=(420, 300), width=3.0, noise=0.04, seed=1)
     (r,) = roots_from_image(img)
     (old,) = roots_from_image(img, split_touching=False)
