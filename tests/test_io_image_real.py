@@ -43,3 +43,31 @@ def test_rootnav_seedling_on_blue_paper():
     assert p.main_length_ratio == pytest.approx(1.0, abs=0.1)
     assert abs(p.total_length_ratio - 1) <= 0.2
     assert abs(p.laterals_extracted - p.laterals_traced) <= 0.3 * p.laterals_traced + 1
+
+
+def _pairs():
+    stem = "2012_11_19_18h00_chl110_1_1"
+    out = [
+        (DATA / "images" / "arabidopsis_plate" / f"{stem}.jpg", DATA / "rsml" / "arabidopsis_plate" / f"{stem}.rsml")
+    ]
+    for img in sorted((DATA / "images" / "rootnav_osr").glob("*.jpg")):
+        out.append((img, DATA / "rsml" / "rootnav_osr" / f"{img.stem}.rsml"))
+    return out
+
+
+@pytest.mark.slow
+def test_issue_targets_over_all_photographs():
+    # The issue's targets over every shared photograph (11 at the time of writing): total length
+    # within 20 % on at least 80 % of them, first-order laterals within 30 % on at least 70 %.
+    # Measured (BENCHMARKS.md): 9/11 and 10/11.
+    rows = []
+    for img, rsml in _pairs():
+        ex = roots_from_image(img)
+        tr = read_rsml(rsml)
+        cmp = compare_to_tracing(ex, tr, elastic=False)
+        lat_e, lat_t = sum(r.n_laterals for r in ex), sum(r.n_laterals for r in tr)
+        rows.append((cmp.total_length_ratio, abs(lat_e - lat_t) / lat_t))
+    n = len(rows)
+    assert n >= 11
+    assert sum(abs(t - 1) <= 0.2 for t, _ in rows) >= 0.8 * n
+    assert sum(e <= 0.3 for _, e in rows) >= 0.7 * n

@@ -668,6 +668,7 @@ def roots_from_image(
     smooth: float = 2.0,
     spacing: float | None = 2.0,
     refine_junctions: bool = True,
+    split_touching: bool = True,
     pixels_per_mm: float | None = None,
     pixel_size: float | None = None,
     unit: str = "pixel",
@@ -724,6 +725,15 @@ def roots_from_image(
       one point per skeleton pixel.
     - `refine_junctions`: extend each lateral's direction back to the main root to place its
       attachment (the skeleton junction of a thick lateral slides downstream).
+    - `split_touching`: laterals that touch in the crown run as one line in the photograph and
+      the skeleton holds their shared stretch once; True (default) makes every tip of a side
+      subtree one lateral, routed along the skeleton back to the main root (so the shared
+      stretch counts once per root), when its own part beyond the junction is longer than a
+      junction whisker and a minimum lateral (``min_lateral_length + spur_factor ×`` the
+      half-width at the junction). This assumes the side branches are first-order laterals
+      (seedlings): a true second-order lateral becomes a lateral of the main root that repeats
+      its parent's stretch. False keeps one lateral per attachment (its longest path) and drops
+      the other tips.
     - `pixels_per_mm`: the image's scale; coordinates are then in mm. Or `pixel_size` with
       `unit` (e.g. ``pixel_size=0.05, unit="mm"``). Default: pixels.
 
@@ -732,7 +742,7 @@ def roots_from_image(
     skeleton (scikit-image) → spur pruning on the `skan` skeleton graph → gap bridging →
     8-connected pixel graph (`skan`) → plants (connected pieces passing the tests above) →
     main root = longest shortest path from the base; every side subtree gives one lateral =
-    its longest path from the main root.
+    its longest path from the main root, plus, with `split_touching`, one per further tip.
 
     **Returns** one `Root` per plant sorted by base position (x, then y) — or one per base
     point, in the points' order — in ``(x, y)`` coordinates with **x = column, y = row (y points
@@ -883,7 +893,14 @@ def roots_from_image(
     results = []
     for nodes, sub, _b, base_node, pred, tip, _ in candidates:
         main_idx = _path_to(pred, tip)
-        lat_paths = _lateral_paths(sub, main_idx, halfwidth, rc[nodes], min_lateral_length)
+        lat_paths = _lateral_paths(
+            sub,
+            main_idx,
+            halfwidth,
+            rc[nodes],
+            min_lateral_length,
+            split_factor=float(spur_factor) if split_touching else None,
+        )
         xy = rc[nodes][:, ::-1].astype(np.float64) + np.array([c0, r0], dtype=np.float64)
         main_s = _smooth(xy[main_idx], smooth)
         cum = _cumlen(main_s)
@@ -1086,11 +1103,16 @@ def _refine_junction(main, cum, k, lat, hw):
     return best[1], np.concatenate([best[2][None], A[None], lat[s > a]])
 
 
-def _lateral_paths(sub, main_idx, halfwidth, rc, min_lateral_length) -> list[np.ndarray]:
-    """Longest path from each attachment point into the side subtrees of the main path.
+def _lateral_paths(sub, main_idx, halfwidth, rc, min_lateral_length, *, split_factor=None) -> list[np.ndarray]:
+    """Paths from the main path into its side subtrees, one per lateral.
 
-    Node paths starting on the main path; one per attachment (junctions closer than about a
-    root width along the main path count as one).
+    Node paths starting on the main path. Each attachment (junctions closer than about a root
+    width along the main path count as one) gives its longest path. With `split_factor`, every
+    further tip of that side subtree whose own part (beyond the node where its path joins the
+    paths already taken) is at least ``min_lateral_length + split_factor × half-width`` there
+    gives one more lateral, the whole path from the main root: roots touching in the crown are
+    one skeleton line until they part, and each of them grew along it from the main root.
+    Tips are taken farthest first, so the longest root keeps the shared stretch as its own.
     """
     n = sub.shape[0]
     on_main = np.zeros(n, dtype=bool)
@@ -1106,11 +1128,13 @@ def _lateral_paths(sub, main_idx, halfwidth, rc, min_lateral_length) -> list[np.
     dist, pred, src = csgraph.dijkstra(
         side_graph, directed=False, indices=main_idx, min_only=True, return_predecessors=True
     )
+    degree = np.diff(side_graph.indptr)
     side = np.nonzero(~on_main)[0]
     only_side = side_graph[side][:, side]
     n_sub, lab = csgraph.connected_components(only_side, directed=False)
     pos = np.full(n, -1, dtype=np.int64)
     pos[main_idx] = np.arange(main_idx.size)
+    taken = np.zeros(n, dtype=bool)
     paths = []
     for s in range(n_sub):
         members = side[lab == s]
@@ -1133,7 +1157,23 @@ def _lateral_paths(sub, main_idx, halfwidth, rc, min_lateral_length) -> list[np.
             r, c = rc[a]
             if dist[far] - halfwidth[r, c] < min_lateral_length:
                 continue
-            paths.append(_path_to(pred, far))
+            path = _path_to(pred, far)
+            paths.append(path)
+            if split_factor is None:
+                continue
+            taken[path] = True
+            tips = mem[degree[mem] == 1]
+            for t in tips[np.argsort(-dist[tips], kind="stable")]:
+                if taken[t]:
+                    continue
+                path = _path_to(pred, int(t))
+                shared = np.nonzero(taken[path])[0]
+                j = path[shared[-1]] if shared.size else path[0]
+                jr, jc = rc[j]
+                if dist[t] - dist[j] < min_lateral_length + split_factor * float(halfwidth[jr, jc]):
+                    continue
+                paths.append(path)
+                taken[path] = True
     return paths
 
 
