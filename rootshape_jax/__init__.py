@@ -25,6 +25,7 @@ from ._curves import (
 from ._elastic import (
     CurveRegistration as CurveRegistration,
     elastic_curve_distance as elastic_curve_distance,
+    elastic_curve_distances as elastic_curve_distances,
 )
 from ._engine import (
     MEAN_REGISTRATION as MEAN_REGISTRATION,

@@ -15,10 +15,13 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._curves import l2_norm_squared, resample_curve, srvf
+from ._devices import split_over_devices
 from ._errors import InvalidRootError
+from ._executor import LocalExecutor
 from ._rotation import optimal_rotation
 from ._warp import check_neighbourhood, dp_warp_if, warp_samples, warp_samples_unchecked
 
@@ -173,8 +176,7 @@ def elastic_curve_distance(
     )
 
 
-@eqx.filter_jit
-def _elastic_curve_distance(beta1, beta2, max_iterations, rtol, *, rotation, scale, n_samples, neighbourhood):
+def _curve_distance(beta1, beta2, max_iterations, rtol, *, rotation, scale, n_samples, neighbourhood):
     beta1 = _check_curve(beta1, "beta1")
     beta2 = _check_curve(beta2, "beta2")
     if beta1.shape[1] != beta2.shape[1]:
@@ -207,3 +209,80 @@ def _elastic_curve_distance(beta1, beta2, max_iterations, rtol, *, rotation, sca
     ok = energy > 0
     distance = jnp.where(ok, jnp.sqrt(jnp.where(ok, energy, 1)), 0)
     return CurveRegistration(distance, energy, O, gamma, n_it)
+
+
+_elastic_curve_distance = eqx.filter_jit(_curve_distance)
+
+
+@eqx.filter_jit
+def _elastic_curve_distances(beta1, beta2, max_iterations, rtol, *, rotation, scale, n_samples, neighbourhood):
+    def one(b1, b2):
+        return _curve_distance(
+            b1,
+            b2,
+            max_iterations,
+            rtol,
+            rotation=rotation,
+            scale=scale,
+            n_samples=n_samples,
+            neighbourhood=neighbourhood,
+        )
+
+    return split_over_devices(jax.vmap(one), (beta1, beta2))
+
+
+def elastic_curve_distances(
+    A: Float[ArrayLike, "N n1 d"],
+    B: Float[ArrayLike, "N n2 d"],
+    *,
+    rotation: bool = True,
+    scale: bool = False,
+    n_samples: int = 100,
+    neighbourhood: int = 7,
+    max_iterations: int = 10,
+    rtol: float = 1e-4,
+    workers: int | None = None,
+) -> CurveRegistration:
+    """`elastic_curve_distance` of every pair ``(A[k], B[k])``, on every core.
+
+    The batch is cut into one equal chunk per worker thread (default: one per core left
+    over by the XLA devices; XLA:CPU runs one call on about one core) and, with several
+    devices (`use_all_cores`), each chunk is also split across them. Every chunk has the same
+    shape, so it compiles once; the results equal ``jax.vmap(elastic_curve_distance)`` of the
+    same pairs. Options as in `elastic_curve_distance`. Returns a `CurveRegistration` with a
+    leading batch axis N. For all pairs between two sets, index them: ``A[I], B[J]``.
+    """
+    A = jnp.asarray(A)
+    B = jnp.asarray(B)
+    if A.ndim != 3 or B.ndim != 3 or A.shape[0] != B.shape[0]:
+        raise ValueError(
+            f"elastic_curve_distances: A and B must be batches of curves (N, n_points, d) with the same N, "
+            f"got shapes {A.shape} and {B.shape}. For one pair use elastic_curve_distance."
+        )
+    n = A.shape[0]
+    if n == 0:
+        raise ValueError("elastic_curve_distances: empty batch; give at least one pair of curves.")
+    # Validates the options (and compiles nothing).
+    if isinstance(n_samples, bool) or not isinstance(n_samples, int) or n_samples < 2:
+        raise ValueError(f"n_samples must be a Python int >= 2, got {n_samples!r}.")
+    if isinstance(max_iterations, bool) or not isinstance(max_iterations, int) or max_iterations < 1:
+        raise ValueError(f"max_iterations must be a Python int >= 1, got {max_iterations!r}.")
+    if not isinstance(rtol, (int, float)) or not rtol >= 0:
+        raise ValueError(f"rtol must be a float >= 0, got {rtol!r}.")
+    check_neighbourhood(neighbourhood)
+    executor = LocalExecutor(workers)
+    n_chunks = min(executor.n_workers(), n)
+    size = -(-n // n_chunks)
+    idx = np.minimum(np.arange(n_chunks * size), n - 1).reshape(n_chunks, size)  # pad with the last pair
+    static = dict(rotation=bool(rotation), scale=bool(scale), n_samples=n_samples, neighbourhood=int(neighbourhood))
+    cap, tol = jnp.asarray(max_iterations, jnp.int32), jnp.asarray(rtol)
+
+    def chunk(rows):
+        res = _elastic_curve_distances(A[rows], B[rows], cap, tol, **static)
+        return {f: getattr(res, f) for f in _FIELDS}
+
+    results, _ = executor.map_blocks(chunk, [(rows,) for rows in idx], progress=False)
+    return CurveRegistration(*(jnp.asarray(np.concatenate([r[f] for r in results])[:n]) for f in _FIELDS))
+
+
+_FIELDS = ("distance", "energy", "rotation", "gamma", "n_iterations")

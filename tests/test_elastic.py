@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from helpers import rotation_matrix, smooth_curve
 
+import rootshape_jax as rs
 from rootshape_jax._curves import resample_curve, srvf
 from rootshape_jax._elastic import CurveRegistration, _register, elastic_curve_distance
 from rootshape_jax._errors import InvalidRootError
@@ -186,3 +187,24 @@ def test_clear_errors():
     bad[2, 1] = np.inf
     with pytest.raises(eqx.EquinoxRuntimeError, match="NaN or inf"):
         elastic_curve_distance(bad, b)
+
+
+def test_batched_curve_distances_equal_vmap_and_any_worker_count():
+    # The public batched call (chunks on worker threads) gives what jax.vmap of the single-pair
+    # call gives, whatever the number of threads; the padding of the last chunk is dropped.
+    rng = np.random.default_rng(3)
+    A = np.cumsum(rng.normal(size=(9, 25, 2)), axis=1)
+    B = np.cumsum(rng.normal(size=(9, 31, 2)), axis=1)
+    ref = jax.vmap(lambda a, b: rs.elastic_curve_distance(a, b, n_samples=20))(jnp.asarray(A), jnp.asarray(B))
+    for workers in (1, 2, 4):
+        got = rs.elastic_curve_distances(A, B, n_samples=20, workers=workers)
+        assert got.distance.shape == (9,)
+        np.testing.assert_allclose(np.asarray(got.distance), np.asarray(ref.distance), rtol=1e-12, atol=1e-14)
+        np.testing.assert_array_equal(np.asarray(got.gamma), np.asarray(ref.gamma))
+
+
+def test_batched_curve_distances_reject_mismatched_batches():
+    with pytest.raises(ValueError, match="same N"):
+        rs.elastic_curve_distances(np.zeros((3, 10, 2)), np.zeros((4, 10, 2)))
+    with pytest.raises(ValueError, match="workers"):
+        rs.elastic_curve_distances(np.ones((2, 10, 2)), np.ones((2, 10, 2)), workers=0)

@@ -114,3 +114,16 @@ def test_geodesic_in_3d_and_errors():
     assert np.all(np.isfinite(np.asarray(path.laterals)))
     with pytest.raises(ValueError, match="n_steps"):
         rs.geodesic(a, b, n_steps=1)
+
+
+def test_worker_threads_give_the_same_matrix():
+    # Local blocks run on worker threads by default (every core without a global JAX setting);
+    # the matrix does not depend on how many.
+    from rootshape_jax import LocalExecutor
+
+    rng = np.random.default_rng(5)
+    roots = [random_root(rng, n_laterals=3) for _ in range(6)]
+    trees = rs.batch(roots, n_points=20, max_laterals=8, normalise_scale=True)
+    one = rs.pairwise_distances(trees, chunk_size=4, progress=False, client=LocalExecutor(workers=1))
+    three = rs.pairwise_distances(trees, chunk_size=4, progress=False, client=LocalExecutor(workers=3))
+    np.testing.assert_array_equal(np.asarray(one), np.asarray(three))
