@@ -1,0 +1,172 @@
+"""What users run, on the roots they have (issue 21): the distance matrix and the Karcher mean
+from Python with default settings, on three populations, scale-normalised and not.
+
+    python benchmarks/bench_populations.py [--populations synthetic pea rootnav]
+        [--what matrix mean rounds] [--baseline /path/to/old/checkout] [--all-cores]
+
+Populations:
+- ``synthetic``: the bundled 53 (`datasets.default_dataset`, 2D, ~10 laterals);
+- ``pea``: 53 CPlantBox pea taproots (`simulated_roots("pea", 53, days=10, seed=0)`: 3D, mm,
+  14–27 first-order laterals, mean 20; the `sim` extra);
+- ``rootnav``: the RootNav oilseed-rape tracings in ``../shared/data/rsml/rootnav_osr`` (real,
+  pixels), when present.
+Each at ``T = 100``, with ``normalise_scale`` False and True.
+
+Each measurement is a fresh process that does what a user's script does: ``import
+rootshape_jax``, `batch`, then `pairwise_distances(trees)` or `karcher_mean(trees)` with
+default options (``progress=False``). The matrix's compile time is the first call on two of
+the roots (same chunk shapes), reported apart; the mean's is its first call minus its second.
+``--all-cores`` adds the same runs after ``rs.use_all_cores()`` (one XLA device per core).
+``rounds``: lateral DPs run and skipped per alternation round, on 32 random pairs (the engine
+is deterministic, so round r's counts are the difference of runs capped at r and r − 1 rounds).
+With ``--baseline`` every matrix and mean run is repeated with that checkout of the package,
+interleaved, and reported as a ratio. Results: ``results/populations.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _common import machine, write_json  # noqa: E402
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+CHILD = r"""
+import json, sys, time, pickle
+spec = json.loads(sys.argv[1])
+import rootshape_jax as rs
+if spec["all_cores"]:
+    rs.use_all_cores()
+import jax
+import numpy as np
+
+def population(name):
+    if name == "synthetic":
+        from rootshape_jax.datasets import default_dataset
+        return default_dataset()
+    if name == "pea":
+        from rootshape_jax.datasets import simulated_roots
+        return simulated_roots("pea", 53, days=10, seed=0)
+    if name == "rootnav":
+        from pathlib import Path
+        roots = []
+        for f in sorted(Path(spec["shared"], "rsml", "rootnav_osr").glob("*.rsml")):
+            roots += rs.io.read_rsml(f)
+        return roots
+    raise ValueError(name)
+
+roots = population(spec["population"])
+trees = rs.batch(roots, n_points=100, normalise_scale=spec["normalise"])
+out = {"package": rs.__file__, "n_roots": len(roots), "capacity": int(trees.capacity),
+       "laterals_mean": float(np.mean([r.n_laterals for r in roots])), "devices": len(jax.devices())}
+what = spec["what"]
+if what == "matrix":
+    t0 = time.perf_counter()
+    rs.pairwise_distances(jax.tree.map(lambda x: x[:2], trees), progress=False)
+    out["compile_s"] = time.perf_counter() - t0
+    c0 = time.process_time(); t0 = time.perf_counter()
+    D, stats = rs.pairwise_distances(trees, progress=False, return_stats=True)
+    D = np.asarray(D)
+    out["seconds"] = time.perf_counter() - t0
+    out["cpu_seconds"] = time.process_time() - c0
+    out["stats"] = stats
+    out["checksum"] = float(np.sum(D))
+elif what == "mean":
+    times = []
+    for _ in range(spec["mean_calls"]):
+        c0 = time.process_time(); t0 = time.perf_counter()
+        res = rs.karcher_mean(trees, progress=False)
+        jax.block_until_ready(res.energy)
+        times.append((time.perf_counter() - t0, time.process_time() - c0))
+    out["first_call_s"] = times[0][0]
+    out["seconds"] = times[-1][0]
+    out["cpu_seconds"] = times[-1][1]
+    if len(times) > 1:
+        out["compile_s"] = times[0][0] - times[-1][0]
+    out["steps"] = int(res.steps)
+    out["objective"] = float(res.energy)
+elif what == "rounds":
+    from rootshape_jax._engine import RegistrationOptions, register_pairs_jit
+    s = rs.to_srvf(trees)
+    n = s.q0.shape[0]
+    rng = np.random.default_rng(0)
+    I, J = np.triu_indices(n, 1)
+    pick = rng.choice(len(I), size=min(32, len(I)), replace=False)
+    a = jax.tree.map(lambda x: x[I[pick]], s)
+    b = jax.tree.map(lambda x: x[J[pick]], s)
+    prev = np.zeros(2)
+    rounds = []
+    for r in range(1, 5):
+        reg = register_pairs_jit(a, b, rs.Weights(), RegistrationOptions(max_iterations=r))
+        now = np.array([np.sum(reg.n_lateral_dp), np.sum(reg.n_lateral_skipped)], float)
+        active = int(np.sum(np.asarray(reg.n_iterations) >= r))
+        rounds.append({"round": r, "pairs_active": active, "dp_run": int(now[0] - prev[0]),
+                       "dp_skipped": int(now[1] - prev[1])})
+        prev = now
+    out["pairs"] = int(len(pick))
+    out["rounds"] = rounds
+print("RESULT " + json.dumps(out))
+"""
+
+
+def run_child(spec: dict, package: Path | None) -> dict:
+    env = dict(os.environ)
+    if package is not None:
+        env["PYTHONPATH"] = str(package)
+    proc = subprocess.run([sys.executable, "-c", CHILD, json.dumps(spec)], capture_output=True, text=True, env=env)
+    for line in proc.stdout.splitlines():
+        if line.startswith("RESULT "):
+            return json.loads(line[7:])
+    raise RuntimeError(f"child failed ({spec}):\n{proc.stderr[-3000:]}")
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--populations", nargs="+", default=["synthetic", "pea", "rootnav"])
+    p.add_argument("--what", nargs="+", default=["matrix", "mean", "rounds"])
+    p.add_argument("--normalise", nargs="+", default=["no", "yes"], choices=["no", "yes"])
+    p.add_argument("--baseline", type=Path, default=None, help="checkout of the package to compare with")
+    p.add_argument("--all-cores", action="store_true", help="also run after rs.use_all_cores()")
+    p.add_argument("--mean-calls", type=int, default=2, help="mean calls per process (the last is timed)")
+    p.add_argument("--out", default="populations", help="name of the JSON file in results/")
+    args = p.parse_args(argv)
+
+    results = {"machine": machine(), "runs": []}
+    for pop in args.populations:
+        if pop == "rootnav" and not (SHARED / "rsml" / "rootnav_osr").is_dir():
+            print("rootnav: ../shared/data is absent, skipped", flush=True)
+            continue
+        for norm in args.normalise:
+            for what in args.what:
+                paths = [False, True] if (args.all_cores and what != "rounds") else [False]
+                for all_cores in paths:
+                    spec = {
+                        "population": pop,
+                        "normalise": norm == "yes",
+                        "what": what,
+                        "all_cores": all_cores,
+                        "shared": str(SHARED),
+                        "mean_calls": args.mean_calls,
+                    }
+                    versions = [("new", None)]
+                    if args.baseline is not None and what != "rounds":
+                        versions = [("baseline", args.baseline), ("new", None)]
+                    row = dict(spec)
+                    for label, package in versions:
+                        row[label] = run_child(spec, package)
+                    if "baseline" in row:
+                        row["speedup"] = row["baseline"]["seconds"] / row["new"]["seconds"]
+                    results["runs"].append(row)
+                    print(json.dumps(row), flush=True)
+                    write_json(args.out, results)
+    return results
+
+
+if __name__ == "__main__":
+    main()
