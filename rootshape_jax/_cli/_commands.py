@@ -8,7 +8,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ._common import PAPER_TRAITS, CLIError, say, warn
-from ._inputs import Reading, load_roots, pick, prepare, read_requested, subsample
+from ._inputs import Reading, covariate_columns, load_roots, pick, prepare, read_requested, subsample
 from ._report import LOG_NAME, Output, settings, write_index
 from ._steps import (
     Context,
@@ -66,7 +66,8 @@ def cmd_sample(args) -> None:
 
 def cmd_regress(args) -> None:
     # Check the requested traits before the long computation.
-    args.requested_values = read_requested(args.requested) if args.requested else None
+    names = list(PAPER_TRAITS) + covariate_columns(args)
+    args.requested_values = read_requested(args.requested, names) if args.requested else None
     _pipeline(args, [run_mean, run_pca, run_regress], min_roots=len(PAPER_TRAITS) + 2)
 
 

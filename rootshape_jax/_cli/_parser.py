@@ -112,7 +112,20 @@ def _add_common(p: argparse.ArgumentParser, *, inputs: bool = True, default_out:
             metavar="SIZE",
             help="length of one image pixel (e.g. 0.0423 for 600 dpi in mm); default: keep pixels",
         )
-        img.add_argument("--unit", metavar="UNIT", help="unit of --pixel-size (default mm)")
+        img.add_argument(
+            "--unit",
+            metavar="UNIT",
+            help="convert every length to UNIT (mm, cm, m, um, inch): RSML files in inch + dpi, "
+            "cm, or pixels with a <resolution>; also the unit of --pixel-size (default mm). "
+            "Default: keep each file's unit",
+        )
+        g.add_argument(
+            "--metadata",
+            metavar="CSV",
+            help="table of labels joined to the roots by file name: a 'file' column (base name, "
+            "extension optional), optional 'plant' and 'root' columns, and any label columns "
+            "(condition, genotype, date, ...); see docs/metadata.md",
+        )
         g.add_argument(
             "--strict",
             action="store_true",
@@ -257,6 +270,14 @@ def _add_cluster_options(p):
     )
 
 
+def _add_by_option(p, what: str):
+    p.add_argument(
+        "--by",
+        metavar="COLUMN",
+        help=f"label column of --metadata to use for {what} (default: 'condition' when the roots have it)",
+    )
+
+
 def _add_geodesic_options(p):
     g = p.add_argument_group("geodesic")
     g.add_argument(
@@ -361,6 +382,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_mean_options(p)
     _add_pca_options(p)
     _add_regress_options(p)
+    _add_by_option(p, "extra covariates (numeric columns; repeat or comma-separate for several)")
 
     p = add(
         "cluster",
@@ -373,6 +395,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(p)
     _add_store_option(p)
     _add_cluster_options(p)
+    _add_by_option(p, "the leave-one-out classification")
 
     p = add(
         "traits",

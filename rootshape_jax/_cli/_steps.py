@@ -14,7 +14,15 @@ import numpy as np
 import rootshape_jax as rs
 
 from ._common import PAPER_TRAITS, fmt, make_weights, say
-from ._inputs import Population, common_unit, in_input_units, prepare, to_output_roots
+from ._inputs import (
+    Population,
+    common_unit,
+    covariate_columns,
+    covariate_matrix,
+    in_input_units,
+    prepare,
+    to_output_roots,
+)
 from ._report import Output, html_table, write_dict_csv
 
 
@@ -204,8 +212,12 @@ def run_regress(ctx: Context, out: Output, args) -> None:
         # Traits in the input's units, measured on the roots as read. With scale normalisation
         # the model predicts the shape, and each predicted root is scaled to its requested
         # main-root length (so that trait is matched exactly by construction).
-        P = trait_matrix(pop.roots)
-        reg = rs.TraitRegression.fit(ctx.pca, None, traits=(), covariates=P, covariate_names=PAPER_TRAITS)
+        # Extra covariates (regress --by): numeric label columns of the metadata table.
+        extra = covariate_columns(args)
+        T = trait_matrix(pop.roots)
+        P = np.hstack([T, covariate_matrix(pop.roots, extra)]) if extra else T
+        names_all = list(PAPER_TRAITS) + extra
+        reg = rs.TraitRegression.fit(ctx.pca, None, traits=(), covariates=P, covariate_names=names_all)
 
         def predict(values: np.ndarray, names: list[str]):
             trees = reg.synthesize(values)
@@ -219,7 +231,7 @@ def run_regress(ctx: Context, out: Output, args) -> None:
         got = trait_matrix(fitted)
         report = []
         for j, name in enumerate(PAPER_TRAITS):
-            y, yhat = P[:, j], got[:, j]
+            y, yhat = T[:, j], got[:, j]
             ss = float(np.sum((y - y.mean()) ** 2))
             r2 = 1.0 - float(np.sum((yhat - y) ** 2)) / ss if ss > 0 else float("nan")
             rel = float(np.mean(np.abs(yhat - y) / np.maximum(np.abs(y), 1e-12)))
@@ -252,7 +264,7 @@ def run_regress(ctx: Context, out: Output, args) -> None:
         )
         measured = trait_matrix(roots)
         rows = [[n] + list(v) + list(m) for n, v, m in zip(names, values, measured)]
-        header = ["root"] + [f"requested_{k}" for k in PAPER_TRAITS] + [f"measured_{k}" for k in PAPER_TRAITS]
+        header = ["root"] + [f"requested_{k}" for k in names_all] + [f"measured_{k}" for k in PAPER_TRAITS]
         out.csv(sec, "predicted_roots.csv", header, rows, "requested and measured traits of each predicted root")
         k = 0 if vary is None else vary
         fig, _ = plot_regression_sweep(
@@ -341,7 +353,7 @@ def run_traits(roots: list, out: Output, args) -> None:
     with out.step("Root traits") as sec:
         rows = rs.traits(roots)
         for r, root in zip(rows, roots):
-            for key in ("condition", "unit", "source_file"):
+            for key in ("condition", *root.metadata.get("label_columns", ()), "unit", "source_file"):
                 if key in root.metadata:
                     r[key] = root.metadata[key]
         out.write("traits.csv", lambda p: write_dict_csv(p, rows))
