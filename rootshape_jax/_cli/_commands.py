@@ -12,7 +12,9 @@ from ._inputs import Reading, covariate_columns, load_roots, pick, prepare, read
 from ._report import LOG_NAME, Output, settings, write_index
 from ._steps import (
     Context,
+    group_labels,
     run_cluster,
+    run_compare,
     run_distances,
     run_geodesic,
     run_mean,
@@ -73,6 +75,11 @@ def cmd_regress(args) -> None:
 
 def cmd_cluster(args) -> None:
     _pipeline(args, [run_distances, run_cluster])
+
+
+def cmd_compare(args) -> None:
+    # The groups are checked before the distances are computed.
+    _pipeline(args, [lambda ctx, out, args: group_labels(ctx.pop), run_distances, run_compare], min_roots=3)
 
 
 def cmd_traits(args) -> None:

@@ -7,6 +7,7 @@ import math
 
 from ._commands import (
     cmd_cluster,
+    cmd_compare,
     cmd_demo,
     cmd_distances,
     cmd_extract,
@@ -396,6 +397,28 @@ def build_parser() -> argparse.ArgumentParser:
     _add_store_option(p)
     _add_cluster_options(p)
     _add_by_option(p, "the leave-one-out classification")
+
+    p = add(
+        "compare",
+        "group differences: MDS plot, PERMANOVA and pairwise tests (PNG + CSV + markdown)",
+        "Do the groups of a label (condition, genotype, ...) differ in shape? Computes the "
+        "distance matrix, draws the roots in two dimensions (classical MDS) coloured by group, "
+        "and tests the groups with PERMANOVA (pseudo-F, p-value, R²), overall and for every "
+        "pair of groups (p-values corrected with Holm's method). Writes mds.png, "
+        "permanova.csv/.md, distances.csv and a heat map with a strip per label.",
+        cmd_compare,
+    )
+    _add_common(p)
+    _add_store_option(p)
+    _add_by_option(p, "the groups")
+    g = p.add_argument_group("tests")
+    g.add_argument(
+        "--permutations",
+        type=_positive_int,
+        default=999,
+        metavar="N",
+        help="permutations of each PERMANOVA (default 999; the smallest p-value is 1/(N+1))",
+    )
 
     p = add(
         "traits",
