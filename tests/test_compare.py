@@ -229,7 +229,10 @@ def test_compare_end_to_end(labelled_folder, tmp_path):
         "--quiet",
     )
     assert proc.returncode == 0, proc.stderr
-    assert "zz_bad.rsml: not well-formed XML" in proc.stderr and "skipped 1: zz_bad.rsml (not well-formed XML)" in proc.stdout
+    assert (
+        "zz_bad.rsml: not well-formed XML" in proc.stderr
+        and "skipped 1: zz_bad.rsml (not well-formed XML)" in proc.stdout
+    )
     assert "| test (condition) | roots | pseudo-F | R² | p | p (Holm) |" in proc.stdout
     rows = read_csv(out / "permanova.csv")
     assert rows[0]["test"] == "all groups (control n=2, drought n=2)" and len(rows) == 2
