@@ -315,7 +315,7 @@ def run_cluster(ctx: Context, out: Output, args) -> None:
         # linkage with its number of clusters, so leaf order and cluster numbers are the same.
         cl = rs.cluster(D, n_clusters=k, method=args.linkage)
         numbers = [cluster_number(c) for c in cl.labels]
-        header = ["root", "cluster"] + (["condition"] if pop.conditions else [])
+        header = ["root", "cluster"] + ([pop.label_name] if pop.conditions else [])
         rows = [
             [n, c] + ([pop.conditions[i]] if pop.conditions else []) for i, (n, c) in enumerate(zip(pop.names, numbers))
         ]
@@ -346,7 +346,7 @@ def run_cluster(ctx: Context, out: Output, args) -> None:
             cond, num = np.asarray(pop.conditions), np.asarray(numbers)
             groups = [cluster_number(g) for g in range(cl.n_clusters)]
             table = [[c] + [int(np.sum((cond == c) & (num == g))) for g in groups] for c in known]
-            item.html = html_table(["condition"] + [f"cluster {g}" for g in groups], table)
+            item.html = html_table([pop.label_name] + [f"cluster {g}" for g in groups], table)
             acc_rows = []
             for rule, label in (("nearest_neighbour", "nearest neighbour"), ("nearest_mean", "nearest class mean")):
                 res = rs.loo_accuracy(D, np.asarray(pop.conditions), rule=rule)
@@ -357,7 +357,7 @@ def run_cluster(ctx: Context, out: Output, args) -> None:
                 "classification.csv",
                 header,
                 acc_rows,
-                f"leave-one-out classification of the conditions ({', '.join(known)}) from distances alone",
+                f"leave-one-out classification of {pop.label_name} ({', '.join(known)}) from distances alone",
                 table_html=html_table(header, acc_rows),
             )
             sec.notes.append(
