@@ -374,7 +374,8 @@ def run_traits(roots: list, out: Output, args) -> None:
             warn(
                 "the roots are in different units ("
                 + ", ".join(sorted({str(r.metadata.get("unit")) for r in roots}))
-                + "); trait columns name no unit. Give --unit mm to convert them all."
+                + "); trait columns name no unit (see the unit column). Convert them to one unit with "
+                "--unit, or analyse them separately."
             )
         rows = []
         for r, root in zip(rs.traits(roots), roots):
