@@ -134,12 +134,16 @@ def test_figure_unit_of_the_command_line():
     import argparse
 
     from rootshape_jax._cli._inputs import prepare
-    from rootshape_jax._cli._steps import figure_unit
+    from rootshape_jax._cli._steps import figure_note, figure_unit
 
     roots = in_unit(synthetic_roots(2, seed=9), "pixel")
-    for norm, expected in ((True, "normalised (main-root length = 1)"), (False, "px")):
-        args = argparse.Namespace(laterals=None, points=12, normalise_scale=norm)
-        assert figure_unit(prepare(roots, args)) == expected
+    for norm, bar, note in (
+        (True, "× main-root length", "(coordinates normalised (main-root length = 1))"),
+        (False, "px", "(coordinates in px)"),
+    ):
+        pop = prepare(roots, argparse.Namespace(laterals=None, points=12, normalise_scale=norm))
+        assert figure_unit(pop) == bar and figure_note(pop).strip() == note
+        assert "pixel" not in figure_unit(pop) + figure_note(pop)
 
 
 # --------------------------------------------------------------------------------------------

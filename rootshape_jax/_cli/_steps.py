@@ -41,9 +41,19 @@ class Context:
 STORE_BLOCK = 64
 
 
+# Scale bars of scale-normalised roots: "0.1 × main-root length" (the captions say
+# NORMALISED_UNIT in full; a long bar label would run over the panels).
+NORMALISED_BAR = "× main-root length"
+
+
 def figure_unit(pop: Population) -> str:
     """The unit of drawn analysis coordinates: scale-normalised roots are in main-root lengths."""
-    return NORMALISED_UNIT if pop.normalised else unit_label(pop.unit)
+    return NORMALISED_BAR if pop.normalised else unit_label(pop.unit)
+
+
+def figure_note(pop: Population) -> str:
+    """What a figure's coordinates are, for its caption."""
+    return f" (coordinates {NORMALISED_UNIT})" if pop.normalised else f" (coordinates in {unit_label(pop.unit)})"
 
 
 def run_distances(ctx: Context, out: Output, args) -> None:
@@ -120,7 +130,7 @@ def run_mean(ctx: Context, out: Output, args) -> None:
             sec, "mean_energy.csv", ["step", "energy"], list(enumerate(trace)), "Karcher energy F(μ) after each step"
         )
         fig, _ = plot_mean(pop.tree, km.mean, title=f"Mean of {len(pop.names)} roots", unit=figure_unit(ctx.pop))
-        out.figure(sec, fig, "mean.png", "input roots (left) and their mean root (right)")
+        out.figure(sec, fig, "mean.png", "input roots (left) and their mean root (right)" + figure_note(pop))
         fig, _ = plot_energy_trace(trace)
         out.figure(sec, fig, "mean_energy.png", "mean squared distance to the mean at each solver step (must fall)")
         n_drop = int(np.sum(np.asarray(km.dropped)))
@@ -158,7 +168,10 @@ def run_pca(ctx: Context, out: Output, args) -> None:
         trees = rs.modes(pc, alphas, component=list(range(n_modes)))
         fig, _ = plot_modes(trees, alphas, explained=ratio[:n_modes], unit=figure_unit(ctx.pop))
         out.figure(
-            sec, fig, "modes.png", f"first {n_modes} modes: mean ± 1 and 2 standard deviations along each component"
+            sec,
+            fig,
+            "modes.png",
+            f"first {n_modes} modes: mean ± 1 and 2 standard deviations along each component" + figure_note(ctx.pop),
         )
         sec.notes.append(
             f"{pc.n_components} components explain {100 * pc.variance:.0f} % of the variance "
@@ -196,7 +209,10 @@ def run_sample(ctx: Context, out: Output, args) -> None:
         )
         fig, _ = plot_samples_by_distance(trees, d, n_groups=min(3, n), unit=figure_unit(ctx.pop))
         out.figure(
-            sec, fig, "random_roots.png", "random roots, in rows of increasing distance to the mean (in the PCA model)"
+            sec,
+            fig,
+            "random_roots.png",
+            "random roots, in rows of increasing distance to the mean (in the PCA model)" + figure_note(pop),
         )
         sec.notes.append(
             f"coefficients drawn from N(0, 1) on the {m} kept components"
