@@ -37,15 +37,20 @@ from ._errors import (
     ConvergenceError as ConvergenceError,
     CoordinateRangeError as CoordinateRangeError,
     ImageError as ImageError,
+    InputError as InputError,
     InvalidCostError as InvalidCostError,
     InvalidRootError as InvalidRootError,
+    MetadataError as MetadataError,
     MissingDependencyError as MissingDependencyError,
     RootShapeError as RootShapeError,
     RSMLError as RSMLError,
     RSMLWarning as RSMLWarning,
     StoreMismatchError as StoreMismatchError,
+    UnitError as UnitError,
 )
 from ._geodesic import geodesic as geodesic
+from ._groups import PairTest as PairTest, holm as holm, pairwise_permanova as pairwise_permanova
+from ._mds import MDS as MDS, mds as mds
 from ._mean import (
     KarcherMean as KarcherMean,
     karcher_mean as karcher_mean,
@@ -75,7 +80,7 @@ from ._registration import distance as distance, register as register
 from ._regression import TraitRegression as TraitRegression
 from ._root import Root as Root, limit_laterals as limit_laterals
 from ._rotation import optimal_rotation as optimal_rotation
-from ._traits import traits as traits, traits_to_csv as traits_to_csv
+from ._traits import trait_column as trait_column, traits as traits, traits_to_csv as traits_to_csv
 from ._tree import (
     RootTree as RootTree,
     SRVFTree as SRVFTree,

@@ -107,7 +107,7 @@ def test_traits_end_to_end(rsml_files, tmp_path):
     assert len(rows) == len(roots) == 4
     # Same values as the library (files are read in sorted order: control, then drought).
     for row, root in zip(rows, roots):
-        assert float(row["main_length"]) == pytest.approx(root.main_length, rel=1e-12)
+        assert float(row["main_length_mm"]) == pytest.approx(root.main_length, rel=1e-12)
         assert int(row["n_laterals"]) == root.n_laterals
 
 
@@ -465,7 +465,8 @@ def test_folder_skips_unreadable_files_and_summarises(folder_with_bad_files, tmp
     assert len([ln for ln in lines if "b_notxml.rsml" in ln]) == 1
     assert len([ln for ln in lines if "c_nogeom.rsml" in ln]) == 1
     assert len([ln for ln in lines if "d_partly.rsml" in ln]) == 1
-    assert len(lines) == 3, proc.stderr
+    # ... and one line saying the files mix units (the synthetic files are in mm, the others in pixels).
+    assert len(lines) == 4 and "different units (mm, pixel)" in lines[3], proc.stderr
     assert any("skipped" in ln and "b_notxml.rsml" in ln and "not well-formed XML" in ln for ln in lines)
     # The summary ends the run: 2 + 2 (partly bad: ok1, ok2) + 1 roots from 3 files.
     summary = proc.stdout.strip().splitlines()[-1]

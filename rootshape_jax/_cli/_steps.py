@@ -12,9 +12,18 @@ from collections.abc import Sequence
 import numpy as np
 
 import rootshape_jax as rs
+from rootshape_jax.io import NORMALISED_UNIT, unit_label
 
-from ._common import PAPER_TRAITS, fmt, make_weights, say
-from ._inputs import Population, common_unit, in_input_units, prepare, to_output_roots
+from ._common import PAPER_TRAITS, CLIError, fmt, make_weights, say, warn
+from ._inputs import (
+    Population,
+    common_unit,
+    covariate_columns,
+    covariate_matrix,
+    in_input_units,
+    prepare,
+    to_output_roots,
+)
 from ._report import Output, html_table, write_dict_csv
 
 
@@ -30,6 +39,21 @@ class Context:
 
 # Pairs per stored block with --store: at most this much work is lost to an interruption.
 STORE_BLOCK = 64
+
+
+# Scale bars of scale-normalised roots: "0.1 × main-root length" (the captions say
+# NORMALISED_UNIT in full; a long bar label would run over the panels).
+NORMALISED_BAR = "× main-root length"
+
+
+def figure_unit(pop: Population) -> str:
+    """The unit of drawn analysis coordinates: scale-normalised roots are in main-root lengths."""
+    return NORMALISED_BAR if pop.normalised else unit_label(pop.unit)
+
+
+def figure_note(pop: Population) -> str:
+    """What a figure's coordinates are, for its caption."""
+    return f" (coordinates {NORMALISED_UNIT})" if pop.normalised else f" (coordinates in {unit_label(pop.unit)})"
 
 
 def run_distances(ctx: Context, out: Output, args) -> None:
@@ -58,7 +82,7 @@ def run_distances(ctx: Context, out: Output, args) -> None:
             [[n] + list(row) for n, row in zip(pop.names, D)],
             f"elastic distance between every pair of roots ({len(D)} × {len(D)})",
         )
-        fig, _ = plot_distance_matrix(D, labels=pop.names)
+        fig, _ = plot_distance_matrix(D, labels=pop.names, strips=pop.labels or None)
         out.figure(
             sec, fig, "distances.png", "heat map of the distance matrix, rows ordered by hierarchical clustering"
         )
@@ -105,8 +129,8 @@ def run_mean(ctx: Context, out: Output, args) -> None:
         out.csv(
             sec, "mean_energy.csv", ["step", "energy"], list(enumerate(trace)), "Karcher energy F(μ) after each step"
         )
-        fig, _ = plot_mean(pop.tree, km.mean, title=f"Mean of {len(pop.names)} roots")
-        out.figure(sec, fig, "mean.png", "input roots (left) and their mean root (right)")
+        fig, _ = plot_mean(pop.tree, km.mean, title=f"Mean of {len(pop.names)} roots", unit=figure_unit(ctx.pop))
+        out.figure(sec, fig, "mean.png", "input roots (left) and their mean root (right)" + figure_note(pop))
         fig, _ = plot_energy_trace(trace)
         out.figure(sec, fig, "mean_energy.png", "mean squared distance to the mean at each solver step (must fall)")
         n_drop = int(np.sum(np.asarray(km.dropped)))
@@ -142,9 +166,12 @@ def run_pca(ctx: Context, out: Output, args) -> None:
         n_modes = max(1, min(args.modes, len(eig)))
         alphas = [-2.0, -1.0, 0.0, 1.0, 2.0]
         trees = rs.modes(pc, alphas, component=list(range(n_modes)))
-        fig, _ = plot_modes(trees, alphas, explained=ratio[:n_modes])
+        fig, _ = plot_modes(trees, alphas, explained=ratio[:n_modes], unit=figure_unit(ctx.pop))
         out.figure(
-            sec, fig, "modes.png", f"first {n_modes} modes: mean ± 1 and 2 standard deviations along each component"
+            sec,
+            fig,
+            "modes.png",
+            f"first {n_modes} modes: mean ± 1 and 2 standard deviations along each component" + figure_note(ctx.pop),
         )
         sec.notes.append(
             f"{pc.n_components} components explain {100 * pc.variance:.0f} % of the variance "
@@ -180,9 +207,12 @@ def run_sample(ctx: Context, out: Output, args) -> None:
             list(zip(names, d)),
             "distance of each random root to the mean in the PCA model",
         )
-        fig, _ = plot_samples_by_distance(trees, d, n_groups=min(3, n))
+        fig, _ = plot_samples_by_distance(trees, d, n_groups=min(3, n), unit=figure_unit(ctx.pop))
         out.figure(
-            sec, fig, "random_roots.png", "random roots, in rows of increasing distance to the mean (in the PCA model)"
+            sec,
+            fig,
+            "random_roots.png",
+            "random roots, in rows of increasing distance to the mean (in the PCA model)" + figure_note(pop),
         )
         sec.notes.append(
             f"coefficients drawn from N(0, 1) on the {m} kept components"
@@ -204,8 +234,12 @@ def run_regress(ctx: Context, out: Output, args) -> None:
         # Traits in the input's units, measured on the roots as read. With scale normalisation
         # the model predicts the shape, and each predicted root is scaled to its requested
         # main-root length (so that trait is matched exactly by construction).
-        P = trait_matrix(pop.roots)
-        reg = rs.TraitRegression.fit(ctx.pca, None, traits=(), covariates=P, covariate_names=PAPER_TRAITS)
+        # Extra covariates (regress --by): numeric label columns of the metadata table.
+        extra = covariate_columns(args)
+        T = trait_matrix(pop.roots)
+        P = np.hstack([T, covariate_matrix(pop.roots, extra)]) if extra else T
+        names_all = list(PAPER_TRAITS) + extra
+        reg = rs.TraitRegression.fit(ctx.pca, None, traits=(), covariates=P, covariate_names=names_all)
 
         def predict(values: np.ndarray, names: list[str]):
             trees = reg.synthesize(values)
@@ -219,7 +253,7 @@ def run_regress(ctx: Context, out: Output, args) -> None:
         got = trait_matrix(fitted)
         report = []
         for j, name in enumerate(PAPER_TRAITS):
-            y, yhat = P[:, j], got[:, j]
+            y, yhat = T[:, j], got[:, j]
             ss = float(np.sum((y - y.mean()) ** 2))
             r2 = 1.0 - float(np.sum((yhat - y) ** 2)) / ss if ss > 0 else float("nan")
             rel = float(np.mean(np.abs(yhat - y) / np.maximum(np.abs(y), 1e-12)))
@@ -252,14 +286,19 @@ def run_regress(ctx: Context, out: Output, args) -> None:
         )
         measured = trait_matrix(roots)
         rows = [[n] + list(v) + list(m) for n, v, m in zip(names, values, measured)]
-        header = ["root"] + [f"requested_{k}" for k in PAPER_TRAITS] + [f"measured_{k}" for k in PAPER_TRAITS]
+        header = (
+            ["root"]
+            + [f"requested_{rs.trait_column(k, pop.unit)}" for k in names_all]
+            + [f"measured_{rs.trait_column(k, pop.unit)}" for k in PAPER_TRAITS]
+        )
         out.csv(sec, "predicted_roots.csv", header, rows, "requested and measured traits of each predicted root")
         k = 0 if vary is None else vary
         fig, _ = plot_regression_sweep(
             trees,
             values[:, k],
             trait_name=PAPER_TRAITS[k].replace("_", " "),
-            unit=pop.unit,
+            unit=unit_label(pop.unit),
+            trait_unit=unit_label(pop.unit) if k < len(PAPER_TRAITS) else None,
             measured=measured[:, k],
         )
         what = (
@@ -292,7 +331,7 @@ def run_cluster(ctx: Context, out: Output, args) -> None:
         # linkage with its number of clusters, so leaf order and cluster numbers are the same.
         cl = rs.cluster(D, n_clusters=k, method=args.linkage)
         numbers = [cluster_number(c) for c in cl.labels]
-        header = ["root", "cluster"] + (["condition"] if pop.conditions else [])
+        header = ["root", "cluster"] + ([pop.label_name] if pop.conditions else [])
         rows = [
             [n, c] + ([pop.conditions[i]] if pop.conditions else []) for i, (n, c) in enumerate(zip(pop.names, numbers))
         ]
@@ -304,7 +343,14 @@ def run_cluster(ctx: Context, out: Output, args) -> None:
             f"cluster of each root ({cl.n_clusters} clusters, {args.linkage} linkage; numbered "
             "left to right in the dendrogram)",
         )
-        fig, _ = plot_dendrogram(cl.linkage, labels=pop.names, n_clusters=cl.n_clusters, roots=pop.tree)
+        fig, _ = plot_dendrogram(
+            cl.linkage,
+            labels=pop.names,
+            n_clusters=cl.n_clusters,
+            roots=pop.tree,
+            strips=pop.labels or None,
+            unit=figure_unit(pop),
+        )
         out.figure(
             sec,
             fig,
@@ -316,7 +362,7 @@ def run_cluster(ctx: Context, out: Output, args) -> None:
             cond, num = np.asarray(pop.conditions), np.asarray(numbers)
             groups = [cluster_number(g) for g in range(cl.n_clusters)]
             table = [[c] + [int(np.sum((cond == c) & (num == g))) for g in groups] for c in known]
-            item.html = html_table(["condition"] + [f"cluster {g}" for g in groups], table)
+            item.html = html_table([pop.label_name] + [f"cluster {g}" for g in groups], table)
             acc_rows = []
             for rule, label in (("nearest_neighbour", "nearest neighbour"), ("nearest_mean", "nearest class mean")):
                 res = rs.loo_accuracy(D, np.asarray(pop.conditions), rule=rule)
@@ -327,7 +373,7 @@ def run_cluster(ctx: Context, out: Output, args) -> None:
                 "classification.csv",
                 header,
                 acc_rows,
-                f"leave-one-out classification of the conditions ({', '.join(known)}) from distances alone",
+                f"leave-one-out classification of {pop.label_name} ({', '.join(known)}) from distances alone",
                 table_html=html_table(header, acc_rows),
             )
             sec.notes.append(
@@ -339,17 +385,31 @@ def run_cluster(ctx: Context, out: Output, args) -> None:
 
 def run_traits(roots: list, out: Output, args) -> None:
     with out.step("Root traits") as sec:
-        rows = rs.traits(roots)
-        for r, root in zip(rows, roots):
-            for key in ("condition", "unit", "source_file"):
+        unit = common_unit(roots)
+        if unit is None:
+            warn(
+                "the roots are in different units ("
+                + ", ".join(sorted({str(r.metadata.get("unit")) for r in roots}))
+                + "); trait columns name no unit (see the unit column). Convert them to one unit with "
+                "--unit, or analyse them separately."
+            )
+        rows = []
+        for r, root in zip(rs.traits(roots), roots):
+            for key in ("condition", *root.metadata.get("label_columns", ()), "unit", "source_file"):
                 if key in root.metadata:
                     r[key] = root.metadata[key]
+            # Every length column names its unit: main_length_mm, convex_hull_area_px2, ...
+            rows.append({rs.trait_column(k, unit): v for k, v in r.items()})
         out.write("traits.csv", lambda p: write_dict_csv(p, rows))
-        show = ["name", "main_length", "n_laterals", "mean_lateral_length", "total_length", "depth", "width"]
+        show = [
+            rs.trait_column(k, unit)
+            for k in ("name", "main_length", "n_laterals", "mean_lateral_length", "total_length", "depth", "width")
+        ]
         out.file(
             sec,
             "traits.csv",
-            f"architecture traits of the {len(rows)} input roots (lengths in {common_unit(roots) or 'input units'})",
+            f"architecture traits of the {len(rows)} input roots (lengths in {unit_label(unit)}; column names "
+            "carry the unit)",
             "table",
             html_table(show, [[r[k] for k in show] for r in rows], max_rows=10),
         )
@@ -363,11 +423,16 @@ def run_geodesic(a_root, b_root, out: Output, args) -> None:
     with out.step("Geodesic (optimal deformation)") as sec:
         a, b = rs.unstack(pop.tree)
         reg = rs.register(a, b, weights=make_weights(args))
-        path = rs.geodesic(a, b, n_steps=args.steps, weights=make_weights(args), registration=reg)
-        taus = np.linspace(0.0, 1.0, args.steps)
-        la, lb = (r.main_length for r in pair)
-        # Back to the input's units, the size changing along the path.
-        path_out = rs.scale_tree(path, [(1 - t) * la + t * lb for t in taus]) if pop.normalised else path
+        sizes = None
+        if pop.normalised:
+            # The lengths batch() divided out (of the resampled main roots), so the path is
+            # scaled back exactly: it starts at a and ends at b, in the input's units.
+            raw = rs.batch(pair, n_points=args.points)
+            sizes = tuple(float(x) for x in np.asarray(rs.curve_length(raw.main)))
+        # in_place: the registration's rotation is undone along the path, so it ends at b as given.
+        path_out = rs.geodesic(
+            a, b, n_steps=args.steps, weights=make_weights(args), registration=reg, in_place=True, sizes=sizes
+        )
         names = [f"step_{i:02d}" for i in range(args.steps)]
         for i, r in enumerate(to_output_roots(path_out, pop, names)):
             out.rsml(None, [r], f"geodesic_step_{i:02d}.rsml", "", unit=pop.unit)
@@ -377,7 +442,9 @@ def run_geodesic(a_root, b_root, out: Output, args) -> None:
             f"each step of the deformation as RSML: geodesic_step_00.rsml … geodesic_step_{args.steps - 1:02d}.rsml",
         )
         fig, _ = plot_geodesic(
-            path, title=f"{pair[0].name} → {pair[1].name}: optimal deformation (colour = corresponding lateral)"
+            path_out,
+            title=f"{pair[0].name} → {pair[1].name}: optimal deformation (colour = corresponding lateral)",
+            unit=unit_label(pop.unit),
         )
         out.figure(
             sec,
@@ -386,3 +453,104 @@ def run_geodesic(a_root, b_root, out: Output, args) -> None:
             f"optimal deformation of {pair[0].name} into {pair[1].name}, one colour per matched lateral",
         )
         sec.notes.append(f"elastic distance {pair[0].name} → {pair[1].name}: {fmt(float(reg.distance))}.")
+
+
+def group_labels(pop: Population) -> list[str]:
+    """The groups of `compare`: the --by label (default condition), at least two of them."""
+    if pop.conditions is None:
+        raise CLIError(
+            "compare needs a group for every root: give --metadata TABLE.csv --by COLUMN "
+            "(or roots that carry a 'condition')."
+        )
+    labels = [str(c) for c in pop.conditions]
+    groups = sorted(set(labels))
+    if len(groups) < 2:
+        raise CLIError(
+            f"--by {pop.label_name}: every root has the same value ({groups[0]!r}); comparing needs at least two groups."
+        )
+    if len(groups) >= len(labels):
+        raise CLIError(f"--by {pop.label_name}: every root is its own group; groups need at least two members to test.")
+    return labels
+
+
+def permanova_text(label: str, rows: list[list]) -> str:
+    """The PERMANOVA table as markdown (printed and written to permanova.md)."""
+    lines = [
+        f"| test ({label}) | roots | pseudo-F | R² | p | p (Holm) |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for test, n, f, r2, p, q in rows:
+        lines.append(f"| {test} | {n} | {f:.3f} | {r2:.3f} | {p:.4f} | {'' if q is None else f'{q:.4f}'} |")
+    return "\n".join(lines)
+
+
+def run_compare(ctx: Context, out: Output, args) -> None:
+    from rootshape_jax.plot import plot_mds
+
+    pop = ctx.pop
+    labels = group_labels(pop)
+    D = ctx.distances
+    with out.step(f"Group comparison by {pop.label_name}") as sec:
+        say(args, f"PERMANOVA with {args.permutations} permutations, overall and for every pair of groups...")
+        overall = rs.permanova(D, labels, permutations=args.permutations, seed=args.seed)
+        pairs = rs.pairwise_permanova(D, labels, permutations=args.permutations, seed=args.seed + 1)
+        counts = {g: labels.count(g) for g in sorted(set(labels))}
+        rows = [
+            [
+                f"all groups ({', '.join(f'{g} n={c}' for g, c in counts.items())})",
+                len(labels),
+                overall.pseudo_f,
+                overall.r2,
+                overall.p_value,
+                None,
+            ]
+        ]
+        rows += [
+            [f"{t.group_a} vs {t.group_b}", t.n_a + t.n_b, t.pseudo_f, t.r2, t.p_value, t.p_adjusted] for t in pairs
+        ]
+        header = ["test", "roots", "pseudo_F", "R2", "p_value", "p_holm"]
+        out.csv(
+            sec,
+            "permanova.csv",
+            header,
+            rows,
+            f"PERMANOVA of the distances by {pop.label_name} ({args.permutations} permutations, seed "
+            f"{args.seed}); pairwise p-values adjusted with Holm's method (family-wise error)",
+            table_html=html_table(header, rows),
+        )
+        text = permanova_text(pop.label_name, rows)
+        out.write("permanova.md", lambda p: p.write_text(text + "\n", encoding="utf-8"))
+        out.file(sec, "permanova.md", "the same table in markdown")
+        print(text)
+        emb = rs.mds(D, n_components=2)
+        ratio = np.asarray(emb.proportion_explained)
+        out.csv(
+            sec,
+            "mds.csv",
+            ["root", pop.label_name, "mds_1", "mds_2"],
+            [[n, g, *xy] for n, g, xy in zip(pop.names, labels, np.asarray(emb.embedding))],
+            "classical MDS coordinates of each root (in distance units)",
+        )
+        fig, _ = plot_mds(
+            emb.embedding,
+            labels,
+            names=pop.names,
+            explained=ratio,
+            label_name=pop.label_name,
+            title=f"{len(labels)} roots by {pop.label_name} (classical MDS of the elastic distances)",
+        )
+        out.figure(sec, fig, "mds.png", f"roots in two dimensions (classical MDS), coloured by {pop.label_name}")
+        eig = np.asarray(emb.eigenvalues)
+        positive = float(np.sum(eig[eig > 0]))
+        negative = float(-np.sum(eig[eig < 0]))
+        note = (
+            f"PERMANOVA by {pop.label_name}: pseudo-F {overall.pseudo_f:.3f}, R² {overall.r2:.3f}, "
+            f"p = {overall.p_value:.4f} ({args.permutations} permutations). MDS axes 1-2 show "
+            f"{100 * ratio.sum():.0f} % of the positive eigenvalues"
+        )
+        if negative > 1e-9 * positive:
+            note += (
+                f" (the negative eigenvalues sum to {100 * negative / positive:.1f} % of the positive ones: "
+                "the distances are not exactly Euclidean)"
+            )
+        sec.notes.append(note + ".")
