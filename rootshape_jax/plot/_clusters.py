@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -26,6 +26,7 @@ from ._draw import (
     slot_color,
     subplot_kw,
 )
+from ._labels import check_groups, draw_label_strip, label_colors, legend_handles
 
 # Beyond these sizes tick labels overlap; they are left out.
 _MAX_TICK_LABELS = 50
@@ -87,6 +88,7 @@ def plot_distance_matrix(
     D: Any,
     *,
     labels: Sequence[str] | None = None,
+    groups: Mapping[str, Sequence[Any]] | None = None,
     linkage: Any = None,
     method: str = "average",
     ax=None,
@@ -100,6 +102,9 @@ def plot_distance_matrix(
 
     - `D`: symmetric distances with a zero diagonal (e.g. `rootshape_jax.pairwise_distances`).
     - `labels`: one name per root (shown when N ≤ 50).
+    - `groups`: labels to show as colour strips above the matrix, ``{name: one value per root}``
+      (e.g. ``{"condition": [...], "genotype": [...]}``): one strip per name, in the matrix's
+      order, and a legend below naming every colour.
     - `linkage`: a scipy linkage matrix to order by; default
       ``scipy.cluster.hierarchy.linkage(squareform(D), method)`` (with optimal leaf ordering
       up to N = 300).
@@ -108,30 +113,38 @@ def plot_distance_matrix(
     - `cmap`: colour map; `show_dendrogram`: draw the dendrogram above the heat map.
 
     **Returns** ``(fig, axes)`` with ``axes = {"matrix": ax, "colorbar": cax,
-    "dendrogram": dax or None}``. The order used is ``scipy.cluster.hierarchy.leaves_list``.
+    "dendrogram": dax or None, "strips": {name: Axes}}``. The order used is
+    ``scipy.cluster.hierarchy.leaves_list``.
     """
     D = check_distance_matrix(D, what="plot_distance_matrix")
     n = D.shape[0]
     labels = _check_labels(labels, n, "plot_distance_matrix")
+    groups = check_groups(groups, n, what="plot_distance_matrix")
     Z = _linkage_from(D, method) if linkage is None else _check_linkage(linkage, n, what="linkage")
     order = hierarchy.leaves_list(Z)
     ordered = D[np.ix_(order, order)]
 
     dax = None
+    strip_axes: dict = {}
     if ax is None:
-        fig = new_figure((7.0, 7.4 if show_dendrogram else 6.2))
+        # Rows: dendrogram, one thin strip per label, the matrix (heights in inches).
+        strip_h = 0.2
+        heights = ([1.2] if show_dendrogram else []) + [strip_h] * len(groups) + [5.6]
+        fig = new_figure((7.0, sum(heights) + 0.6 + (0.4 if groups else 0.0)))
+        gs = fig.add_gridspec(len(heights), 2, height_ratios=heights, width_ratios=[25, 1])
+        row = 0
         if show_dendrogram:
-            gs = fig.add_gridspec(2, 2, height_ratios=[1, 5], width_ratios=[25, 1])
             dax = fig.add_subplot(gs[0, 0])
-            ax = fig.add_subplot(gs[1, 0])
-            cax = fig.add_subplot(gs[1, 1])
-        else:
-            gs = fig.add_gridspec(1, 2, width_ratios=[25, 1])
-            ax = fig.add_subplot(gs[0, 0])
-            cax = fig.add_subplot(gs[0, 1])
+            row = 1
+        ax = fig.add_subplot(gs[-1, 0])
+        for j, name in enumerate(groups):
+            strip_axes[name] = fig.add_subplot(gs[row + j, 0])
+        cax = fig.add_subplot(gs[-1, 1])
     else:
         fig = ax.figure
         cax = None
+        for j, name in enumerate(groups):  # stacked just above the given Axes
+            strip_axes[name] = ax.inset_axes([0, 1.01 + 0.05 * (len(groups) - 1 - j), 1, 0.04])
     im = ax.imshow(
         ordered,
         cmap=cmap,
@@ -154,13 +167,24 @@ def plot_distance_matrix(
     ax.tick_params(length=0)
     for spine in ax.spines.values():
         spine.set_visible(False)
+    colors = {name: label_colors(values, palette=j) for j, (name, values) in enumerate(groups.items())}
+    for name, values in groups.items():
+        draw_label_strip(strip_axes[name], [values[i] for i in order], colors[name], name=name)
+    if groups:
+        fig.legend(
+            handles=legend_handles(colors),
+            loc="outside lower center" if fig.get_layout_engine() is not None else "lower center",
+            ncol=max(len(c) for c in colors.values()),
+            frameon=False,
+            fontsize=8,
+        )
     if dax is not None:
         hierarchy.dendrogram(Z, ax=dax, no_labels=True, color_threshold=-1, above_threshold_color=NEUTRAL_COLOR)
         dax.set_xlim(0, 10 * n)  # scipy puts leaf i at 10 i + 5: aligned with the cells below
         dax.set_axis_off()
     if title:
         (dax if dax is not None else ax).set_title(title, fontsize=11)
-    return fig, {"matrix": ax, "colorbar": cbar.ax, "dendrogram": dax}
+    return fig, {"matrix": ax, "colorbar": cbar.ax, "dendrogram": dax, "strips": strip_axes}
 
 
 def _as_linkage(D_or_linkage: Any, method: str, what: str) -> np.ndarray:
