@@ -1,86 +1,162 @@
-"""Colour strips for labels (condition, genotype, ...) beside a heat map or a dendrogram."""
+"""Group labels in figures: colour strips beside heat maps and dendrograms, MDS scatter plots."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-import matplotlib
-import matplotlib.colors as mcolors
 import numpy as np
 
-# Unknown values (None, NaN, "") get a neutral light grey; known values a qualitative colour.
-MISSING_COLOR = "#d9d9d9"
-MISSING_TEXT = "(missing)"
+from ._draw import new_figure
+
+# Categorical colours (matplotlib's tab10, then tab20's lighter halves): distinct, print-safe.
+_GROUP_COLORS = (
+    "#1f77b4",
+    "#ff7f0e",
+    "#2ca02c",
+    "#d62728",
+    "#9467bd",
+    "#8c564b",
+    "#e377c2",
+    "#7f7f7f",
+    "#bcbd22",
+    "#17becf",
+    "#aec7e8",
+    "#ffbb78",
+    "#98df8a",
+    "#ff9896",
+    "#c5b0d5",
+    "#c49c94",
+    "#f7b6d2",
+    "#c7c7c7",
+    "#dbdb8d",
+    "#9edae5",
+)
 
 
-def _is_missing(v: Any) -> bool:
-    if v is None:
-        return True
-    if isinstance(v, float) and np.isnan(v):
-        return True
-    return isinstance(v, str) and not v.strip()
+def label_colors(values: Sequence[Any]) -> dict[str, str]:
+    """One colour per distinct label value, in sorted order of the values (so the same
+    labels get the same colours in every figure of a run)."""
+    groups = sorted({str(v) for v in values})
+    return {g: _GROUP_COLORS[i % len(_GROUP_COLORS)] for i, g in enumerate(groups)}
 
 
-# One qualitative palette per label, so that two strips never share a colour by accident.
-_PALETTES = ("tab10", "Dark2", "Set2", "Accent", "Pastel1")
-
-
-def label_colors(values: Sequence[Any], *, palette: int = 0) -> dict[str, str]:
-    """``{value: colour}`` for one label column: values sorted as text, colours from the
-    `palette`-th qualitative matplotlib palette (``tab10``, ``Dark2``, ``Set2``, ...; ``tab20``
-    beyond 10 values); missing values map to `MISSING_COLOR` under `MISSING_TEXT`."""
-    known = sorted({str(v) for v in values if not _is_missing(v)})
-    cmap = matplotlib.colormaps[_PALETTES[palette % len(_PALETTES)] if len(known) <= 8 else "tab20"]
-    colors = {v: mcolors.to_hex(cmap(i % cmap.N)) for i, v in enumerate(known)}
-    if any(_is_missing(v) for v in values):
-        colors[MISSING_TEXT] = MISSING_COLOR
-    return colors
-
-
-def check_groups(groups: Any, n: int, *, what: str) -> dict[str, list[Any]]:
-    """``groups`` as ``{label name: N values}``, or a ValueError naming the bad column."""
-    if groups is None:
+def check_strips(strips: Mapping[str, Sequence[Any]] | None, n: int, what: str) -> dict[str, list[str]]:
+    """`strips` as ``{label name: [value per root]}`` (strings), or a ValueError."""
+    if strips is None:
         return {}
-    if not isinstance(groups, Mapping):
+    if not isinstance(strips, Mapping):
         raise ValueError(
-            f"{what}: groups must be a mapping from a label name to one value per root, e.g. "
-            f"{{'condition': [...]}}; got {type(groups).__name__}."
+            f"{what}: strips must be a dict {{label name: one value per root}}, got {type(strips).__name__}."
         )
     out = {}
-    for name, values in groups.items():
-        values = list(values)
+    for name, values in strips.items():
+        values = [str(v) for v in values]
         if len(values) != n:
-            raise ValueError(f"{what}: groups[{name!r}] has {len(values)} values for {n} roots.")
+            raise ValueError(f"{what}: strip {name!r} has {len(values)} values for {n} roots.")
         out[str(name)] = values
     return out
 
 
-def legend_handles(colors: Mapping[str, Mapping[str, str]]) -> list:
-    """Legend patches ``"name: value"``, one row per label when drawn with
-    ``ncol = max(len(c) for c in colors.values())`` (matplotlib fills legends column by
-    column, so the rows are padded with invisible entries)."""
-    from matplotlib.patches import Patch
+def draw_strip(ax, values_in_order: Sequence[str], name: str, *, centers=None, width: float = 1.0) -> dict[str, str]:
+    """One row of coloured cells (a bar per root, in the order given) with the label's name on
+    the left and a legend on the right. Returns the colours used ``{value: colour}``.
 
-    rows = [[Patch(facecolor=c, label=f"{name}: {v}") for v, c in cs.items()] for name, cs in colors.items()]
-    ncol = max((len(r) for r in rows), default=0)
-    blank = lambda: Patch(visible=False, label="")  # noqa: E731
-    grid = [r + [blank() for _ in range(ncol - len(r))] for r in rows]
-    return [grid[r][c] for c in range(ncol) for r in range(len(grid))]
-
-
-def value_key(v: Any) -> str:
-    return MISSING_TEXT if _is_missing(v) else str(v)
-
-
-def draw_label_strip(ax, values: Sequence[Any], colors: Mapping[str, str], *, name: str) -> None:
-    """One row of cells, cell i coloured by ``values[i]`` (already in display order), with the
-    label's name on the left."""
-    rgb = np.array([[mcolors.to_rgb(colors[value_key(v)]) for v in values]])
-    n = len(values)
-    ax.imshow(rgb, aspect="auto", interpolation="nearest", extent=(-0.5, n - 0.5, 0.5, -0.5))
+    Each cell is a bar whose ``gid`` is its value, so tests and tools can read the strip back
+    from ``ax.patches``."""
+    colors = label_colors(values_in_order)
+    n = len(values_in_order)
+    x = np.arange(n, dtype=float) if centers is None else np.asarray(centers, dtype=float)
+    bars = ax.bar(x, 1.0, width=width, bottom=0.0, color=[colors[v] for v in values_in_order], linewidth=0)
+    for bar, v in zip(bars, values_in_order):
+        bar.set_gid(v)
+    ax.set_ylim(0, 1)
+    ax.set_yticks([])
     ax.set_xticks([])
-    ax.set_yticks([0], [name], fontsize=8)
-    ax.tick_params(length=0)
     for spine in ax.spines.values():
         spine.set_visible(False)
+    ax.set_ylabel(name, rotation=0, ha="right", va="center", fontsize=8)
+    from matplotlib.patches import Patch
+
+    handles = [Patch(facecolor=c, label=g) for g, c in colors.items()]
+    legend = ax.legend(
+        handles=handles,
+        loc="center left",
+        bbox_to_anchor=(1.01, 0.5),
+        fontsize=7,
+        frameon=False,
+        ncol=max(1, min(len(handles), 6)),
+        handlelength=1.0,
+        columnspacing=0.8,
+        borderaxespad=0.0,
+    )
+    # Outside the layout: `reserve_legend_space` keeps a right margin for it instead, so the
+    # panels keep their widths (a legend in the layout pushes the heat map's colour bar away).
+    legend.set_in_layout(False)
+    return colors
+
+
+def reserve_legend_space(fig, strips: Mapping[str, Sequence[str]]) -> None:
+    """Leave a right margin wide enough for the strips' legends (drawn to the panels' right)."""
+    if not strips:
+        return
+    widest = 0.0
+    for values in strips.values():
+        groups = sorted(set(values))
+        shown = groups[:6]  # legends wrap into rows of 6 entries
+        widest = max(widest, sum(0.22 + 0.065 * len(g) for g in shown))
+    width = fig.get_figwidth()
+    frac = min(0.45, (widest + 0.2) / width)
+    engine = fig.get_layout_engine()
+    if engine is not None and hasattr(engine, "set"):
+        engine.set(rect=(0.0, 0.0, 1.0 - frac, 1.0))
+
+
+def plot_mds(
+    embedding: Any,
+    labels: Sequence[Any] | None = None,
+    *,
+    names: Sequence[str] | None = None,
+    explained: Sequence[float] | None = None,
+    label_name: str = "group",
+    ax=None,
+    title: str | None = "Roots in two dimensions (classical MDS of the distances)",
+):
+    """Scatter plot of an MDS embedding (``rootshape_jax.mds(D).embedding``), one colour per
+    label value with a legend; `names` annotate the points (up to 40 roots); `explained`
+    (``MDS.proportion_explained``) goes into the axis names.
+
+    **Returns** ``(fig, ax)``. Each group is one scatter collection whose label is the group."""
+    X = np.asarray(embedding, dtype=float)
+    if X.ndim != 2 or X.shape[1] < 2:
+        raise ValueError(f"plot_mds: expected an (n, 2) embedding (mds(D, n_components=2)), got shape {X.shape}.")
+    n = X.shape[0]
+    values = ["all"] * n if labels is None else [str(v) for v in labels]
+    if len(values) != n:
+        raise ValueError(f"plot_mds: {len(values)} labels for {n} points.")
+    if ax is None:
+        fig = new_figure((6.4, 5.2))
+        ax = fig.add_subplot()
+    else:
+        fig = ax.figure
+    colors = label_colors(values)
+    for g, c in colors.items():
+        idx = [i for i, v in enumerate(values) if v == g]
+        ax.scatter(X[idx, 0], X[idx, 1], s=36, color=c, label=f"{g} (n = {len(idx)})", edgecolor="white", linewidth=0.5)
+    if names is not None and n <= 40:
+        for (x, y), name in zip(X[:, :2], names):
+            ax.annotate(str(name), (x, y), fontsize=6, xytext=(3, 3), textcoords="offset points", color="#444444")
+    for k, setter in enumerate((ax.set_xlabel, ax.set_ylabel)):
+        text = f"MDS axis {k + 1}"
+        if explained is not None:
+            text += f" ({100 * float(explained[k]):.0f} % of the positive eigenvalues)"
+        setter(text + " (distance units)")
+    if labels is not None:
+        ax.legend(title=label_name, fontsize=8, title_fontsize=8, frameon=False, loc="best")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.axhline(0, color="#dddddd", linewidth=0.6, zorder=0)
+    ax.axvline(0, color="#dddddd", linewidth=0.6, zorder=0)
+    ax.spines[["top", "right"]].set_visible(False)
+    if title:
+        ax.set_title(title, fontsize=11)
+    return fig, ax
