@@ -337,7 +337,7 @@ def plot_mean(
         ncols = min(candidates, key=lambda k: ((-n) % k, abs(k - c)))
     nrows, ncols = grid_shape(n, ncols, max_cols=ncols)
     mean_h = float(np.clip(nrows * h, 3.2, 5.5))  # beside a tall grid, not as tall as it
-    mean_w = mean_h * mean_aspect
+    mean_w = max(mean_h * mean_aspect, 2.0)  # room for its title beside a narrow root
     fig = new_figure((ncols * w + mean_w + 0.6, max(nrows * h, mean_h) + 0.9))
     outer = fig.add_gridspec(1, 2, width_ratios=[ncols * w, mean_w])
     inner = outer[0, 0].subgridspec(nrows, ncols)
@@ -368,8 +368,8 @@ def plot_mean(
         unit=unit,
     )
     # Said in the mean's title: a header over the grid would widen its first column.
-    more = f", first {n} shown on the left" if n < len(drawings) else " on the left"
-    mean_ax.set_title(f"Mean of the n = {len(drawings)} input roots{more}", fontsize=10)
+    more = f"\n({n} of them shown)" if n < len(drawings) else ""
+    mean_ax.set_title(f"Mean of the\n{len(drawings)} roots{more}", fontsize=10)
     _suptitle(fig, title)
     return fig, {"samples": sample_axes, "mean": mean_ax}
 
