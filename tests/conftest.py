@@ -1,6 +1,7 @@
 """Shared pytest configuration: every correctness test runs in float64."""
 
 import contextlib
+import os
 import signal
 
 import jax
@@ -10,8 +11,10 @@ import jax
 # worker had reported "finished", and the import (assertion rewriting of ~100 modules) took
 # 5-11 s under load. execnet gives a finished worker 5 s, then sends it SIGINT, which surfaced as
 # a `KeyboardInterrupt` traceback from JAX's `_xla_gc_callback` at the end of `make test`.
-with contextlib.suppress(ImportError):
-    import hypothesis  # noqa: F401
+# Only xdist workers need it (elsewhere pytest waits for the import at the end anyway).
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    with contextlib.suppress(ImportError):
+        import hypothesis  # noqa: F401
 
 jax.config.update("jax_enable_x64", True)
 
