@@ -79,7 +79,7 @@ from ._registration import distance as distance, register as register
 from ._regression import TraitRegression as TraitRegression
 from ._root import Root as Root, limit_laterals as limit_laterals
 from ._rotation import optimal_rotation as optimal_rotation
-from ._traits import traits as traits, traits_to_csv as traits_to_csv
+from ._traits import trait_column as trait_column, traits as traits, traits_to_csv as traits_to_csv
 from ._tree import (
     RootTree as RootTree,
     SRVFTree as SRVFTree,

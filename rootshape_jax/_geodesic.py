@@ -9,7 +9,7 @@ import jax.numpy as jnp
 from ._engine import Registration
 from ._metric import Weights
 from ._registration import register
-from ._tree import RootTree, SRVFTree, to_curves, to_srvf
+from ._tree import RootTree, SRVFTree, scale_tree, to_curves, to_srvf
 
 
 def geodesic_srvf(a: SRVFTree, registered_b: SRVFTree, taus) -> SRVFTree:
@@ -53,6 +53,8 @@ def geodesic(
     n_steps: int = 9,
     weights: Weights | None = None,
     registration: Registration | None = None,
+    in_place: bool = False,
+    sizes: tuple[float, float] | None = None,
     **options,
 ) -> RootTree:
     """The geodesic from root a to root b as a batched `RootTree` of `n_steps` roots.
@@ -61,6 +63,20 @@ def geodesic(
     lateral present on one side only grows from zero length at its partner's position. Pass a
     precomputed `registration` (of b onto a) to skip registering again; other options as in
     `register`.
+
+    Where the path lies: every step's base moves on the straight line from a's base to b's
+    (the SRVFs forget translation; the trees' `origin` keeps it), so roots far from the
+    coordinate origin stay where they are.
+
+    - `in_place`: False (default): the path ends at b as registered (rotated about its base
+      onto a). True: the registration's rotation is undone gradually (step τ is turned about
+      its base by the fraction τ of the inverse rotation), so the path ends at b as given.
+      Rotations are quotiented out of the shape space, so both are the same shape path.
+    - `sizes`: ``(length_a, length_b)``, the main-root lengths of a and b before
+      `batch(normalise_scale=True)` divided them out. That scaling keeps each root's base (the
+      seed) fixed, so here step τ is scaled back about its base by
+      ``(1 − τ) length_a + τ length_b``: the path runs between the roots at their real sizes
+      and positions. Leave it None for roots that were not scale-normalised.
     """
     if not isinstance(n_steps, int) or n_steps < 2:
         raise ValueError(f"n_steps must be an integer >= 2, got {n_steps!r}.")
@@ -71,7 +87,47 @@ def geodesic(
     weights = Weights() if weights is None else weights
     # Whether a has a thickness channel is decided here, on concrete weights (static below).
     thick = registration.registered.has_thickness
-    return _geodesic_curves(a, registration.registered, n_steps, weights if thick else None)
+    path = _geodesic_curves(a, registration.registered, n_steps, weights if thick else None)
+    taus = jnp.linspace(0.0, 1.0, n_steps, dtype=path.main.dtype)
+    if in_place:
+        path = _unrotate(path, registration.rotation, taus)
+    if sizes is not None:
+        la, lb = (float(x) for x in sizes)
+        if not (la > 0 and lb > 0 and jnp.isfinite(la) and jnp.isfinite(lb)):
+            raise ValueError(f"sizes must be two positive main-root lengths (length_a, length_b), got {sizes!r}.")
+        path = scale_tree(path, (1 - taus) * la + taus * lb)
+    return path
+
+
+def fractional_rotation(R, t):
+    """``R^t``: the rotation by the fraction t of R's angle about R's axis (d = 2 or 3)."""
+    if R.shape[-1] == 2:
+        theta = jnp.arctan2(R[1, 0], R[0, 0]) * t
+        c, s = jnp.cos(theta), jnp.sin(theta)
+        return jnp.array([[c, -s], [s, c]])
+    # Axis-angle (Rodrigues). Near angle 0 any axis works; near π the axis comes from R + I.
+    cos = jnp.clip((jnp.trace(R) - 1) / 2, -1.0, 1.0)
+    angle = jnp.arccos(cos)
+    w = jnp.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    sym = (R + jnp.eye(3)) / 2
+    col = sym[:, jnp.argmax(jnp.diag(sym))]
+    axis = jnp.where(jnp.linalg.norm(w) > 1e-6, w, col)
+    axis = axis / jnp.maximum(jnp.linalg.norm(axis), 1e-30)
+    K = jnp.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    a = angle * t
+    return jnp.eye(3) + jnp.sin(a) * K + (1 - jnp.cos(a)) * (K @ K)
+
+
+def _unrotate(path: RootTree, rotation, taus) -> RootTree:
+    """Turn step τ about its base by ``(Rᵀ)^τ``: the last step is b in its own pose (the
+    registration put ``o + R (b − o)`` there)."""
+    Rs = jax.vmap(lambda t: fractional_rotation(rotation, t))(taus)  # [S, d, d]
+    o = path.main[:, :1, :]  # [S, 1, d]
+    # x' = o + Rᵀ(x − o); with row vectors (x − o) R.
+    main = o + jnp.einsum("spd,sde->spe", path.main - o, Rs)
+    o_lat = o[:, None]
+    laterals = o_lat + jnp.einsum("skpd,sde->skpe", path.laterals - o_lat, Rs)
+    return eqx.tree_at(lambda t: (t.main, t.laterals), path, (main, laterals))
 
 
 @eqx.filter_jit

@@ -196,17 +196,55 @@ def traits(root_or_roots: Root | Sequence[Root], *, window: float | None = None)
     return [_root_traits(r, window) for r in root_or_roots]
 
 
-def traits_to_csv(rows: dict | Sequence[Mapping], path: str | os.PathLike) -> None:
+# Power of length in each trait's unit (None: no unit); the insertion angle is in degrees.
+TRAIT_LENGTH_POWER: dict[str, int | None] = {
+    "main_length": 1,
+    "n_laterals": None,
+    "lateral_density": -1,
+    "mean_lateral_length": 1,
+    "std_lateral_length": 1,
+    "total_lateral_length": 1,
+    "total_length": 1,
+    "main_tortuosity": None,
+    "depth": 1,
+    "width": 1,
+    "convex_hull_area": 2,
+    "convex_hull_volume": 3,
+}
+
+
+def trait_column(name: str, unit: str | None) -> str:
+    """The column name of trait `name` with its unit: ``main_length_mm``,
+    ``convex_hull_area_mm2``, ``lateral_density_per_mm``, ``mean_insertion_angle_deg``
+    (pixels: ``px``). Names of other columns, and every name when `unit` is None, are kept."""
+    if name == "mean_insertion_angle":
+        return f"{name}_deg"
+    power = TRAIT_LENGTH_POWER.get(name)
+    if power is None or unit is None:
+        return name
+    u = "px" if unit.lower() in ("pixel", "pixels", "px") else unit.replace(" ", "_")
+    if power == -1:
+        return f"{name}_per_{u}"
+    return f"{name}_{u}" + (str(power) if power > 1 else "")
+
+
+def traits_to_csv(rows: dict | Sequence[Mapping], path: str | os.PathLike, *, unit: str | None = None) -> None:
     """Write trait rows (from `traits`, possibly with extra keys) to a CSV file with a header.
 
     Columns are the union of the rows' keys in order of first appearance; missing cells are
     empty. Floats are written with full precision (``repr``), so reading back is exact.
+    Trait columns carry their unit (`trait_column`): `unit`, or by default the rows' common
+    ``"unit"`` value when they have one (the command line adds it); angles are in degrees.
     """
     if isinstance(rows, Mapping):
         rows = [rows]
     rows = list(rows)
     if not all(isinstance(r, Mapping) for r in rows):
         raise ValueError("traits_to_csv expects a dict or a sequence of dicts (from traits()).")
+    if unit is None:
+        units = {r.get("unit") for r in rows}
+        unit = units.pop() if len(units) == 1 else None
+    rows = [{trait_column(k, unit): v for k, v in r.items()} for r in rows]
     columns: list[str] = []
     for r in rows:
         for key in r:

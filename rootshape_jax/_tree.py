@@ -412,8 +412,13 @@ def _warn_missing_radius(roots: Sequence[Root]) -> None:
         )
 
 
-def to_roots(tree: RootTree, *, names: Sequence[str] | None = None) -> list[Root]:
-    """Unpadded `Root`s from a (batched or single) `RootTree`; null slots are dropped."""
+def to_roots(tree: RootTree, *, names: Sequence[str] | None = None, unit: str | None = None) -> list[Root]:
+    """Unpadded `Root`s from a (batched or single) `RootTree`; null slots are dropped.
+
+    `unit` is recorded as ``metadata["unit"]`` (`write_rsml` writes it): the inputs' unit, or
+    for trees built with ``batch(normalise_scale=True)`` (means, modes, geodesics of them)
+    ``rootshape_jax.io.NORMALISED_UNIT`` = "normalised (main-root length = 1)". Without it
+    `write_rsml` cannot know and writes "pixel"."""
     if not isinstance(tree, RootTree):
         raise TypeError(f"to_roots expects a RootTree, got {type(tree).__name__}.")
     main = np.asarray(tree.main)
@@ -445,6 +450,7 @@ def to_roots(tree: RootTree, *, names: Sequence[str] | None = None) -> list[Root
                 name=names[i] if names is not None else "",
                 main_radius=main_r[i] if has_radius else None,
                 lateral_radii=tuple(lat_r[i, k] for k in keep) if has_radius else None,
+                metadata={} if unit is None else {"unit": unit},
             )
         )
     return out

@@ -107,7 +107,7 @@ def test_traits_end_to_end(rsml_files, tmp_path):
     assert len(rows) == len(roots) == 4
     # Same values as the library (files are read in sorted order: control, then drought).
     for row, root in zip(rows, roots):
-        assert float(row["main_length"]) == pytest.approx(root.main_length, rel=1e-12)
+        assert float(row["main_length_mm"]) == pytest.approx(root.main_length, rel=1e-12)
         assert int(row["n_laterals"]) == root.n_laterals
 
 

@@ -151,7 +151,7 @@ def test_compare_tables_agree_with_the_library_and_the_figures(tmp_path, monkeyp
         col = rplot.label_colors([m[key] for m in meta.values()])
         assert hexes(b.get_facecolor() for b in bars) == [col[meta[n][key]] for n in order]
     crow = read_csv(out / "clusters.csv")
-    assert {r["root"]: r["condition"] for r in crow} == {n: m["treatment"] for n, m in meta.items()}
+    assert {r["root"]: r["treatment"] for r in crow} == {n: m["treatment"] for n, m in meta.items()}
 
 
 def test_compare_needs_two_groups(tmp_path, monkeypatch):
@@ -229,7 +229,10 @@ def test_compare_end_to_end(labelled_folder, tmp_path):
         "--quiet",
     )
     assert proc.returncode == 0, proc.stderr
-    assert "skipped zz_bad.rsml" in proc.stderr and "skipped 1: zz_bad.rsml (not well-formed XML)" in proc.stdout
+    assert (
+        "zz_bad.rsml: not well-formed XML" in proc.stderr
+        and "skipped 1: zz_bad.rsml (not well-formed XML)" in proc.stdout
+    )
     assert "| test (condition) | roots | pseudo-F | R² | p | p (Holm) |" in proc.stdout
     rows = read_csv(out / "permanova.csv")
     assert rows[0]["test"] == "all groups (control n=2, drought n=2)" and len(rows) == 2
@@ -242,3 +245,46 @@ def test_compare_end_to_end(labelled_folder, tmp_path):
     assert float(rows[0]["pseudo_F"]) == pytest.approx(ref.pseudo_f, rel=1e-9)
     for f in ("mds.png", "permanova.md", "distances.png"):
         assert (out / f).is_file()
+
+
+def test_cluster_by_classifies_the_chosen_label(tmp_path, monkeypatch):
+    ctx, _, out = run_steps(tmp_path, monkeypatch, by="batch")
+    rows = read_csv(out / "clusters.csv")
+    assert list(rows[0]) == ["root", "cluster", "batch"]  # the --by label
+    assert {r["root"]: r["batch"] for r in rows} == {r.name: r.metadata["batch"] for r in ctx.pop.roots}
+    acc = read_csv(out / "classification.csv")
+    labels = np.array([r.metadata["batch"] for r in ctx.pop.roots])
+    ref = rs.loo_accuracy(ctx.distances, labels, rule="nearest_neighbour")
+    assert float(acc[0]["accuracy"]) == pytest.approx(ref["accuracy"])
+
+
+def test_regress_by_reads_numeric_covariates_and_names_bad_values(tmp_path):
+    from rootshape_jax._cli._common import CLIError
+    from rootshape_jax._cli._inputs import covariate_columns, covariate_matrix, read_requested
+
+    roots = io.attach_metadata(
+        [
+            dataclasses.replace(r, metadata=dict(r.metadata, source_file=f"f{i}.rsml"))
+            for i, r in enumerate(synthetic_roots(3, seed=1))
+        ],
+        [
+            {"file": "f0", "dose": "1.5", "g": "x"},
+            {"file": "f1", "dose": "2", "g": "y"},
+            {"file": "f2", "dose": "0", "g": "x"},
+        ],
+    )
+    args = argparse.Namespace(command="regress", by="dose, g")
+    assert covariate_columns(args) == ["dose", "g"]
+    np.testing.assert_array_equal(covariate_matrix(roots, ["dose"]), [[1.5], [2.0], [0.0]])
+    with pytest.raises(CLIError, match="--by g: covariates must be numbers, but root .* has 'x'"):
+        covariate_matrix(roots, ["g"])
+    req = tmp_path / "req.csv"
+    req.write_text("main_length,mean_lateral_length,std_lateral_length,dose\n100,20,5,1\n")
+    np.testing.assert_array_equal(
+        read_requested(str(req), ["main_length", "mean_lateral_length", "std_lateral_length", "dose"]),
+        [[100, 20, 5, 1]],
+    )
+    with pytest.raises(CLIError, match="missing dose2"):
+        read_requested(
+            str(req), ["main_length", "mean_lateral_length", "std_lateral_length", "dose", "g"][:3] + ["dose2"]
+        )

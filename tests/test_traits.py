@@ -4,6 +4,7 @@ import math
 import numpy as np
 import pytest
 
+from rootshape_jax import trait_column as rs_trait_column
 from rootshape_jax._errors import InvalidRootError
 from rootshape_jax._root import Root
 from rootshape_jax._traits import TRAIT_NAMES, insertion_angles, traits, traits_to_csv
@@ -226,12 +227,15 @@ def test_csv_round_trip(tmp_path):
     with open(path, newline="") as f:
         back = list(csv.DictReader(f))
     assert len(back) == len(rows)
-    assert list(back[0])[: len(TRAIT_NAMES) + 1] == ["name", *TRAIT_NAMES]
+    # Without a unit only the angle's column names its unit (degrees).
+    columns = [rs_trait_column(k, None) for k in TRAIT_NAMES]
+    assert "mean_insertion_angle_deg" in columns
+    assert list(back[0])[: len(TRAIT_NAMES) + 1] == ["name", *columns]
     assert back[0]["condition"] == "control" and back[1]["condition"] == ""
     for r, b in zip(rows, back):
         assert b["name"] == r["name"]
         for k in TRAIT_NAMES:
-            v = float(b[k])
+            v = float(b[rs_trait_column(k, None)])
             assert (math.isnan(v) and math.isnan(r[k])) or v == r[k], k  # exact round trip
     traits_to_csv(rows[0], tmp_path / "one.csv")
     with open(tmp_path / "one.csv", newline="") as f:

@@ -12,8 +12,9 @@ from collections.abc import Sequence
 import numpy as np
 
 import rootshape_jax as rs
+from rootshape_jax.io import NORMALISED_UNIT, unit_label
 
-from ._common import PAPER_TRAITS, CLIError, fmt, make_weights, say
+from ._common import PAPER_TRAITS, CLIError, fmt, make_weights, say, warn
 from ._inputs import (
     Population,
     common_unit,
@@ -38,6 +39,11 @@ class Context:
 
 # Pairs per stored block with --store: at most this much work is lost to an interruption.
 STORE_BLOCK = 64
+
+
+def figure_unit(pop: Population) -> str:
+    """The unit of drawn analysis coordinates: scale-normalised roots are in main-root lengths."""
+    return NORMALISED_UNIT if pop.normalised else unit_label(pop.unit)
 
 
 def run_distances(ctx: Context, out: Output, args) -> None:
@@ -123,6 +129,7 @@ def run_mean(ctx: Context, out: Output, args) -> None:
             names=pop.names,
             max_samples=len(pop.names),
             title=f"Mean of {len(pop.names)} roots",
+            unit=figure_unit(ctx.pop),
         )
         out.figure(sec, fig, "mean.png", "input roots (left, named) and their mean root (right, at its own scale)")
         fig, _ = plot_energy_trace(trace)
@@ -167,7 +174,7 @@ def run_pca(ctx: Context, out: Output, args) -> None:
         n_modes = max(1, min(args.modes, len(eig)))
         alphas = [-2.0, -1.0, 0.0, 1.0, 2.0]
         trees = rs.modes(pc, alphas, component=list(range(n_modes)))
-        fig, _ = plot_modes(trees, alphas, explained=ratio[:n_modes])
+        fig, _ = plot_modes(trees, alphas, explained=ratio[:n_modes], unit=figure_unit(ctx.pop))
         out.figure(
             sec, fig, "modes.png", f"first {n_modes} modes: mean ± 1 and 2 standard deviations along each component"
         )
@@ -205,7 +212,7 @@ def run_sample(ctx: Context, out: Output, args) -> None:
             list(zip(names, d)),
             "distance of each random root to the mean in the PCA model",
         )
-        fig, _ = plot_samples_by_distance(trees, d, n_groups=min(3, n))
+        fig, _ = plot_samples_by_distance(trees, d, n_groups=min(3, n), unit=figure_unit(ctx.pop))
         out.figure(
             sec, fig, "random_roots.png", "random roots, in rows of increasing distance to the mean (in the PCA model)"
         )
@@ -281,14 +288,19 @@ def run_regress(ctx: Context, out: Output, args) -> None:
         )
         measured = trait_matrix(roots)
         rows = [[n] + list(v) + list(m) for n, v, m in zip(names, values, measured)]
-        header = ["root"] + [f"requested_{k}" for k in names_all] + [f"measured_{k}" for k in PAPER_TRAITS]
+        header = (
+            ["root"]
+            + [f"requested_{rs.trait_column(k, pop.unit)}" for k in names_all]
+            + [f"measured_{rs.trait_column(k, pop.unit)}" for k in PAPER_TRAITS]
+        )
         out.csv(sec, "predicted_roots.csv", header, rows, "requested and measured traits of each predicted root")
         k = 0 if vary is None else vary
         fig, _ = plot_regression_sweep(
             trees,
             values[:, k],
             trait_name=PAPER_TRAITS[k].replace("_", " "),
-            unit=pop.unit,
+            unit=unit_label(pop.unit),
+            trait_unit=unit_label(pop.unit) if k < len(PAPER_TRAITS) else None,
             measured=measured[:, k],
         )
         what = (
@@ -321,7 +333,7 @@ def run_cluster(ctx: Context, out: Output, args) -> None:
         # linkage with its number of clusters, so leaf order and cluster numbers are the same.
         cl = rs.cluster(D, n_clusters=k, method=args.linkage)
         numbers = [cluster_number(c) for c in cl.labels]
-        header = ["root", "cluster"] + (["condition"] if pop.conditions else [])
+        header = ["root", "cluster"] + ([pop.label_name] if pop.conditions else [])
         rows = [
             [n, c] + ([pop.conditions[i]] if pop.conditions else []) for i, (n, c) in enumerate(zip(pop.names, numbers))
         ]
@@ -334,7 +346,12 @@ def run_cluster(ctx: Context, out: Output, args) -> None:
             "left to right in the dendrogram)",
         )
         fig, _ = plot_dendrogram(
-            cl.linkage, labels=pop.names, n_clusters=cl.n_clusters, roots=pop.tree, strips=pop.labels or None
+            cl.linkage,
+            labels=pop.names,
+            n_clusters=cl.n_clusters,
+            roots=pop.tree,
+            strips=pop.labels or None,
+            unit=figure_unit(pop),
         )
         out.figure(
             sec,
@@ -347,7 +364,7 @@ def run_cluster(ctx: Context, out: Output, args) -> None:
             cond, num = np.asarray(pop.conditions), np.asarray(numbers)
             groups = [cluster_number(g) for g in range(cl.n_clusters)]
             table = [[c] + [int(np.sum((cond == c) & (num == g))) for g in groups] for c in known]
-            item.html = html_table(["condition"] + [f"cluster {g}" for g in groups], table)
+            item.html = html_table([pop.label_name] + [f"cluster {g}" for g in groups], table)
             acc_rows = []
             for rule, label in (("nearest_neighbour", "nearest neighbour"), ("nearest_mean", "nearest class mean")):
                 res = rs.loo_accuracy(D, np.asarray(pop.conditions), rule=rule)
@@ -358,7 +375,7 @@ def run_cluster(ctx: Context, out: Output, args) -> None:
                 "classification.csv",
                 header,
                 acc_rows,
-                f"leave-one-out classification of the conditions ({', '.join(known)}) from distances alone",
+                f"leave-one-out classification of {pop.label_name} ({', '.join(known)}) from distances alone",
                 table_html=html_table(header, acc_rows),
             )
             sec.notes.append(
@@ -370,17 +387,30 @@ def run_cluster(ctx: Context, out: Output, args) -> None:
 
 def run_traits(roots: list, out: Output, args) -> None:
     with out.step("Root traits") as sec:
-        rows = rs.traits(roots)
-        for r, root in zip(rows, roots):
+        unit = common_unit(roots)
+        if unit is None:
+            warn(
+                "the roots are in different units ("
+                + ", ".join(sorted({str(r.metadata.get("unit")) for r in roots}))
+                + "); trait columns name no unit. Give --unit mm to convert them all."
+            )
+        rows = []
+        for r, root in zip(rs.traits(roots), roots):
             for key in ("condition", *root.metadata.get("label_columns", ()), "unit", "source_file"):
                 if key in root.metadata:
                     r[key] = root.metadata[key]
+            # Every length column names its unit: main_length_mm, convex_hull_area_px2, ...
+            rows.append({rs.trait_column(k, unit): v for k, v in r.items()})
         out.write("traits.csv", lambda p: write_dict_csv(p, rows))
-        show = ["name", "main_length", "n_laterals", "mean_lateral_length", "total_length", "depth", "width"]
+        show = [
+            rs.trait_column(k, unit)
+            for k in ("name", "main_length", "n_laterals", "mean_lateral_length", "total_length", "depth", "width")
+        ]
         out.file(
             sec,
             "traits.csv",
-            f"architecture traits of the {len(rows)} input roots (lengths in {common_unit(roots) or 'input units'})",
+            f"architecture traits of the {len(rows)} input roots (lengths in {unit_label(unit)}; column names "
+            "carry the unit)",
             "table",
             html_table(show, [[r[k] for k in show] for r in rows], max_rows=10),
         )
@@ -394,11 +424,16 @@ def run_geodesic(a_root, b_root, out: Output, args) -> None:
     with out.step("Geodesic (optimal deformation)") as sec:
         a, b = rs.unstack(pop.tree)
         reg = rs.register(a, b, weights=make_weights(args))
-        path = rs.geodesic(a, b, n_steps=args.steps, weights=make_weights(args), registration=reg)
-        taus = np.linspace(0.0, 1.0, args.steps)
-        la, lb = (r.main_length for r in pair)
-        # Back to the input's units, the size changing along the path.
-        path_out = rs.scale_tree(path, [(1 - t) * la + t * lb for t in taus]) if pop.normalised else path
+        sizes = None
+        if pop.normalised:
+            # The lengths batch() divided out (of the resampled main roots), so the path is
+            # scaled back exactly: it starts at a and ends at b, in the input's units.
+            raw = rs.batch(pair, n_points=args.points)
+            sizes = tuple(float(x) for x in np.asarray(rs.curve_length(raw.main)))
+        # in_place: the registration's rotation is undone along the path, so it ends at b as given.
+        path_out = rs.geodesic(
+            a, b, n_steps=args.steps, weights=make_weights(args), registration=reg, in_place=True, sizes=sizes
+        )
         names = [f"step_{i:02d}" for i in range(args.steps)]
         for i, r in enumerate(to_output_roots(path_out, pop, names)):
             out.rsml(None, [r], f"geodesic_step_{i:02d}.rsml", "", unit=pop.unit)
@@ -408,7 +443,9 @@ def run_geodesic(a_root, b_root, out: Output, args) -> None:
             f"each step of the deformation as RSML: geodesic_step_00.rsml … geodesic_step_{args.steps - 1:02d}.rsml",
         )
         fig, _ = plot_geodesic(
-            path, title=f"{pair[0].name} → {pair[1].name}: optimal deformation (colour = corresponding lateral)"
+            path_out,
+            title=f"{pair[0].name} → {pair[1].name}: optimal deformation (colour = corresponding lateral)",
+            unit=unit_label(pop.unit),
         )
         out.figure(
             sec,

@@ -1,0 +1,187 @@
+"""Length units: `io.convert_units` (inch + dpi, pixel + resolution, cm), `--unit`, unit-named
+trait columns, and normalised outputs that say so."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import rootshape_jax as rs
+from rootshape_jax import io
+from rootshape_jax.datasets import synthetic_roots
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "rsml"
+
+
+def run_cli(*args) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "rootshape_jax", *map(str, args)], capture_output=True, text=True, timeout=900
+    )
+
+
+def in_unit(roots, unit):
+    return [dataclasses.replace(r, metadata=dict(r.metadata, unit=unit)) for r in roots]
+
+
+def test_inch_with_dpi_to_mm_round_trips_through_rsml(tmp_path):
+    roots = in_unit(synthetic_roots(2, seed=3), "inch")
+    io.write_rsml(roots, tmp_path / "a.rsml", unit="inch", resolution=300.0)
+    back = io.read_rsml(tmp_path / "a.rsml")
+    assert back[0].metadata["unit"] == "inch" and back[0].metadata["resolution"] == 300.0
+    mm = io.convert_units(back, "mm")
+    for r, m in zip(back, mm):
+        np.testing.assert_allclose(m.main, 25.4 * r.main, rtol=1e-12)
+        for la, lb in zip(r.laterals, m.laterals):
+            np.testing.assert_allclose(lb, 25.4 * la, rtol=1e-12)
+        np.testing.assert_allclose(m.attach, r.attach)
+        assert m.metadata["unit"] == "mm" and m.metadata["resolution"] == pytest.approx(300 / 25.4)
+        assert m.main_length == pytest.approx(25.4 * r.main_length)
+    # Written in mm, the file keeps the same pixel coordinates (resolution now per mm).
+    io.write_rsml(mm, tmp_path / "b.rsml")
+    again = io.read_rsml(tmp_path / "b.rsml")
+    np.testing.assert_allclose(again[0].main, mm[0].main, rtol=1e-9)
+    assert again[0].metadata["unit"] == "mm"
+
+
+def test_pixel_with_resolution_and_cm(tmp_path):
+    roots = in_unit(synthetic_roots(1, seed=4), "cm")
+    io.write_rsml(roots, tmp_path / "c.rsml", unit="cm", resolution=50.0)
+    px = io.read_rsml(tmp_path / "c.rsml", physical_units=False)
+    assert px[0].metadata["unit"] == "pixel" and px[0].metadata["file_unit"] == "cm"
+    mm = io.convert_units(px, "mm")
+    np.testing.assert_allclose(mm[0].main, px[0].main / 50.0 * 10.0, rtol=1e-12)
+    cm = io.read_rsml(tmp_path / "c.rsml")
+    np.testing.assert_allclose(io.convert_units(cm, "mm")[0].main, mm[0].main, rtol=1e-12)
+    assert io.convert_units(cm, "cm")[0] is cm[0]  # already in that unit: unchanged
+
+
+def test_radii_and_children_convert_too():
+    r = synthetic_roots(1, seed=5)[0]
+    r = dataclasses.replace(
+        r,
+        metadata=dict(r.metadata, unit="cm"),
+        main_radius=np.full(r.main.shape[0], 0.1),
+        lateral_radii=tuple(np.full(lat.shape[0], 0.05) for lat in r.laterals),
+    )
+    m = io.convert_units(r, "mm")[0]
+    np.testing.assert_allclose(m.main_radius, 1.0)
+    np.testing.assert_allclose(m.lateral_radii[0], 0.5)
+
+
+def test_pixels_without_resolution_and_unknown_units_fail_clearly(tmp_path):
+    roots = in_unit(synthetic_roots(1, seed=6), "pixel")
+    io.write_rsml(roots, tmp_path / "p.rsml")
+    px = io.read_rsml(tmp_path / "p.rsml")
+    with pytest.raises(rs.UnitError, match=r"p.rsml: coordinates are in pixels with no physical resolution"):
+        io.convert_units(px, "mm")
+    with pytest.raises(rs.UnitError, match="unknown length unit 'furlong'"):
+        io.convert_units(in_unit(synthetic_roots(1), "mm"), "furlong")
+    with pytest.raises(rs.UnitError, match="has no metadata\\['unit'\\]"):
+        io.convert_units([rs.Root(main=np.array([[0.0, 0.0], [0.0, 1.0]]))], "mm")
+
+
+def test_read_folder_unit(tmp_path):
+    io.write_rsml(in_unit(synthetic_roots(1, seed=7), "inch"), tmp_path / "x.rsml", unit="inch", resolution=100.0)
+    raw = io.read_folder(tmp_path)
+    mm = io.read_folder(tmp_path, unit="mm")
+    np.testing.assert_allclose(mm[0].main, 25.4 * raw[0].main)
+
+
+@pytest.mark.parametrize(
+    ("name", "unit", "expected"),
+    [
+        ("main_length", "mm", "main_length_mm"),
+        ("main_length", "pixel", "main_length_px"),
+        ("convex_hull_area", "mm", "convex_hull_area_mm2"),
+        ("convex_hull_volume", "inch", "convex_hull_volume_inch3"),
+        ("lateral_density", "cm", "lateral_density_per_cm"),
+        ("mean_insertion_angle", "mm", "mean_insertion_angle_deg"),
+        ("n_laterals", "mm", "n_laterals"),
+        ("main_tortuosity", "mm", "main_tortuosity"),
+        ("main_length", None, "main_length"),
+        ("name", "mm", "name"),
+    ],
+)
+def test_trait_columns_name_their_unit(name, unit, expected):
+    assert rs.trait_column(name, unit) == expected
+
+
+def test_every_length_trait_has_a_dimension():
+    from rootshape_jax._traits import TRAIT_LENGTH_POWER, TRAIT_NAMES
+
+    assert set(TRAIT_NAMES) - {"mean_insertion_angle"} == set(TRAIT_LENGTH_POWER)
+
+
+def test_normalised_unit_round_trips_and_is_never_pixel(tmp_path):
+    tree = rs.batch(synthetic_roots(2, seed=8), n_points=20, normalise_scale=True)
+    roots = rs.to_roots(tree, unit=io.NORMALISED_UNIT)
+    io.write_rsml(roots, tmp_path / "mean.rsml")
+    text = (tmp_path / "mean.rsml").read_text()
+    assert "<unit>normalised (main-root length = 1)</unit>" in text and "pixel" not in text
+    back = io.read_rsml(tmp_path / "mean.rsml")
+    assert back[0].metadata["unit"] == io.NORMALISED_UNIT
+    np.testing.assert_allclose(back[0].main, roots[0].main, atol=1e-9)
+    assert io.unit_label("pixel") == "px" and io.unit_label(None) == "input units"
+
+
+def test_figure_unit_of_the_command_line():
+    import argparse
+
+    from rootshape_jax._cli._inputs import prepare
+    from rootshape_jax._cli._steps import figure_unit
+
+    roots = in_unit(synthetic_roots(2, seed=9), "pixel")
+    for norm, expected in ((True, "normalised (main-root length = 1)"), (False, "px")):
+        args = argparse.Namespace(laterals=None, points=12, normalise_scale=norm)
+        assert figure_unit(prepare(roots, args)) == expected
+
+
+# --------------------------------------------------------------------------------------------
+# Command line
+
+
+def test_cli_unit_mm_converts_inch_traits(tmp_path):
+    d = tmp_path / "in"
+    d.mkdir()
+    io.write_rsml(in_unit(synthetic_roots(2, seed=1), "inch"), d / "a.rsml", unit="inch", resolution=200.0)
+    (d / "bad.rsml").write_text("<rsml>")
+    proc = run_cli("traits", d, "--out", tmp_path / "o1")
+    assert proc.returncode == 0, proc.stderr
+    proc = run_cli("traits", d, "--unit", "mm", "--out", tmp_path / "o2")
+    assert proc.returncode == 0, proc.stderr
+    with open(tmp_path / "o1" / "traits.csv", newline="") as f:
+        inch = list(csv.DictReader(f))
+    with open(tmp_path / "o2" / "traits.csv", newline="") as f:
+        mm = list(csv.DictReader(f))
+    assert "main_length_inch" in inch[0] and "main_length_mm" in mm[0] and "convex_hull_area_mm2" in mm[0]
+    assert "lateral_density_per_mm" in mm[0] and "mean_insertion_angle_deg" in mm[0]
+    for a, b in zip(inch, mm):
+        assert float(b["main_length_mm"]) == pytest.approx(25.4 * float(a["main_length_inch"]), rel=1e-9)
+        assert float(b["convex_hull_area_mm2"]) == pytest.approx(25.4**2 * float(a["convex_hull_area_inch2"]), rel=1e-9)
+        assert b["unit"] == "mm"
+
+
+def test_cli_unit_mm_on_pixels_without_resolution_is_one_line(tmp_path):
+    d = tmp_path / "in"
+    d.mkdir()
+    io.write_rsml(in_unit(synthetic_roots(1, seed=1), "pixel"), d / "a.rsml")
+    proc = run_cli("traits", d, "--unit", "mm", "--out", tmp_path / "o")
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "coordinates are in pixels with no physical resolution" in lines[0], proc.stderr
+
+
+@pytest.mark.skipif(not (SHARED / "smartroot" / "lupin.rsml").is_file(), reason="shared data absent")
+def test_real_smartroot_inches_to_mm():
+    lupin = io.read_rsml(SHARED / "smartroot" / "lupin.rsml")
+    assert lupin[0].metadata["unit"] == "inch"
+    mm = io.convert_units(lupin, "mm")
+    assert mm[0].main_length == pytest.approx(25.4 * lupin[0].main_length, rel=1e-12)
+    px = io.read_rsml(SHARED / "smartroot" / "lupin.rsml", physical_units=False)
+    np.testing.assert_allclose(io.convert_units(px, "mm")[0].main, mm[0].main, rtol=1e-9)
