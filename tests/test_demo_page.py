@@ -142,3 +142,17 @@ def test_demo_variance_plot_covers_every_kept_component(tmp_path, monkeypatch):
     np.testing.assert_allclose(heights, 100 * ratio[:kept])
     with open(tmp_path / "o" / "explained_variance.csv", newline="") as f:
         assert len(list(csv.DictReader(f))) == len(eig)
+
+
+def test_mean_figure_with_a_long_unit_keeps_its_columns_even():
+    """The normalised unit's long name goes below the figure, not under a panel's scale bar
+    (where it widened one column of the grid)."""
+    roots = [r for c in ("control", "high_nitrate") for r in synthetic_roots(7, condition=c, seed=2)]
+    trees = rs.batch(roots, n_points=20, normalise_scale=True)
+    unit = "normalised (main-root length = 1)"
+    fig, axes = rplot.plot_mean(trees, rs.unstack(trees)[0], names=[r.name for r in roots], unit=unit)
+    fig.canvas.draw()
+    x0 = sorted({round(ax.get_position().x0, 4) for ax in axes["samples"]})
+    steps = np.diff(x0)
+    assert steps.max() - steps.min() < 0.01, steps
+    assert fig.get_supxlabel() == f"scale bars in {unit}"

@@ -313,6 +313,10 @@ def plot_mean(
         return _mean_overlay(drawings, mean_d, projection, invert_y, style, unit, title)
     if layout != "grid":
         raise ValueError(f"layout must be 'grid' or 'overlay', got {layout!r}.")
+    # A long unit ("normalised (main-root length = 1)") under a small panel's scale bar would
+    # widen its column: the bars then show numbers and the unit is said once below the figure.
+    long_unit = unit if unit is not None and len(unit) > 10 else None
+    bar_unit = None if long_unit else unit
 
     if names is None:
         names = [d.name for d in drawings] if all(d.name for d in drawings) else None
@@ -350,7 +354,7 @@ def plot_mean(
         invert_y=invert_y,
         align_bases=True,
         style=style,
-        unit=unit,
+        unit=bar_unit,
     )
     if names is not None:
         for ax, name in zip(sample_axes, names):
@@ -365,11 +369,13 @@ def plot_mean(
         invert_y=invert_y,
         align_bases=True,
         style=mean_style,
-        unit=unit,
+        unit=bar_unit,
     )
     # Said in the mean's title: a header over the grid would widen its first column.
     more = f"\n({n} of them shown)" if n < len(drawings) else ""
     mean_ax.set_title(f"Mean of the\n{len(drawings)} roots{more}", fontsize=10)
+    if long_unit:
+        fig.supxlabel(f"scale bars in {long_unit}", fontsize=9)
     _suptitle(fig, title)
     return fig, {"samples": sample_axes, "mean": mean_ax}
 
