@@ -66,14 +66,37 @@ def device_vmap(fn: Callable, *, devices: Sequence[Any] | None = None) -> Callab
     return lambda *args: split_over_devices(vfn, args, devices=devices)
 
 
+# XLA:CPU waits for every device at a collective (e.g. gathering a split batch's results). When
+# one device's share runs long on a busy machine, XLA logs "This thread has been waiting ... and
+# may be stuck" after 20 s and aborts the process after 40 s (measured with a 2-device shard_map
+# whose halves differ by 25 s and 130 s). The rows are independent and do finish: wait longer.
+COLLECTIVE_TIMEOUT_FLAGS = {
+    "--xla_cpu_collective_call_warn_stuck_timeout_seconds": 1800,
+    "--xla_cpu_collective_call_terminate_timeout_seconds": 3600,
+}
+
+
+def relax_collective_timeouts() -> None:
+    """Add `COLLECTIVE_TIMEOUT_FLAGS` to ``XLA_FLAGS``, keeping any value the user set. XLA reads
+    the variable when its CPU backend starts, so this acts only before the first computation."""
+    import os
+
+    flags = os.environ.get("XLA_FLAGS", "").split()
+    given = {f.split("=", 1)[0] for f in flags}
+    flags += [f"{k}={v}" for k, v in COLLECTIVE_TIMEOUT_FLAGS.items() if k not in given]
+    os.environ["XLA_FLAGS"] = " ".join(flags)
+
+
 def use_all_cores(n: int | None = None) -> int:
     """Give JAX one CPU device per core (or `n`), so that distance matrices, registrations and
     means run on every core. Call it right after ``import rootshape_jax``, before any JAX
     computation: XLA fixes its devices when it starts.
 
     This is the one place where the library changes JAX's global configuration, and only when
-    you call it. Returns the number of devices in use; if JAX has already started, nothing
-    changes and a warning says how many devices it has.
+    you call it. It also relaxes XLA's timeouts for devices waiting on each other
+    (`relax_collective_timeouts`), so a busy machine gets no false "may be stuck" lines. Returns
+    the number of devices in use; if JAX has already started, nothing changes and a warning
+    says how many devices it has.
     """
     import os
     import warnings
@@ -81,6 +104,7 @@ def use_all_cores(n: int | None = None) -> int:
     want = int(n) if n is not None else (os.cpu_count() or 1)
     if want < 1:
         raise ValueError(f"use_all_cores: n must be >= 1, got {n!r}.")
+    relax_collective_timeouts()
     try:
         jax.config.update("jax_num_cpu_devices", want)
     except RuntimeError:

@@ -1,5 +1,28 @@
 """Shared pytest configuration: every correctness test runs in float64."""
 
+import contextlib
+import os
+import signal
+
 import jax
 
+# Import hypothesis now, not at the end of the session. Its pytest plugin imports the package in
+# its terminal summary; in an xdist worker that ran no hypothesis test that happened after the
+# worker had reported "finished", and the import (assertion rewriting of ~100 modules) took
+# 5-11 s under load. execnet gives a finished worker 5 s, then sends it SIGINT, which surfaced as
+# a `KeyboardInterrupt` traceback from JAX's `_xla_gc_callback` at the end of `make test`.
+# Only xdist workers need it (elsewhere pytest waits for the import at the end anyway).
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    with contextlib.suppress(ImportError):
+        import hypothesis  # noqa: F401
+
 jax.config.update("jax_enable_x64", True)
+
+
+def pytest_sessionfinish(session):
+    # An xdist worker has run all its tests and is about to report them. What is left (pytest's
+    # final garbage collections, 1-3 s under load) must not be cut short by execnet's SIGINT,
+    # which lands in whatever runs (JAX's gc callback). If a worker ever hangs here, execnet
+    # still ends it 10 s later with os._exit.
+    if hasattr(session.config, "workerinput"):
+        signal.signal(signal.SIGINT, signal.SIG_IGN)

@@ -27,6 +27,9 @@ def configure_jax(*, devices: int | None, float64: bool) -> None:
     """
     import jax
 
+    from rootshape_jax._devices import relax_collective_timeouts
+
+    relax_collective_timeouts()  # no false "may be stuck" lines (or aborts) from busy devices
     n = (os.cpu_count() or 1) if devices is None else devices
     with contextlib.suppress(RuntimeError):
         jax.config.update("jax_num_cpu_devices", int(n))

@@ -84,7 +84,11 @@ def run_distances(ctx: Context, out: Output, args) -> None:
         )
         fig, _ = plot_distance_matrix(D, labels=pop.names, strips=pop.labels or None)
         out.figure(
-            sec, fig, "distances.png", "heat map of the distance matrix, rows ordered by hierarchical clustering"
+            sec,
+            fig,
+            "distances.png",
+            "heat map of the distance matrix, rows ordered by hierarchical clustering"
+            + (f" (colour strips: {', '.join(pop.labels)})" if pop.labels else ""),
         )
         done = stats.get("lateral_dp")
         skipped = stats.get("lateral_skipped", stats.get("lateral_pruned"))
@@ -129,8 +133,15 @@ def run_mean(ctx: Context, out: Output, args) -> None:
         out.csv(
             sec, "mean_energy.csv", ["step", "energy"], list(enumerate(trace)), "Karcher energy F(μ) after each step"
         )
-        fig, _ = plot_mean(pop.tree, km.mean, title=f"Mean of {len(pop.names)} roots", unit=figure_unit(ctx.pop))
-        out.figure(sec, fig, "mean.png", "input roots (left) and their mean root (right)" + figure_note(pop))
+        fig, _ = plot_mean(
+            pop.tree,
+            km.mean,
+            names=pop.names,
+            max_samples=len(pop.names),
+            title=f"Mean of {len(pop.names)} roots",
+            unit=figure_unit(ctx.pop),
+        )
+        out.figure(sec, fig, "mean.png", "input roots (left, named) and their mean root (right, at its own scale)" + figure_note(pop))
         fig, _ = plot_energy_trace(trace)
         out.figure(sec, fig, "mean_energy.png", "mean squared distance to the mean at each solver step (must fall)")
         n_drop = int(np.sum(np.asarray(km.dropped)))
@@ -161,8 +172,15 @@ def run_pca(ctx: Context, out: Output, args) -> None:
             "variance explained by each principal component",
             table_html=html_table(header, rows, max_rows=8),
         )
-        fig, _ = plot_explained_variance(eig)
-        out.figure(sec, fig, "explained_variance.png", "variance explained per component and cumulated")
+        kept = max(int(pc.n_components), 1)
+        # Every kept component gets its bar (the plot's default stops at 30).
+        fig, _ = plot_explained_variance(eig, max_components=kept)
+        out.figure(
+            sec,
+            fig,
+            "explained_variance.png",
+            f"variance explained by each of the {kept} kept components, and cumulated",
+        )
         n_modes = max(1, min(args.modes, len(eig)))
         alphas = [-2.0, -1.0, 0.0, 1.0, 2.0]
         trees = rs.modes(pc, alphas, component=list(range(n_modes)))

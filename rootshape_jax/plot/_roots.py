@@ -268,7 +268,8 @@ def plot_mean(
     mean: Any,
     *,
     layout: str = "grid",
-    max_samples: int = 48,
+    names: Sequence[str] | None = None,
+    max_samples: int = 64,
     ncols: int | None = None,
     colors: Any = None,
     slot_colors: bool = True,
@@ -288,6 +289,9 @@ def plot_mean(
     - `layout`: ``"grid"`` (small panels of the first `max_samples` inputs, mean in a large
       panel on the right) or ``"overlay"`` (one panel: inputs in light grey, translated so
       their bases meet the mean's, with the mean drawn on top in colour).
+    - `names`: one name per sample, written above its panel (default: the roots' own names
+      when `samples` are `Root`s; none for a `RootTree`).
+    - `max_samples`: draw at most this many samples in the grid.
     - `ncols`: columns of the sample grid (default about square).
     - `colors`, `slot_colors`, `linewidth`, `invert_y`, `projection`, `unit`: as in
       `plot_root` (`unit` labels the scale bars).
@@ -309,11 +313,26 @@ def plot_mean(
         return _mean_overlay(drawings, mean_d, projection, invert_y, style, unit, title)
     if layout != "grid":
         raise ValueError(f"layout must be 'grid' or 'overlay', got {layout!r}.")
+    # A long unit ("normalised (main-root length = 1)") under a small panel's scale bar would
+    # widen its column: the bars then show numbers and the unit is said once below the figure.
+    long_unit = unit if unit is not None and len(unit) > 10 else None
+    bar_unit = None if long_unit else unit
 
+    if names is None:
+        names = [d.name for d in drawings] if all(d.name for d in drawings) else None
+    elif len(names) != len(drawings):
+        raise ValueError(f"plot_mean: {len(names)} names for {len(drawings)} samples.")
     shown = drawings[:max_samples]
     n = len(shown)
     frame = base_frame(shown + [mean_d], projection, False)
     w, h = panel_size(frame, 1.35)
+    # The mean at its own (larger) scale, filling its panel; each side has its scale bar.
+    mean_frame = base_frame([mean_d], projection, False)
+    mean_aspect = float(np.divide(*panel_size(mean_frame, 1.0)))
+    if names is not None:
+        # Room for the name above each panel (about 0.045 inch per character at 6 pt), so that
+        # constrained layout does not widen single columns around a long title.
+        w = max(w, 0.047 * max(len(str(x)) for x in names[:n]) + 0.05)
     if ncols is None:
         # About 1.3 times wider than tall, whatever the roots' own aspect; among the nearby
         # column counts prefer the one leaving fewest empty cells in the last row.
@@ -321,9 +340,9 @@ def plot_mean(
         candidates = [k for k in range(int(c) - 1, int(c) + 3) if 1 <= k <= n] or [1]
         ncols = min(candidates, key=lambda k: ((-n) % k, abs(k - c)))
     nrows, ncols = grid_shape(n, ncols, max_cols=ncols)
-    mean_h = max(nrows * h, 3.2)
-    mean_w = mean_h * w / h
-    fig = new_figure((ncols * w + mean_w + 0.6, mean_h + 0.9))
+    mean_h = float(np.clip(nrows * h, 3.2, 5.5))  # beside a tall grid, not as tall as it
+    mean_w = max(mean_h * mean_aspect, 2.0)  # room for its title beside a narrow root
+    fig = new_figure((ncols * w + mean_w + 0.6, max(nrows * h, mean_h) + 0.9))
     outer = fig.add_gridspec(1, 2, width_ratios=[ncols * w, mean_w])
     inner = outer[0, 0].subgridspec(nrows, ncols)
     sample_axes = _panel_grid(fig, nrows, ncols, n, projection, gridspec=inner)
@@ -335,32 +354,28 @@ def plot_mean(
         invert_y=invert_y,
         align_bases=True,
         style=style,
-        unit=unit,
+        unit=bar_unit,
     )
+    if names is not None:
+        for ax, name in zip(sample_axes, names):
+            ax.set_title(str(name), fontsize=6, pad=1.5)
     mean_ax = fig.add_subplot(outer[0, 1], **subplot_kw(projection))
     mean_style = dict(style, linewidth=1.6 * linewidth)
     _draw_panels(
         [mean_ax],
         [mean_d],
-        frame,
+        mean_frame,
         projection=projection,
         invert_y=invert_y,
         align_bases=True,
         style=mean_style,
-        unit=unit,
+        unit=bar_unit,
     )
-    more = f" (first {n} of {len(drawings)})" if n < len(drawings) else ""
-    sample_axes[0].annotate(
-        f"Input roots, n = {len(drawings)}{more}",
-        xy=(0, 1),
-        xycoords="axes fraction",
-        xytext=(0, 6),
-        textcoords="offset points",
-        fontsize=10,
-        ha="left",
-        va="bottom",
-    )
-    mean_ax.set_title("Mean", fontsize=11)
+    # Said in the mean's title: a header over the grid would widen its first column.
+    more = f"\n({n} of them shown)" if n < len(drawings) else ""
+    mean_ax.set_title(f"Mean of the\n{len(drawings)} roots{more}", fontsize=10)
+    if long_unit:
+        fig.supxlabel(f"scale bars in {long_unit}", fontsize=9)
     _suptitle(fig, title)
     return fig, {"samples": sample_axes, "mean": mean_ax}
 
