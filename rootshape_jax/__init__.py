@@ -38,6 +38,7 @@ from ._errors import (
     ImageError as ImageError,
     InvalidCostError as InvalidCostError,
     InvalidRootError as InvalidRootError,
+    LabelError as LabelError,
     MissingDependencyError as MissingDependencyError,
     RootShapeError as RootShapeError,
     RSMLError as RSMLError,
@@ -45,6 +46,13 @@ from ._errors import (
     StoreMismatchError as StoreMismatchError,
 )
 from ._geodesic import geodesic as geodesic
+from ._learn import (
+    CVAccuracy as CVAccuracy,
+    LearnedWeights as LearnedWeights,
+    fold_accuracy as fold_accuracy,
+    learn_weights as learn_weights,
+    nested_cv_accuracy as nested_cv_accuracy,
+)
 from ._mean import (
     KarcherMean as KarcherMean,
     karcher_mean as karcher_mean,
