@@ -9,12 +9,14 @@ labelled set gives an exact, cheap objective in λ:
 - **Loss**: the soft nearest-neighbour (NCA, Goldberger et al. 2005) log-loss over the distance
   matrix, ``L = −mean_i log Σ_{j ≠ i, y_j = y_i} p_ij`` with
   ``p_ij = softmax_{j ≠ i}(−d²_ij / τ)``; roots without a same-class partner are left out.
-- **Parameters**: ``log λ_t`` of the learned terms and ``log τ``. The overall scale of λ is
-  fixed by holding ``λ_lateral`` at its starting value (1 for the paper's weights): without
-  thickness, 1-NN and class-mean decisions depend only on the ratios of λ, and the NCA
-  temperature τ, learned alongside, takes the role of the scale in the loss. A weak quadratic
-  penalty ``regularisation · Σ (log λ_t − log λ_t⁰)²`` keeps a term that the data do not
-  constrain at its starting value.
+  The temperature is relative, ``τ = softness · mean_{i<j} d²_ij``, so the loss does not
+  depend on the overall scale of λ. (A free τ is degenerate: on training classes that some λ
+  separates, the loss falls to 0 as τ → 0 and λ stops moving.)
+- **Parameters**: ``log λ_t`` of the learned terms. The overall scale of λ is fixed by holding
+  ``λ_lateral`` at its starting value (1 for the paper's weights): without thickness, 1-NN and
+  class-mean decisions and the loss depend only on the ratios of λ. A weak quadratic penalty
+  ``regularisation · Σ (log λ_t − log λ_t⁰)²`` keeps a term that the data do not constrain
+  at its starting value.
 - **Solve**: BFGS (optimistix) with the registrations fixed, then every pair is registered
   again at the new λ (the chunked engine, progress shown), until no lateral correspondence
   changes, or the matrix moves by less than `tol` (relative), or `max_reregistrations`.
@@ -188,7 +190,7 @@ class LearnedWeights(eqx.Module):
     """Result of `learn_weights`.
 
     - `weights`: the learned `Weights` (λ_lateral held at its starting value).
-    - `temperature`: the learned NCA temperature τ (the loss's scale, not part of the metric).
+    - `softness`: the loss's relative temperature (``τ = softness · mean d²``).
     - `loss_trace`: the NCA loss (penalty included) at freshly registered distances: entry 0
       at the starting λ and τ, entry k after the k-th re-registration (at the λ and τ that
       the k-th inner solve found).
@@ -201,7 +203,7 @@ class LearnedWeights(eqx.Module):
     """
 
     weights: Weights
-    temperature: float
+    softness: float
     loss_trace: np.ndarray
     inner_loss_trace: np.ndarray
     status: str = eqx.field(static=True)
@@ -221,6 +223,7 @@ class _Problem(eqx.Module):
     same: Array
     n: int = eqx.field(static=True)
     regularisation: float = eqx.field(static=True)
+    softness: float = eqx.field(static=True)
 
 
 def _weights_of(names, log_lam, fixed) -> Weights:
@@ -258,13 +261,14 @@ def _objective(theta, args):
         d2 = pair_d2_linear(lam, jnp.asarray(regs.unit_energies))
     else:
         d2 = _d2_thickness(W, tree, regs)
-    D2 = _matrix(jnp.maximum(d2, 0.0), problem.local_i, problem.local_j, problem.n)
-    loss = nca_loss(D2, problem.same, jnp.exp(theta[k]))
+    d2 = jnp.maximum(d2, 0.0)
+    D2 = _matrix(d2, problem.local_i, problem.local_j, problem.n)
+    loss = nca_loss(D2, problem.same, problem.softness * jnp.mean(d2))
     return loss + problem.regularisation * jnp.sum((theta[:k] - problem.log0) ** 2)
 
 
 def learn_loss(theta, problem, tree, regs):
-    """The inner objective (for tests): NCA loss + penalty at ``theta = (log λ_learned, log τ)``."""
+    """The inner objective (for tests): NCA loss + penalty at ``theta = log λ_learned``."""
     return _objective(theta, (problem, tree, regs))
 
 
@@ -297,7 +301,12 @@ def _start_weights(weights: Weights, radii: bool) -> Weights:
 class _Fitter:
     """Alternation of inner solves and re-registrations on the roots `idx` of a batch."""
 
-    def __init__(self, trees, weights, opts, radii, *, chunk_size, progress, regularisation, max_steps, rtol):
+    def __init__(
+        self, trees, weights, opts, radii, *, chunk_size, progress, regularisation, max_steps, rtol, softness=0.1
+    ):
+        if not (isinstance(softness, (int, float)) and softness > 0):
+            raise ValueError(f"softness must be a positive number, got {softness!r}.")
+        self.softness = float(softness)
         self.trees = trees
         self.opts = opts
         self.radii = radii
@@ -343,13 +352,12 @@ class _Fitter:
             same=same,
             n=n,
             regularisation=self.regularisation,
+            softness=self.softness,
         )
         weights = self.start
         if regs is None:
             regs = self.register(weights, I, J, "registering (start λ)")
-        # τ starts at the median squared distance (the loss's natural scale).
-        tau0 = max(float(np.median(regs.energy)), float(np.finfo(dtype).tiny))
-        theta = jnp.concatenate([log0, jnp.log(jnp.asarray([tau0], dtype))])
+        theta = log0
         tree = self.trees if self.radii else None
         loss_trace = [float(_objective(theta, (problem, tree, regs)))]
         inner, steps, n_rereg, status = [], 0, 0, "max_reregistrations"
@@ -383,7 +391,7 @@ class _Fitter:
         D[lj, li] = D[li, lj]
         result = LearnedWeights(
             weights=weights,
-            temperature=float(jnp.exp(theta[-1])),
+            softness=problem.softness,
             loss_trace=np.asarray(loss_trace),
             inner_loss_trace=np.asarray(inner),
             status=status,
@@ -402,6 +410,7 @@ def learn_weights(
     max_reregistrations: int = 3,
     tol: float = 1e-3,
     regularisation: float = 1e-3,
+    softness: float = 0.1,
     max_steps: int = 200,
     rtol: float = 1e-6,
     registration: RegistrationOptions | None = None,
@@ -413,8 +422,8 @@ def learn_weights(
 
     Minimises the soft nearest-neighbour (NCA) loss of the distance matrix over
     ``log λ_main``, ``log λ_position`` (and ``log λ_thickness`` when `trees` is a `RootTree`
-    with radii) and the loss's temperature, with ``λ_lateral`` held at its starting value (the
-    overall scale of λ is fixed; see the module docstring). The registrations are held fixed
+    with radii), with ``λ_lateral`` held at its starting value (the overall scale of λ is
+    fixed; see the module docstring) and the temperature ``τ = softness · mean d²``. The registrations are held fixed
     during each BFGS solve (then d² is linear in λ), and every pair is registered again at the
     new λ, until no lateral correspondence changes, the distances move by less than `tol`
     (relative), or after `max_reregistrations`.
@@ -443,6 +452,7 @@ def learn_weights(
         regularisation=regularisation,
         max_steps=max_steps,
         rtol=rtol,
+        softness=softness,
     )
     result, _ = fitter.fit(np.arange(n), y, max_reregistrations=max_reregistrations, tol=tol)
     return result
@@ -533,6 +543,7 @@ def nested_cv_accuracy(
     max_reregistrations: int = 2,
     tol: float = 1e-3,
     regularisation: float = 1e-3,
+    softness: float = 0.1,
     max_steps: int = 200,
     registration: RegistrationOptions | None = None,
     chunk_size: int = 32,
@@ -570,6 +581,7 @@ def nested_cv_accuracy(
         regularisation=regularisation,
         max_steps=max_steps,
         rtol=1e-6,
+        softness=softness,
     )
     I, J = np.triu_indices(n, 1)
     position = np.full((n, n), -1, np.int64)
