@@ -41,3 +41,11 @@ def test_distance_matrix_is_a_symmetric_dissimilarity():
     np.testing.assert_allclose(D, D.T)
     assert D[0, 1] == 0.0 and np.all(np.diag(D) == 0.0)
     assert D[0, 2] > 0 and D[0, 3] > 0
+
+
+def test_laterals_at_the_base_or_tip_still_branch():
+    r = t_root(2.0, 1.0)
+    bars = bl.tmd_barcode(r)
+    assert bars.shape == (2, 2)
+    r0 = t_root(2.0, 0.0)
+    assert bl.tmd_barcode(r0).shape == (2, 2)

@@ -8,7 +8,7 @@ GPL-3.0; the ``bench`` extra), imported only when called.
 
 - **Tree**: a `Root` becomes a `tmd.Tree.Tree`: the main root's points form a chain from its
   base (point 0, the tree's root); each lateral's points form a chain whose first point hangs
-  from the main-root point nearest its attachment fraction. Diameters are ``2 × radius`` when
+  from the main-root point nearest its attachment fraction (excluding the base and the tip). Diameters are ``2 × radius`` when
   the root has radii (unused by the radial filtration), else 1; 2-D roots get z = 0.
 - **Barcode**: `tmd.methods.get_persistence_diagram` with the radial-distance filtration
   (distance of every point from the base): each branch is a bar (birth at its farthest point,
@@ -55,7 +55,9 @@ def to_tmd_tree(root):
     start = len(main)
     for k, lat in enumerate(root.laterals):
         lat = np.asarray(lat, np.float64)
-        anchor = int(np.argmin(np.abs(frac - float(root.attach[k]))))
+        # Never the base or the tip: tmd needs the base as the tree's only root and a lateral
+        # on the tip would merge into the main root's section instead of branching.
+        anchor = int(np.clip(np.argmin(np.abs(frac - float(root.attach[k]))), 1, max(len(main) - 2, 1)))
         pts.append(lat)
         parents.append(np.concatenate([[anchor], np.arange(start, start + len(lat) - 1)]))
         r = root.lateral_radii[k] if root.lateral_radii is not None else None
