@@ -36,16 +36,20 @@ from ._errors import (
     ConvergenceError as ConvergenceError,
     CoordinateRangeError as CoordinateRangeError,
     ImageError as ImageError,
+    InputError as InputError,
     InvalidCostError as InvalidCostError,
     InvalidRootError as InvalidRootError,
     LabelError as LabelError,
+    MetadataError as MetadataError,
     MissingDependencyError as MissingDependencyError,
     RootShapeError as RootShapeError,
     RSMLError as RSMLError,
     RSMLWarning as RSMLWarning,
     StoreMismatchError as StoreMismatchError,
+    UnitError as UnitError,
 )
 from ._geodesic import geodesic as geodesic
+from ._groups import PairTest as PairTest, holm as holm, pairwise_permanova as pairwise_permanova
 from ._learn import (
     CVAccuracy as CVAccuracy,
     LearnedWeights as LearnedWeights,
@@ -53,6 +57,7 @@ from ._learn import (
     learn_weights as learn_weights,
     nested_cv_accuracy as nested_cv_accuracy,
 )
+from ._mds import MDS as MDS, mds as mds
 from ._mean import (
     KarcherMean as KarcherMean,
     karcher_mean as karcher_mean,

@@ -29,6 +29,20 @@ class ImageError(RootShapeError, ValueError):
     """A scanned image cannot be turned into roots (empty, wrong dimensions, no root found)."""
 
 
+class InputError(RootShapeError, ValueError):
+    """An input path cannot be used: missing, an empty folder, or an unsupported file type."""
+
+
+class MetadataError(RootShapeError, ValueError):
+    """A metadata table does not fit the roots: a root without a row, duplicate rows, a missing
+    or reserved column, or a label asked for that the table does not have."""
+
+
+class UnitError(RootShapeError, ValueError):
+    """Coordinates cannot be converted to the requested unit (unknown unit, or pixels without
+    a resolution)."""
+
+
 class MissingDependencyError(RootShapeError, ImportError):
     """An optional extra (``pip install 'rootshape_jax[EXTRA]'``) is needed for this feature."""
 

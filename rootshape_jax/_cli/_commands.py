@@ -8,11 +8,13 @@ from collections.abc import Callable
 import numpy as np
 
 from ._common import PAPER_TRAITS, CLIError, say, warn
-from ._inputs import Reading, load_roots, pick, prepare, read_requested, subsample
+from ._inputs import Reading, covariate_columns, load_roots, pick, prepare, read_requested, subsample
 from ._report import LOG_NAME, Output, settings, write_index
 from ._steps import (
     Context,
+    group_labels,
     run_cluster,
+    run_compare,
     run_distances,
     run_geodesic,
     run_mean,
@@ -66,12 +68,18 @@ def cmd_sample(args) -> None:
 
 def cmd_regress(args) -> None:
     # Check the requested traits before the long computation.
-    args.requested_values = read_requested(args.requested) if args.requested else None
+    names = list(PAPER_TRAITS) + covariate_columns(args)
+    args.requested_values = read_requested(args.requested, names) if args.requested else None
     _pipeline(args, [run_mean, run_pca, run_regress], min_roots=len(PAPER_TRAITS) + 2)
 
 
 def cmd_cluster(args) -> None:
     _pipeline(args, [run_distances, run_cluster])
+
+
+def cmd_compare(args) -> None:
+    # The groups are checked before the distances are computed.
+    _pipeline(args, [lambda ctx, out, args: group_labels(ctx.pop), run_distances, run_compare], min_roots=3)
 
 
 def cmd_traits(args) -> None:

@@ -4,134 +4,24 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 import rootshape_jax as rs
+from rootshape_jax import io
 
-from ._common import IMAGE_SUFFIXES, PAPER_TRAITS, RSML_SUFFIXES, CLIError, warn
-
-
-def files_in(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in RSML_SUFFIXES + IMAGE_SUFFIXES)
+from ._common import PAPER_TRAITS, CLIError, warn
 
 
-@dataclasses.dataclass
-class Reading:
-    """What reading the input files found: the terminal gets one line per problem file and a
-    summary; `log` keeps the full messages (written to the output folder's log file)."""
+class Reading(io.ReadReport):
+    """What reading the input files found (`rootshape_jax.io.ReadReport`), and the log file
+    the terminal lines point to."""
 
-    log_path: str = ""
-    files: int = 0
-    roots: int = 0
-    skipped: list[tuple[str, str]] = dataclasses.field(default_factory=list)  # (file, reason)
-    log: list[str] = dataclasses.field(default_factory=list)
-
-    def summary(self) -> str:
-        text = f"read {self.roots} root system(s) from {self.files} file(s)"
-        if self.skipped:
-            text += f"; skipped {len(self.skipped)}: " + ", ".join(f"{f} ({why})" for f, why in self.skipped)
-        return text + "."
-
-
-def short_reason(message: str, path: Path) -> str:
-    """The gist of an error or warning about `path`: its first clause, without the path."""
-    text = message.strip().splitlines()[0] if message.strip() else "unreadable"
-    for prefix in (f"{path}: ", f"{path.name}: "):
-        if text.startswith(prefix):
-            text = text[len(prefix) :]
-    cut = min((i for i in (text.find(" ("), text.find(": "), text.find("; ")) if i > 0), default=len(text))
-    text = text[:cut].rstrip(".")
-    return text if len(text) <= 70 else text[:69] + "…"
-
-
-def _about(path: Path, message: str) -> str:
-    return message if message.startswith(str(path)) else f"{path}: {message}"
-
-
-def read_file(path: Path, args, reading: Reading | None = None) -> list:
-    from rootshape_jax import io
-
-    suffix = path.suffix.lower()
-    if suffix in RSML_SUFFIXES:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            roots = io.read_rsml(path)
-        if not roots:
-            io.read_rsml(path, strict=True)  # raises the precise reason as one RSMLError
-        # Parts skipped in a file that is otherwise readable: one line here, all in the log.
-        others = [w for w in caught if not issubclass(w.category, rs.RSMLWarning)]
-        caught = [w for w in caught if issubclass(w.category, rs.RSMLWarning)]
-        for w in others:
-            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
-        for w in caught:
-            if reading is not None:
-                reading.log.append(f"warning: {_about(path, str(w.message))}")
-        if caught:
-            where = f" (details in {reading.log_path})" if reading is not None and reading.log_path else ""
-            warn(
-                f"{path}: {short_reason(str(caught[0].message), path)}"
-                + (f" and {len(caught) - 1} more warning(s)" if len(caught) > 1 else "")
-                + where
-            )
-    elif suffix in IMAGE_SUFFIXES:
-        pixel_size = getattr(args, "pixel_size", None)
-        unit = getattr(args, "unit", None) or ("mm" if pixel_size else "pixel")
-        roots = io.roots_from_image(path, pixel_size=pixel_size, unit=unit)
-    else:
-        raise CLIError(
-            f"{path}: unsupported file type {path.suffix or '(no extension)'!r}; give .rsml files, "
-            f"images ({', '.join(IMAGE_SUFFIXES)}) or folders of them."
-        )
-    if not roots:
-        raise CLIError(f"{path}: no roots found in this file.")
-    out = []
-    for i, r in enumerate(roots):
-        name = r.name or (path.stem if len(roots) == 1 else f"{path.stem}_{i}")
-        meta = dict(r.metadata, source_file=str(path))
-        out.append(dataclasses.replace(r, name=name, metadata=meta))
-    return out
-
-
-def expand(paths: Sequence[str]) -> list[tuple[Path, bool]]:
-    """Every file to read, and whether it was found in a folder (then it may be skipped)."""
-    files: list[tuple[Path, bool]] = []
-    for text in paths:
-        p = Path(text)
-        if not p.exists():
-            raise CLIError(f"{text}: no such file or folder.")
-        if p.is_dir():
-            found = files_in(p)
-            if not found:
-                raise CLIError(
-                    f"{text}: the folder contains no RSML files (.rsml) or images ({', '.join(IMAGE_SUFFIXES)})."
-                )
-            files.extend((f, True) for f in found)
-        else:
-            files.append((p, False))
-    return files
-
-
-def unique_names(roots: list) -> list:
-    """Names that tell roots apart: a name shared by several roots gets its file name in front,
-    and a number behind if that is not enough."""
-    counts: dict[str, int] = {}
-    for r in roots:
-        counts[r.name] = counts.get(r.name, 0) + 1
-    names = [
-        f"{Path(r.metadata.get('source_file', '')).stem}/{r.name}" if counts[r.name] > 1 else r.name for r in roots
-    ]
-    seen: dict[str, int] = {}
-    out = []
-    for r, name in zip(roots, names):
-        seen[name] = seen.get(name, 0) + 1
-        if names.count(name) > 1:
-            name = f"{name}_{seen[name]}"
-        out.append(dataclasses.replace(r, name=name))
-    return out
+    def __init__(self, log_path: str = ""):
+        super().__init__()
+        self.log_path = log_path
 
 
 def load_roots(args, *, paths: Sequence[str] | None = None, reading: Reading | None = None) -> list:
@@ -148,6 +38,9 @@ def load_roots(args, *, paths: Sequence[str] | None = None, reading: Reading | N
     if synthetic:
         from rootshape_jax.datasets import synthetic_roots
 
+        if getattr(args, "metadata", None):
+            raise CLIError("--metadata labels files read from disk; synthetic roots already carry their condition.")
+
         conditions = args.condition or ["control"]
         roots = []
         for c in conditions:
@@ -156,25 +49,29 @@ def load_roots(args, *, paths: Sequence[str] | None = None, reading: Reading | N
     if not paths:
         raise CLIError("no input: give RSML files, folders or images, or --synthetic N for example roots.")
     reading = Reading() if reading is None else reading
-    roots = []
-    for f, in_folder in expand(paths):
-        try:
-            got = read_file(f, args, reading)
-        except (CLIError, rs.RootShapeError, OSError, ValueError) as e:
-            if not in_folder or getattr(args, "strict", False):
-                raise
-            why = short_reason(str(e), f)
-            reading.skipped.append((f.name, why))
-            reading.log.append(f"skipped: {_about(f, str(e))}")
-            warn(f"skipped {f}: {why}")
-            continue
-        reading.files += 1
-        reading.roots += len(got)
-        roots.extend(got)
-    if not roots:
-        skipped = ", ".join(f"{f} ({why})" for f, why in reading.skipped)
-        raise CLIError(f"no readable roots: every file was skipped: {skipped}. Fix or remove these files.")
-    return unique_names(roots)
+
+    def notice(kind: str, text: str) -> None:
+        if kind == "warning" and reading.log_path:
+            text += f" (details in {reading.log_path})"
+        warn(text)
+
+    # Tables are checked before the files are read: a bad table fails at once.
+    table = io.read_metadata(args.metadata) if getattr(args, "metadata", None) else None
+    pixel_size = getattr(args, "pixel_size", None)
+    unit = getattr(args, "unit", None)
+    roots = io.read_paths(
+        paths,
+        strict=getattr(args, "strict", False),
+        pixel_size=pixel_size,
+        unit=unit,
+        report=reading,
+        notice=notice,
+    )
+    if unit:
+        roots = io.convert_units(roots, unit)
+    if table is not None:
+        roots = io.attach_metadata(roots, table)
+    return roots
 
 
 def pick(roots: list, index: int, path: str):
@@ -196,8 +93,32 @@ def common_unit(roots) -> str | None:
     return units.pop() if len(units) == 1 else None
 
 
-def read_requested(path: str) -> np.ndarray:
-    """The requested traits of `regress --requested` (checked before any computation)."""
+def covariate_columns(args) -> list[str]:
+    """The extra regression covariates named by ``regress --by`` (repeatable, comma-separated)."""
+    if getattr(args, "command", None) != "regress" or not getattr(args, "by", None):
+        return []
+    return [c.strip() for c in args.by.split(",") if c.strip()]
+
+
+def covariate_matrix(roots: list, columns: Sequence[str]) -> np.ndarray:
+    """The numeric label columns as an (n, c) matrix; `CLIError` names a non-numeric value."""
+    out = np.zeros((len(roots), len(columns)))
+    for j, c in enumerate(columns):
+        for i, v in enumerate(io.labels_of(roots, c)):
+            try:
+                out[i, j] = float(v)
+            except ValueError:
+                raise CLIError(
+                    f"--by {c}: covariates must be numbers, but root {roots[i].name!r} has {v!r}; "
+                    "use a numeric column (or code the groups as numbers)."
+                ) from None
+    if not np.all(np.isfinite(out)):
+        raise CLIError("--by: covariate values must be finite numbers.")
+    return out
+
+
+def read_requested(path: str, names: Sequence[str] = PAPER_TRAITS) -> np.ndarray:
+    """The requested traits (and covariates) of `regress --requested`, checked before any computation."""
     p = Path(path)
     if not p.is_file():
         raise CLIError(f"--requested {path}: no such file.")
@@ -206,14 +127,14 @@ def read_requested(path: str) -> np.ndarray:
             rows = list(csv.DictReader(f))
     except (OSError, UnicodeDecodeError, csv.Error) as e:
         raise CLIError(f"--requested {path}: cannot read the CSV file ({e}).") from None
-    missing = [k for k in PAPER_TRAITS if not rows or k not in rows[0]]
+    missing = [k for k in names if not rows or k not in rows[0]]
     if missing:
-        raise CLIError(f"--requested {path}: needs columns {', '.join(PAPER_TRAITS)}; missing {', '.join(missing)}.")
+        raise CLIError(f"--requested {path}: needs columns {', '.join(names)}; missing {', '.join(missing)}.")
     try:
-        values = np.array([[float(r[k]) for k in PAPER_TRAITS] for r in rows])
+        values = np.array([[float(r[k]) for k in names] for r in rows])
     except ValueError:
-        raise CLIError(f"--requested {path}: every trait value must be a number.") from None
-    if not np.all(np.isfinite(values)) or np.any(values < 0):
+        raise CLIError(f"--requested {path}: every value must be a number.") from None
+    if not np.all(np.isfinite(values)) or np.any(values[:, : len(PAPER_TRAITS)] < 0):
         raise CLIError(f"--requested {path}: trait values must be finite and non-negative.")
     return values
 
@@ -228,7 +149,9 @@ class Population:
     normalised: bool
     unit: str | None
     mean_length: float  # mean main-root length, in `unit`
-    conditions: list | None
+    conditions: list | None  # the group label of each root (--by, default "condition")
+    label_name: str = "condition"
+    labels: dict = dataclasses.field(default_factory=dict)  # every label column: {name: [value per root]}
 
     def output_scale(self) -> float:
         """Factor that takes analysis coordinates back to the input's units."""
@@ -242,8 +165,9 @@ def prepare(roots: list, args, *, min_roots: int = 1, samples: int | None = None
     if len(roots) < min_roots:
         raise CLIError(f"this analysis needs at least {min_roots} roots, got {len(roots)}.")
     normalised = args.normalise_scale
+    by = group_column(args)
+    conditions = io.labels_of(roots, by) if by else [r.metadata.get("condition") for r in roots]
     tree = rs.batch(roots, n_points=args.points, normalise_scale=normalised)
-    conditions = [r.metadata.get("condition") for r in roots]
     return Population(
         roots=roots,
         tree=tree,
@@ -252,7 +176,27 @@ def prepare(roots: list, args, *, min_roots: int = 1, samples: int | None = None
         unit=common_unit(roots),
         mean_length=float(np.mean([r.main_length for r in roots])),
         conditions=conditions if all(c is not None for c in conditions) else None,
+        label_name=by or "condition",
+        labels=label_columns(roots),
     )
+
+
+def group_column(args) -> str | None:
+    """The label column that defines the groups (--by; regress uses --by for covariates)."""
+    by = getattr(args, "by", None)
+    return None if getattr(args, "command", None) == "regress" else by
+
+
+def label_columns(roots: list) -> dict[str, list[str]]:
+    """Every label every root has: the metadata table's columns, or the synthetic condition."""
+    names: list[str] = []
+    for r in roots:
+        for k in r.metadata.get("label_columns", ()):
+            if k not in names:
+                names.append(k)
+    if not names and all(r.metadata.get("condition") is not None for r in roots):
+        names = ["condition"]
+    return {k: [str(r.metadata.get(k, "")) for r in roots] for k in names}
 
 
 def to_output_roots(tree, pop: Population, names: Sequence[str]) -> list:

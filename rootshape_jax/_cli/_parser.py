@@ -7,6 +7,7 @@ import math
 
 from ._commands import (
     cmd_cluster,
+    cmd_compare,
     cmd_demo,
     cmd_distances,
     cmd_extract,
@@ -112,7 +113,20 @@ def _add_common(p: argparse.ArgumentParser, *, inputs: bool = True, default_out:
             metavar="SIZE",
             help="length of one image pixel (e.g. 0.0423 for 600 dpi in mm); default: keep pixels",
         )
-        img.add_argument("--unit", metavar="UNIT", help="unit of --pixel-size (default mm)")
+        img.add_argument(
+            "--unit",
+            metavar="UNIT",
+            help="convert every length to UNIT (mm, cm, m, um, inch): RSML files in inch + dpi, "
+            "cm, or pixels with a <resolution>; also the unit of --pixel-size (default mm). "
+            "Default: keep each file's unit",
+        )
+        g.add_argument(
+            "--metadata",
+            metavar="CSV",
+            help="table of labels joined to the roots by file name: a 'file' column (base name, "
+            "extension optional), optional 'plant' and 'root' columns, and any label columns "
+            "(condition, genotype, date, ...); see docs/metadata.md",
+        )
         g.add_argument(
             "--strict",
             action="store_true",
@@ -257,6 +271,14 @@ def _add_cluster_options(p):
     )
 
 
+def _add_by_option(p, what: str):
+    p.add_argument(
+        "--by",
+        metavar="COLUMN",
+        help=f"label column of --metadata to use for {what} (default: 'condition' when the roots have it)",
+    )
+
+
 def _add_geodesic_options(p):
     g = p.add_argument_group("geodesic")
     g.add_argument(
@@ -361,6 +383,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_mean_options(p)
     _add_pca_options(p)
     _add_regress_options(p)
+    _add_by_option(p, "extra covariates (numeric columns; repeat or comma-separate for several)")
 
     p = add(
         "cluster",
@@ -373,6 +396,29 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(p)
     _add_store_option(p)
     _add_cluster_options(p)
+    _add_by_option(p, "the leave-one-out classification")
+
+    p = add(
+        "compare",
+        "group differences: MDS plot, PERMANOVA and pairwise tests (PNG + CSV + markdown)",
+        "Do the groups of a label (condition, genotype, ...) differ in shape? Computes the "
+        "distance matrix, draws the roots in two dimensions (classical MDS) coloured by group, "
+        "and tests the groups with PERMANOVA (pseudo-F, p-value, R²), overall and for every "
+        "pair of groups (p-values corrected with Holm's method). Writes mds.png, "
+        "permanova.csv/.md, distances.csv and a heat map with a strip per label.",
+        cmd_compare,
+    )
+    _add_common(p)
+    _add_store_option(p)
+    _add_by_option(p, "the groups")
+    g = p.add_argument_group("tests")
+    g.add_argument(
+        "--permutations",
+        type=_positive_int,
+        default=999,
+        metavar="N",
+        help="permutations of each PERMANOVA (default 999; the smallest p-value is 1/(N+1))",
+    )
 
     p = add(
         "traits",

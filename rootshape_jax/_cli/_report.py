@@ -62,6 +62,10 @@ OUTPUT_NAMES = (
     "clusters.csv",
     "dendrogram.png",
     "classification.csv",
+    "permanova.csv",
+    "permanova.md",
+    "mds.csv",
+    "mds.png",
 )
 LOG_NAME = "rootshape.log"
 

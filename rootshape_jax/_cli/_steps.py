@@ -13,8 +13,16 @@ import numpy as np
 
 import rootshape_jax as rs
 
-from ._common import PAPER_TRAITS, fmt, make_weights, say
-from ._inputs import Population, common_unit, in_input_units, prepare, to_output_roots
+from ._common import PAPER_TRAITS, CLIError, fmt, make_weights, say
+from ._inputs import (
+    Population,
+    common_unit,
+    covariate_columns,
+    covariate_matrix,
+    in_input_units,
+    prepare,
+    to_output_roots,
+)
 from ._report import Output, html_table, write_dict_csv
 
 
@@ -58,7 +66,7 @@ def run_distances(ctx: Context, out: Output, args) -> None:
             [[n] + list(row) for n, row in zip(pop.names, D)],
             f"elastic distance between every pair of roots ({len(D)} × {len(D)})",
         )
-        fig, _ = plot_distance_matrix(D, labels=pop.names)
+        fig, _ = plot_distance_matrix(D, labels=pop.names, strips=pop.labels or None)
         out.figure(
             sec, fig, "distances.png", "heat map of the distance matrix, rows ordered by hierarchical clustering"
         )
@@ -204,8 +212,12 @@ def run_regress(ctx: Context, out: Output, args) -> None:
         # Traits in the input's units, measured on the roots as read. With scale normalisation
         # the model predicts the shape, and each predicted root is scaled to its requested
         # main-root length (so that trait is matched exactly by construction).
-        P = trait_matrix(pop.roots)
-        reg = rs.TraitRegression.fit(ctx.pca, None, traits=(), covariates=P, covariate_names=PAPER_TRAITS)
+        # Extra covariates (regress --by): numeric label columns of the metadata table.
+        extra = covariate_columns(args)
+        T = trait_matrix(pop.roots)
+        P = np.hstack([T, covariate_matrix(pop.roots, extra)]) if extra else T
+        names_all = list(PAPER_TRAITS) + extra
+        reg = rs.TraitRegression.fit(ctx.pca, None, traits=(), covariates=P, covariate_names=names_all)
 
         def predict(values: np.ndarray, names: list[str]):
             trees = reg.synthesize(values)
@@ -219,7 +231,7 @@ def run_regress(ctx: Context, out: Output, args) -> None:
         got = trait_matrix(fitted)
         report = []
         for j, name in enumerate(PAPER_TRAITS):
-            y, yhat = P[:, j], got[:, j]
+            y, yhat = T[:, j], got[:, j]
             ss = float(np.sum((y - y.mean()) ** 2))
             r2 = 1.0 - float(np.sum((yhat - y) ** 2)) / ss if ss > 0 else float("nan")
             rel = float(np.mean(np.abs(yhat - y) / np.maximum(np.abs(y), 1e-12)))
@@ -252,7 +264,7 @@ def run_regress(ctx: Context, out: Output, args) -> None:
         )
         measured = trait_matrix(roots)
         rows = [[n] + list(v) + list(m) for n, v, m in zip(names, values, measured)]
-        header = ["root"] + [f"requested_{k}" for k in PAPER_TRAITS] + [f"measured_{k}" for k in PAPER_TRAITS]
+        header = ["root"] + [f"requested_{k}" for k in names_all] + [f"measured_{k}" for k in PAPER_TRAITS]
         out.csv(sec, "predicted_roots.csv", header, rows, "requested and measured traits of each predicted root")
         k = 0 if vary is None else vary
         fig, _ = plot_regression_sweep(
@@ -304,7 +316,9 @@ def run_cluster(ctx: Context, out: Output, args) -> None:
             f"cluster of each root ({cl.n_clusters} clusters, {args.linkage} linkage; numbered "
             "left to right in the dendrogram)",
         )
-        fig, _ = plot_dendrogram(cl.linkage, labels=pop.names, n_clusters=cl.n_clusters, roots=pop.tree)
+        fig, _ = plot_dendrogram(
+            cl.linkage, labels=pop.names, n_clusters=cl.n_clusters, roots=pop.tree, strips=pop.labels or None
+        )
         out.figure(
             sec,
             fig,
@@ -341,7 +355,7 @@ def run_traits(roots: list, out: Output, args) -> None:
     with out.step("Root traits") as sec:
         rows = rs.traits(roots)
         for r, root in zip(rows, roots):
-            for key in ("condition", "unit", "source_file"):
+            for key in ("condition", *root.metadata.get("label_columns", ()), "unit", "source_file"):
                 if key in root.metadata:
                     r[key] = root.metadata[key]
         out.write("traits.csv", lambda p: write_dict_csv(p, rows))
@@ -386,3 +400,104 @@ def run_geodesic(a_root, b_root, out: Output, args) -> None:
             f"optimal deformation of {pair[0].name} into {pair[1].name}, one colour per matched lateral",
         )
         sec.notes.append(f"elastic distance {pair[0].name} → {pair[1].name}: {fmt(float(reg.distance))}.")
+
+
+def group_labels(pop: Population) -> list[str]:
+    """The groups of `compare`: the --by label (default condition), at least two of them."""
+    if pop.conditions is None:
+        raise CLIError(
+            "compare needs a group for every root: give --metadata TABLE.csv --by COLUMN "
+            "(or roots that carry a 'condition')."
+        )
+    labels = [str(c) for c in pop.conditions]
+    groups = sorted(set(labels))
+    if len(groups) < 2:
+        raise CLIError(
+            f"--by {pop.label_name}: every root has the same value ({groups[0]!r}); comparing needs at least two groups."
+        )
+    if len(groups) >= len(labels):
+        raise CLIError(f"--by {pop.label_name}: every root is its own group; groups need at least two members to test.")
+    return labels
+
+
+def permanova_text(label: str, rows: list[list]) -> str:
+    """The PERMANOVA table as markdown (printed and written to permanova.md)."""
+    lines = [
+        f"| test ({label}) | roots | pseudo-F | R² | p | p (Holm) |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for test, n, f, r2, p, q in rows:
+        lines.append(f"| {test} | {n} | {f:.3f} | {r2:.3f} | {p:.4f} | {'' if q is None else f'{q:.4f}'} |")
+    return "\n".join(lines)
+
+
+def run_compare(ctx: Context, out: Output, args) -> None:
+    from rootshape_jax.plot import plot_mds
+
+    pop = ctx.pop
+    labels = group_labels(pop)
+    D = ctx.distances
+    with out.step(f"Group comparison by {pop.label_name}") as sec:
+        say(args, f"PERMANOVA with {args.permutations} permutations, overall and for every pair of groups...")
+        overall = rs.permanova(D, labels, permutations=args.permutations, seed=args.seed)
+        pairs = rs.pairwise_permanova(D, labels, permutations=args.permutations, seed=args.seed + 1)
+        counts = {g: labels.count(g) for g in sorted(set(labels))}
+        rows = [
+            [
+                f"all groups ({', '.join(f'{g} n={c}' for g, c in counts.items())})",
+                len(labels),
+                overall.pseudo_f,
+                overall.r2,
+                overall.p_value,
+                None,
+            ]
+        ]
+        rows += [
+            [f"{t.group_a} vs {t.group_b}", t.n_a + t.n_b, t.pseudo_f, t.r2, t.p_value, t.p_adjusted] for t in pairs
+        ]
+        header = ["test", "roots", "pseudo_F", "R2", "p_value", "p_holm"]
+        out.csv(
+            sec,
+            "permanova.csv",
+            header,
+            rows,
+            f"PERMANOVA of the distances by {pop.label_name} ({args.permutations} permutations, seed "
+            f"{args.seed}); pairwise p-values adjusted with Holm's method (family-wise error)",
+            table_html=html_table(header, rows),
+        )
+        text = permanova_text(pop.label_name, rows)
+        out.write("permanova.md", lambda p: p.write_text(text + "\n", encoding="utf-8"))
+        out.file(sec, "permanova.md", "the same table in markdown")
+        print(text)
+        emb = rs.mds(D, n_components=2)
+        ratio = np.asarray(emb.proportion_explained)
+        out.csv(
+            sec,
+            "mds.csv",
+            ["root", pop.label_name, "mds_1", "mds_2"],
+            [[n, g, *xy] for n, g, xy in zip(pop.names, labels, np.asarray(emb.embedding))],
+            "classical MDS coordinates of each root (in distance units)",
+        )
+        fig, _ = plot_mds(
+            emb.embedding,
+            labels,
+            names=pop.names,
+            explained=ratio,
+            label_name=pop.label_name,
+            title=f"{len(labels)} roots by {pop.label_name} (classical MDS of the elastic distances)",
+        )
+        out.figure(sec, fig, "mds.png", f"roots in two dimensions (classical MDS), coloured by {pop.label_name}")
+        eig = np.asarray(emb.eigenvalues)
+        positive = float(np.sum(eig[eig > 0]))
+        negative = float(-np.sum(eig[eig < 0]))
+        note = (
+            f"PERMANOVA by {pop.label_name}: pseudo-F {overall.pseudo_f:.3f}, R² {overall.r2:.3f}, "
+            f"p = {overall.p_value:.4f} ({args.permutations} permutations). MDS axes 1-2 show "
+            f"{100 * ratio.sum():.0f} % of the positive eigenvalues"
+        )
+        if negative > 1e-9 * positive:
+            note += (
+                f" (the negative eigenvalues sum to {100 * negative / positive:.1f} % of the positive ones: "
+                "the distances are not exactly Euclidean)"
+            )
+        sec.notes.append(note + ".")

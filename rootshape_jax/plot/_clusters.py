@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -26,6 +26,7 @@ from ._draw import (
     slot_color,
     subplot_kw,
 )
+from ._labels import check_strips, draw_strip, reserve_legend_space
 
 # Beyond these sizes tick labels overlap; they are left out.
 _MAX_TICK_LABELS = 50
@@ -92,6 +93,7 @@ def plot_distance_matrix(
     ax=None,
     cmap: str = "viridis",
     show_dendrogram: bool = True,
+    strips: Mapping[str, Sequence[Any]] | None = None,
     title: str | None = "Pairwise distances (ordered by hierarchical clustering)",
 ):
     """Heat map of an (N, N) distance matrix, rows and columns in dendrogram order.
@@ -106,29 +108,40 @@ def plot_distance_matrix(
     - `method`: linkage method when `linkage` is None (``"average"`` is UPGMA).
     - `ax`: an Axes for the heat map (then no dendrogram is drawn); a new figure when None.
     - `cmap`: colour map; `show_dendrogram`: draw the dendrogram above the heat map.
+    - `strips`: ``{label name: one value per root}`` (e.g. condition, genotype): one colour
+      strip per label above the heat map, in the heat map's order, with a legend (needs
+      ``ax=None``).
 
     **Returns** ``(fig, axes)`` with ``axes = {"matrix": ax, "colorbar": cax,
-    "dendrogram": dax or None}``. The order used is ``scipy.cluster.hierarchy.leaves_list``.
+    "dendrogram": dax or None, "strips": {name: Axes}}``. The order used is
+    ``scipy.cluster.hierarchy.leaves_list``.
     """
     D = check_distance_matrix(D, what="plot_distance_matrix")
     n = D.shape[0]
     labels = _check_labels(labels, n, "plot_distance_matrix")
+    strips = check_strips(strips, n, "plot_distance_matrix")
+    if strips and ax is not None:
+        raise ValueError("plot_distance_matrix: colour strips need their own figure; pass ax=None.")
     Z = _linkage_from(D, method) if linkage is None else _check_linkage(linkage, n, what="linkage")
     order = hierarchy.leaves_list(Z)
     ordered = D[np.ix_(order, order)]
 
     dax = None
+    sax: dict = {}
     if ax is None:
-        fig = new_figure((7.0, 7.4 if show_dendrogram else 6.2))
+        ns = len(strips)
+        fig = new_figure((7.0 + (2.0 if ns else 0.0), (7.4 if show_dendrogram else 6.2) + 0.3 * ns))
+        heights = ([1.0] if show_dendrogram else []) + [0.18] * ns + [5.0]
+        gs = fig.add_gridspec(len(heights), 2, height_ratios=heights, width_ratios=[25, 1])
+        row = 0
         if show_dendrogram:
-            gs = fig.add_gridspec(2, 2, height_ratios=[1, 5], width_ratios=[25, 1])
             dax = fig.add_subplot(gs[0, 0])
-            ax = fig.add_subplot(gs[1, 0])
-            cax = fig.add_subplot(gs[1, 1])
-        else:
-            gs = fig.add_gridspec(1, 2, width_ratios=[25, 1])
-            ax = fig.add_subplot(gs[0, 0])
-            cax = fig.add_subplot(gs[0, 1])
+            row = 1
+        for name in strips:
+            sax[name] = fig.add_subplot(gs[row, 0])
+            row += 1
+        ax = fig.add_subplot(gs[row, 0])
+        cax = fig.add_subplot(gs[row, 1])
     else:
         fig = ax.figure
         cax = None
@@ -158,9 +171,14 @@ def plot_distance_matrix(
         hierarchy.dendrogram(Z, ax=dax, no_labels=True, color_threshold=-1, above_threshold_color=NEUTRAL_COLOR)
         dax.set_xlim(0, 10 * n)  # scipy puts leaf i at 10 i + 5: aligned with the cells below
         dax.set_axis_off()
+    for name, sx in sax.items():
+        draw_strip(sx, [strips[name][i] for i in order], name)
+        sx.set_xlim(-0.5, n - 0.5)
+    reserve_legend_space(fig, strips)
     if title:
-        (dax if dax is not None else ax).set_title(title, fontsize=11)
-    return fig, {"matrix": ax, "colorbar": cbar.ax, "dendrogram": dax}
+        top = dax if dax is not None else (next(iter(sax.values())) if sax else ax)
+        top.set_title(title, fontsize=11)
+    return fig, {"matrix": ax, "colorbar": cbar.ax, "dendrogram": dax, "strips": sax}
 
 
 def _as_linkage(D_or_linkage: Any, method: str, what: str) -> np.ndarray:
@@ -216,6 +234,7 @@ def plot_dendrogram(
     invert_y: bool = True,
     projection: str | None = None,
     unit: str | None = None,
+    strips: Mapping[str, Sequence[Any]] | None = None,
     title: str | None = "Hierarchical clustering of roots",
 ):
     """Dendrogram coloured by flat cluster, optionally with a row of roots per cluster.
@@ -232,12 +251,20 @@ def plot_dendrogram(
       drawn in the cluster's colour at one shared scale.
     - `ax`: an Axes for the dendrogram (only without `roots`); a new figure when None.
     - `linewidth`, `invert_y`, `projection`, `unit`: root drawing options, as in `plot_root`.
+    - `strips`: ``{label name: one value per root}``: one colour strip per label under the
+      leaves, with a legend (needs ``ax=None``); the leaf names then label the last strip.
 
-    **Returns** ``(fig, axes)`` with ``axes = {"dendrogram": ax, "roots": rows of Axes}``.
+    **Returns** ``(fig, axes)`` with ``axes = {"dendrogram": ax, "roots": rows of Axes,
+    "strips": {name: Axes}}``.
     """
     Z = _as_linkage(D_or_linkage, method, "plot_dendrogram")
     n = Z.shape[0] + 1
     labels = _check_labels(labels, n, "plot_dendrogram")
+    strips = check_strips(strips, n, "plot_dendrogram")
+    if strips and ax is not None:
+        raise ValueError("plot_dendrogram: colour strips need their own figure; pass ax=None.")
+    ns = len(strips)
+    sax: dict = {}
     ids, cut = _clusters(Z, n_clusters)
     k = int(ids.max()) + 1
     drawings = None
@@ -264,8 +291,11 @@ def plot_dendrogram(
     rows: list[list] = []
     if drawings is None:
         if ax is None:
-            fig = new_figure((max(6.0, min(14.0, 0.18 * n + 3)), 4.2))
-            ax = fig.add_subplot()
+            fig = new_figure((max(6.0, min(14.0, 0.18 * n + 3)) + (2.0 if ns else 0.0), 4.2 + 0.3 * ns))
+            gs = fig.add_gridspec(1 + ns, 1, height_ratios=[4.0] + [0.22] * ns)
+            ax = fig.add_subplot(gs[0, 0])
+            for j, name in enumerate(strips):
+                sax[name] = fig.add_subplot(gs[1 + j, 0])
         else:
             fig = ax.figure
     else:
@@ -275,14 +305,16 @@ def plot_dendrogram(
         frame = base_frame(drawings, projection, False)
         w, h = panel_size(frame, 1.5)
         fig_w = max(7.0, ncols * w + 1.6)
-        fig = new_figure((fig_w, 3.8 + k * (h + 0.15)))
-        gs = fig.add_gridspec(1 + k, ncols, height_ratios=[3.2] + [h] * k)
+        fig = new_figure((fig_w + (2.0 if ns else 0.0), 3.8 + 0.3 * ns + k * (h + 0.15)))
+        gs = fig.add_gridspec(1 + ns + k, ncols, height_ratios=[3.2] + [0.22] * ns + [h] * k)
         ax = fig.add_subplot(gs[0, :])
+        for j, name in enumerate(strips):
+            sax[name] = fig.add_subplot(gs[1 + j, :])
         unit = unit if unit is not None else common_unit(drawings)
         for c, idx in enumerate(per):
             row = []
             for j, i in enumerate(idx):
-                rax = fig.add_subplot(gs[1 + c, j], **subplot_kw(projection))
+                rax = fig.add_subplot(gs[1 + ns + c, j], **subplot_kw(projection))
                 draw(
                     rax,
                     drawings[i],
@@ -319,10 +351,20 @@ def plot_dendrogram(
         ax=ax,
         labels=labels,
         link_color_func=link_color,
-        no_labels=not show_labels,
+        no_labels=not show_labels or bool(sax),
         leaf_rotation=90,
         leaf_font_size=max(5, min(9, int(500 / n))),
     )
+    centers = 10.0 * np.arange(n) + 5.0  # scipy puts leaf i at 10 i + 5
+    for name, sx in sax.items():
+        draw_strip(sx, [strips[name][i] for i in order], name, centers=centers, width=10.0)
+        sx.set_xlim(ax.get_xlim())
+    reserve_legend_space(fig, strips)
+    if sax and show_labels:
+        last = list(sax.values())[-1]
+        names = [labels[i] if labels else str(i) for i in order]
+        last.set_xticks(centers, names, rotation=90, fontsize=max(5, min(9, int(500 / n))))
+        last.tick_params(axis="x", length=0)
     if cut is not None:
         ax.axhline(cut, color="#999999", linestyle="--", linewidth=0.8, zorder=0)
     ax.set_ylabel("distance")
@@ -330,4 +372,4 @@ def plot_dendrogram(
     ax.tick_params(axis="x", length=0)
     if title:
         ax.set_title(f"{title} ({k} clusters)" if k > 1 else title, fontsize=11)
-    return fig, {"dendrogram": ax, "roots": rows}
+    return fig, {"dendrogram": ax, "roots": rows, "strips": sax}

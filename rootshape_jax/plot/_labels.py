@@ -1,0 +1,162 @@
+"""Group labels in figures: colour strips beside heat maps and dendrograms, MDS scatter plots."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from ._draw import new_figure
+
+# Categorical colours (matplotlib's tab10, then tab20's lighter halves): distinct, print-safe.
+_GROUP_COLORS = (
+    "#1f77b4",
+    "#ff7f0e",
+    "#2ca02c",
+    "#d62728",
+    "#9467bd",
+    "#8c564b",
+    "#e377c2",
+    "#7f7f7f",
+    "#bcbd22",
+    "#17becf",
+    "#aec7e8",
+    "#ffbb78",
+    "#98df8a",
+    "#ff9896",
+    "#c5b0d5",
+    "#c49c94",
+    "#f7b6d2",
+    "#c7c7c7",
+    "#dbdb8d",
+    "#9edae5",
+)
+
+
+def label_colors(values: Sequence[Any]) -> dict[str, str]:
+    """One colour per distinct label value, in sorted order of the values (so the same
+    labels get the same colours in every figure of a run)."""
+    groups = sorted({str(v) for v in values})
+    return {g: _GROUP_COLORS[i % len(_GROUP_COLORS)] for i, g in enumerate(groups)}
+
+
+def check_strips(strips: Mapping[str, Sequence[Any]] | None, n: int, what: str) -> dict[str, list[str]]:
+    """`strips` as ``{label name: [value per root]}`` (strings), or a ValueError."""
+    if strips is None:
+        return {}
+    if not isinstance(strips, Mapping):
+        raise ValueError(
+            f"{what}: strips must be a dict {{label name: one value per root}}, got {type(strips).__name__}."
+        )
+    out = {}
+    for name, values in strips.items():
+        values = [str(v) for v in values]
+        if len(values) != n:
+            raise ValueError(f"{what}: strip {name!r} has {len(values)} values for {n} roots.")
+        out[str(name)] = values
+    return out
+
+
+def draw_strip(ax, values_in_order: Sequence[str], name: str, *, centers=None, width: float = 1.0) -> dict[str, str]:
+    """One row of coloured cells (a bar per root, in the order given) with the label's name on
+    the left and a legend on the right. Returns the colours used ``{value: colour}``.
+
+    Each cell is a bar whose ``gid`` is its value, so tests and tools can read the strip back
+    from ``ax.patches``."""
+    colors = label_colors(values_in_order)
+    n = len(values_in_order)
+    x = np.arange(n, dtype=float) if centers is None else np.asarray(centers, dtype=float)
+    bars = ax.bar(x, 1.0, width=width, bottom=0.0, color=[colors[v] for v in values_in_order], linewidth=0)
+    for bar, v in zip(bars, values_in_order):
+        bar.set_gid(v)
+    ax.set_ylim(0, 1)
+    ax.set_yticks([])
+    ax.set_xticks([])
+    for spine in ax.spines.values():
+        spine.set_visible(False)
+    ax.set_ylabel(name, rotation=0, ha="right", va="center", fontsize=8)
+    from matplotlib.patches import Patch
+
+    handles = [Patch(facecolor=c, label=g) for g, c in colors.items()]
+    legend = ax.legend(
+        handles=handles,
+        loc="center left",
+        bbox_to_anchor=(1.01, 0.5),
+        fontsize=7,
+        frameon=False,
+        ncol=max(1, min(len(handles), 6)),
+        handlelength=1.0,
+        columnspacing=0.8,
+        borderaxespad=0.0,
+    )
+    # Outside the layout: `reserve_legend_space` keeps a right margin for it instead, so the
+    # panels keep their widths (a legend in the layout pushes the heat map's colour bar away).
+    legend.set_in_layout(False)
+    return colors
+
+
+def reserve_legend_space(fig, strips: Mapping[str, Sequence[str]]) -> None:
+    """Leave a right margin wide enough for the strips' legends (drawn to the panels' right)."""
+    if not strips:
+        return
+    widest = 0.0
+    for values in strips.values():
+        groups = sorted(set(values))
+        shown = groups[:6]  # legends wrap into rows of 6 entries
+        widest = max(widest, sum(0.22 + 0.065 * len(g) for g in shown))
+    width = fig.get_figwidth()
+    frac = min(0.45, (widest + 0.2) / width)
+    engine = fig.get_layout_engine()
+    if engine is not None and hasattr(engine, "set"):
+        engine.set(rect=(0.0, 0.0, 1.0 - frac, 1.0))
+
+
+def plot_mds(
+    embedding: Any,
+    labels: Sequence[Any] | None = None,
+    *,
+    names: Sequence[str] | None = None,
+    explained: Sequence[float] | None = None,
+    label_name: str = "group",
+    ax=None,
+    title: str | None = "Roots in two dimensions (classical MDS of the distances)",
+):
+    """Scatter plot of an MDS embedding (``rootshape_jax.mds(D).embedding``), one colour per
+    label value with a legend; `names` annotate the points (up to 40 roots); `explained`
+    (``MDS.proportion_explained``) goes into the axis names.
+
+    **Returns** ``(fig, ax)``. Each group is one scatter collection whose label is the group."""
+    X = np.asarray(embedding, dtype=float)
+    if X.ndim != 2 or X.shape[1] < 2:
+        raise ValueError(f"plot_mds: expected an (n, 2) embedding (mds(D, n_components=2)), got shape {X.shape}.")
+    n = X.shape[0]
+    values = ["all"] * n if labels is None else [str(v) for v in labels]
+    if len(values) != n:
+        raise ValueError(f"plot_mds: {len(values)} labels for {n} points.")
+    if ax is None:
+        fig = new_figure((6.4, 5.2))
+        ax = fig.add_subplot()
+    else:
+        fig = ax.figure
+    colors = label_colors(values)
+    for g, c in colors.items():
+        idx = [i for i, v in enumerate(values) if v == g]
+        ax.scatter(X[idx, 0], X[idx, 1], s=36, color=c, label=f"{g} (n = {len(idx)})", edgecolor="white", linewidth=0.5)
+    if names is not None and n <= 40:
+        for (x, y), name in zip(X[:, :2], names):
+            ax.annotate(str(name), (x, y), fontsize=6, xytext=(3, 3), textcoords="offset points", color="#444444")
+    for k, setter in enumerate((ax.set_xlabel, ax.set_ylabel)):
+        text = f"MDS axis {k + 1}"
+        if explained is not None:
+            text += f" ({100 * float(explained[k]):.0f} % of the positive eigenvalues)"
+        setter(text + " (distance units)")
+    if labels is not None:
+        ax.legend(title=label_name, fontsize=8, title_fontsize=8, frameon=False, loc="best")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.axhline(0, color="#dddddd", linewidth=0.6, zorder=0)
+    ax.axvline(0, color="#dddddd", linewidth=0.6, zorder=0)
+    ax.spines[["top", "right"]].set_visible(False)
+    if title:
+        ax.set_title(title, fontsize=11)
+    return fig, ax

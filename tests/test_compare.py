@@ -1,0 +1,244 @@
+"""`rootshape compare` and label colour strips: what the tables say is what the figures show."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+import matplotlib.colors as mcolors
+import numpy as np
+import pytest
+from scipy.cluster import hierarchy
+
+import rootshape_jax as rs
+import rootshape_jax.plot as rplot
+from rootshape_jax import io
+from rootshape_jax.datasets import synthetic_roots
+
+DATA = Path(__file__).parent / "data" / "rsml"
+
+
+def hexes(colors) -> list[str]:
+    return [mcolors.to_hex(c) for c in colors]
+
+
+def labelled_roots():
+    """12 synthetic roots in 3 files, labelled through a metadata table (condition, batch)."""
+    roots, rows = [], []
+    for f, c in enumerate(("control", "drought", "high_nitrate")):
+        for r in synthetic_roots(4, condition=c, seed=5):
+            roots.append(dataclasses.replace(r, metadata=dict(r.metadata, source_file=f"/x/f{f}.rsml")))
+        rows.append({"file": f"f{f}", "treatment": c, "batch": "b1" if f < 2 else "b2"})
+    roots = [dataclasses.replace(r, name=f"r{i:02d}") for i, r in enumerate(roots)]
+    return io.attach_metadata(roots, rows)
+
+
+def grouped_distances(n_per=4, shift=9.0, seed=0):
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(3 * n_per, 3)) + np.repeat(np.array([[0, 0, 0], [shift, 0, 0], [0, shift, 0]]), n_per, axis=0)
+    return np.linalg.norm(x[:, None] - x[None], axis=-1)
+
+
+def test_heat_map_strips_show_the_labels_in_the_matrix_order():
+    D = grouped_distances()
+    cond = ["c"] * 4 + ["d"] * 4 + ["h"] * 4
+    geno = ["wt", "mut"] * 6
+    fig, axes = rplot.plot_distance_matrix(
+        D, labels=[f"r{i}" for i in range(12)], strips={"condition": cond, "genotype": geno}
+    )
+    order = hierarchy.leaves_list(hierarchy.linkage(D[np.triu_indices(12, 1)], "average", optimal_ordering=True))
+    names = [t.get_text() for t in axes["matrix"].get_xticklabels()]
+    assert names == [f"r{i}" for i in order]
+    for key, values in (("condition", cond), ("genotype", geno)):
+        ax = axes["strips"][key]
+        bars = [p for p in ax.patches]
+        assert [b.get_gid() for b in bars] == [values[i] for i in order]
+        legend = {
+            t.get_text(): mcolors.to_hex(h.get_facecolor())
+            for t, h in zip(ax.get_legend().texts, ax.get_legend().legend_handles)
+        }
+        assert hexes(b.get_facecolor() for b in bars) == [legend[values[i]] for i in order]
+        assert set(legend) == set(values) and len(set(legend.values())) == len(legend)
+        assert ax.get_ylabel() == key
+
+
+def test_strip_errors():
+    D = grouped_distances()
+    with pytest.raises(ValueError, match="strip 'c' has 3 values for 12 roots"):
+        rplot.plot_distance_matrix(D, strips={"c": ["a", "b", "c"]})
+    with pytest.raises(ValueError, match="own figure"):
+        fig, _ = rplot.plot_distance_matrix(D)
+        rplot.plot_dendrogram(D, strips={"c": ["a"] * 12}, ax=fig.axes[0])
+
+
+def run_steps(tmp_path, monkeypatch, by="treatment"):
+    from rootshape_jax._cli._inputs import prepare
+    from rootshape_jax._cli._report import Output
+    from rootshape_jax._cli._steps import Context, run_cluster, run_compare
+
+    roots = labelled_roots()
+    args = argparse.Namespace(
+        laterals=4,
+        points=12,
+        normalise_scale=True,
+        clusters=3,
+        linkage="average",
+        by=by,
+        command="compare",
+        permutations=199,
+        seed=3,
+        quiet=True,
+    )
+    ctx = Context(prepare(roots, args))
+    ctx.distances = grouped_distances()
+    drawn = {}
+    for name in ("plot_dendrogram", "plot_mds"):
+        original = getattr(rplot, name)
+
+        def spy(*a, _original=original, _name=name, **kw):
+            drawn[_name] = _original(*a, **kw)
+            return drawn[_name]
+
+        monkeypatch.setattr(rplot, name, spy)
+    out = Output(tmp_path / "o", args)
+    run_compare(ctx, out, args)
+    run_cluster(ctx, out, args)
+    return ctx, drawn, tmp_path / "o"
+
+
+def read_csv(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_compare_tables_agree_with_the_library_and_the_figures(tmp_path, monkeypatch, capsys):
+    ctx, drawn, out = run_steps(tmp_path, monkeypatch)
+    D, labels = ctx.distances, [r.metadata["treatment"] for r in ctx.pop.roots]
+    rows = read_csv(out / "permanova.csv")
+    overall = rs.permanova(D, labels, permutations=199, seed=3)
+    assert float(rows[0]["pseudo_F"]) == pytest.approx(overall.pseudo_f, rel=1e-12)
+    assert float(rows[0]["p_value"]) == overall.p_value and float(rows[0]["R2"]) == pytest.approx(overall.r2)
+    pairs = rs.pairwise_permanova(D, labels, permutations=199, seed=4)
+    assert [r["test"] for r in rows[1:]] == [f"{t.group_a} vs {t.group_b}" for t in pairs]
+    assert [float(r["p_holm"]) for r in rows[1:]] == [t.p_adjusted for t in pairs]
+    assert overall.p_value == 1 / 200  # three well separated groups
+    printed = capsys.readouterr().out
+    assert "| test (treatment) |" in printed and (out / "permanova.md").read_text().strip() == printed.strip()
+    # mds.csv: coordinates are rs.mds's; each group's points in the figure carry its colour.
+    mrows = read_csv(out / "mds.csv")
+    emb = rs.mds(D, n_components=2).embedding
+    np.testing.assert_allclose([[float(r["mds_1"]), float(r["mds_2"])] for r in mrows], emb)
+    fig, ax = drawn["plot_mds"]
+    colors = rplot.label_colors(labels)
+    for coll in ax.collections:
+        group = coll.get_label().split(" (n = ")[0]
+        pts = coll.get_offsets()
+        expect = np.array([[float(r["mds_1"]), float(r["mds_2"])] for r in mrows if r["treatment"] == group])
+        np.testing.assert_allclose(np.asarray(pts), expect)
+        assert hexes(coll.get_facecolor()) == [colors[group]]
+    # Dendrogram strips: one per metadata label, values and colours as in the CSV of clusters' roots.
+    _, axes = drawn["plot_dendrogram"]
+    assert list(axes["strips"]) == ["treatment", "batch"]
+    order = [t.get_text() for t in axes["strips"]["batch"].get_xticklabels()]
+    meta = {r.name: r.metadata for r in ctx.pop.roots}
+    for key, ax in axes["strips"].items():
+        bars = list(ax.patches)
+        assert [b.get_gid() for b in bars] == [meta[n][key] for n in order]
+        col = rplot.label_colors([m[key] for m in meta.values()])
+        assert hexes(b.get_facecolor() for b in bars) == [col[meta[n][key]] for n in order]
+    crow = read_csv(out / "clusters.csv")
+    assert {r["root"]: r["condition"] for r in crow} == {n: m["treatment"] for n, m in meta.items()}
+
+
+def test_compare_needs_two_groups(tmp_path, monkeypatch):
+    from rootshape_jax._cli._common import CLIError
+
+    with pytest.raises(CLIError, match="--by batch"):
+        roots = labelled_roots()
+        roots = [dataclasses.replace(r, metadata=dict(r.metadata, batch="b1")) for r in roots]
+        from rootshape_jax._cli._inputs import prepare
+        from rootshape_jax._cli._steps import group_labels
+
+        args = argparse.Namespace(laterals=4, points=12, normalise_scale=True, by="batch", command="compare")
+        group_labels(prepare(roots, args))
+
+
+# --------------------------------------------------------------------------------------------
+# End to end, on a folder with a bad file (compiles registrations: slow)
+
+
+def run_cli(*args) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "rootshape_jax", *map(str, args)], capture_output=True, text=True, timeout=1800
+    )
+
+
+@pytest.fixture
+def labelled_folder(tmp_path):
+    d = tmp_path / "roots"
+    d.mkdir()
+    for i, c in enumerate(("control", "control", "drought", "drought")):
+        io.write_rsml(synthetic_roots(1, condition=c, seed=10 + i), d / f"p{i}.rsml")
+    (d / "zz_bad.rsml").write_text("not xml")
+    table = tmp_path / "m.csv"
+    table.write_text("file,condition,tray\np0,control,1\np1.rsml,control,2\np2,drought,1\np3,drought,2\n")
+    return d, table
+
+
+def test_compare_missing_row_fails_before_computing(labelled_folder, tmp_path):
+    d, _ = labelled_folder
+    table = tmp_path / "short.csv"
+    table.write_text("file,condition\np0,control\np1,control\np2,drought\n")
+    proc = run_cli("compare", d, "--metadata", table, "--by", "condition", "--out", tmp_path / "o")
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    err = [ln for ln in proc.stderr.splitlines() if "error" in ln]
+    assert len(err) == 1 and "no row for 1 root(s): " in err[0] and "(p3.rsml)" in err[0], proc.stderr
+    assert not (tmp_path / "o" / "distances.csv").exists()
+
+
+def test_compare_unknown_label_is_one_line(labelled_folder, tmp_path):
+    d, table = labelled_folder
+    proc = run_cli("compare", d, "--metadata", table, "--by", "genotype", "--out", tmp_path / "o")
+    assert proc.returncode == 1 and "label 'genotype' is missing for 4 root(s)" in proc.stderr
+    assert "labels seen: condition, tray" in proc.stderr
+
+
+@pytest.mark.slow
+def test_compare_end_to_end(labelled_folder, tmp_path):
+    d, table = labelled_folder
+    out = tmp_path / "o"
+    proc = run_cli(
+        "compare",
+        d,
+        "--metadata",
+        table,
+        "--by",
+        "condition",
+        "--out",
+        out,
+        "--points",
+        "12",
+        "--laterals",
+        "3",
+        "--permutations",
+        "99",
+        "--quiet",
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "skipped zz_bad.rsml" in proc.stderr and "skipped 1: zz_bad.rsml (not well-formed XML)" in proc.stdout
+    assert "| test (condition) | roots | pseudo-F | R² | p | p (Holm) |" in proc.stdout
+    rows = read_csv(out / "permanova.csv")
+    assert rows[0]["test"] == "all groups (control n=2, drought n=2)" and len(rows) == 2
+    names, D = None, None
+    with open(out / "distances.csv", newline="") as f:
+        r = list(csv.reader(f))
+        names, D = r[0][1:], np.array([[float(x) for x in row[1:]] for row in r[1:]])
+    labels = {m["root"]: m["condition"] for m in read_csv(out / "mds.csv")}
+    ref = rs.permanova(D, [labels[n] for n in names], permutations=99, seed=0)
+    assert float(rows[0]["pseudo_F"]) == pytest.approx(ref.pseudo_f, rel=1e-9)
+    for f in ("mds.png", "permanova.md", "distances.png"):
+        assert (out / f).is_file()
