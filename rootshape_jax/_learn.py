@@ -27,6 +27,7 @@ the test roots are classified by 1-NN and by the nearest class mean.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -339,7 +340,7 @@ class _Fitter:
         li, lj = np.triu_indices(n, 1)
         I, J = idx[li], idx[lj]
         names = _learned_names(self.radii)
-        dtype = np.asarray(self.srvf(self.start).q0).dtype
+        dtype = np.asarray(self.trees.main if isinstance(self.trees, RootTree) else self.trees.q0).dtype
         fixed = {k: v for k, v in self.start.items() if k not in names}
         log0 = jnp.log(jnp.asarray([float(self.start[k]) for k in names], dtype))
         same = jnp.asarray((y[:, None] == y[None, :]) & ~np.eye(n, dtype=bool))
@@ -563,8 +564,6 @@ def nested_cv_accuracy(
     Every class needs at least `n_folds` members (`LabelError` otherwise, before any work).
     Other options as in `learn_weights`.
     """
-    import time
-
     weights, opts, radii = _prepare(trees, weights, registration, options)
     n = batch_size(trees)
     if isinstance(n_folds, bool) or not isinstance(n_folds, (int, np.integer)) or n_folds < 2:
