@@ -240,6 +240,14 @@ def markdown(results) -> str:
         "the loss trace below shows how far the alternation had settled.",
     ]
     lines += ["", "Learned λ per fold (λ_lateral = 1) and time:", ""]
+    if any("thickness" in w and w["thickness"] > 0 for row in results["sets"].values() for w in row["fold_weights"]):
+        lines += [
+            "(Roots with radii — the CPlantBox species — also learn λ_thickness, from a start of 1. "
+            "CPlantBox gives every branch one constant radius, so the thickness channel of the "
+            "extended SRVF (the change of radius along a branch) is zero: λ_thickness has no "
+            "gradient and stays at 1, with no effect on the distances.)",
+            "",
+        ]
     for tag, row in results["sets"].items():
         ws = "; ".join(
             f"main {w['main']:.3g}, position {w['position']:.3g}"
