@@ -4,7 +4,7 @@ Kanari, L., Dłotko, P., Scolamiero, M., Levi, R., Shillcock, J., Hess, K., Mark
 A topological representation of branching neuronal morphologies. Neuroinformatics 16, 3–13;
 and Kanari et al. (2019), Objective morphological classification of neocortical pyramidal
 cells, Cerebral Cortex 29. Package: https://github.com/BlueBrain/TMD (``pip install tmd``,
-GPL-3.0; the ``bench`` extra), imported only when called.
+LGPL-3.0 by its package metadata; the ``bench`` extra), imported only when called.
 
 - **Tree**: a `Root` becomes a `tmd.Tree.Tree`: the main root's points form a chain from its
   base (point 0, the tree's root); each lateral's points form a chain whose first point hangs
