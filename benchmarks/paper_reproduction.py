@@ -43,6 +43,7 @@ METHOD_LABEL = {
     "qed": "QED (Feragen et al.)",
     "fc_srvf": "fc-SRVF (Wang et al.)",
     "ted": "tree edit distance",
+    "tmd": "TMD (Kanari et al.)",
 }
 
 # The paper's Table (timing_geodesics), seconds, Matlab on an Intel i5-4460 @ 3.2 GHz, 8 GB.
@@ -419,9 +420,12 @@ def distance_matrices(tag, roots, trees, cfg, cache, weights, *, progress):
         "fc_n_points": cfg.fc_n_points,
     }
     hit = cache.load(f"distances_{tag}", key)
-    if hit is not None:
-        return {m: hit[m] for m in ("ours", "qed", "fc_srvf", "ted")}, json.loads(str(hit["timing"])), True
     base = rs.to_roots(trees)
+    if hit is not None:
+        out = {m: hit[m] for m in ("ours", "qed", "fc_srvf", "ted")}
+        timing = json.loads(str(hit["timing"]))
+        out["tmd"], timing["tmd"] = tmd_matrix(base)
+        return out, timing, True
     timing = {}
     # Compile on two roots (same T, K and chunk size: the same program), then time the matrix.
     small = jax.tree.map(lambda x: x[:2], trees)
@@ -445,7 +449,20 @@ def distance_matrices(tag, roots, trees, cfg, cache, weights, *, progress):
         out[m] = np.asarray(fn(), dtype=np.float64)
         timing[m] = {"wall_s": time.perf_counter() - t0}
     cache.save(f"distances_{tag}", key, {**out, "timing": np.asarray(json.dumps(timing))})
+    out["tmd"], timing["tmd"] = tmd_matrix(base)
     return out, timing, False
+
+
+def tmd_matrix(base):
+    """TMD distances (`rootshape_jax.baselines.tmd_distance_matrix`, the `tmd` package):
+    seconds to compute, so never cached (the cache's keys predate it)."""
+    import numpy as np
+
+    from rootshape_jax import baselines as bl
+
+    t0 = time.perf_counter()
+    D = np.asarray(bl.tmd_distance_matrix(base), dtype=np.float64)
+    return D, {"wall_s": time.perf_counter() - t0}
 
 
 def symmetric(D, name, notes):
@@ -697,7 +714,10 @@ def main(argv=None):
         f"Euclidean distance ({cfg.n_landmarks} landmarks per edge, correspondence by order along "
         "the main root); fc-SRVF — Wang et al. 2018, father–child topology with SRVF edges and an "
         f"elastic warp per edge ({cfg.fc_n_points} points per edge); a classic tree edit distance on "
-        "the topology. They get exactly the roots ours gets (resampled, scale normalised).",
+        "the topology; TMD — Kanari et al. 2018, the persistence barcode of the radial-distance "
+        "filtration through the `tmd` package, persistence-image distance "
+        "(`rootshape_jax.baselines.tmd_distance_matrix`). They get exactly the roots ours gets "
+        "(resampled, scale normalised).",
         f"- **Machine**: {info['cpu']}, {info['cores']} cores, {info['memory_gib']} GiB, Python "
         f"{info['python']}, jax {info['jax']}; 1-min load average at start "
         f"{fmt(info['load_average_1min_at_start'])} (the machine is shared: timings are wall "
@@ -1153,7 +1173,7 @@ def main(argv=None):
     ):
         k = len(set(labels))
         acc[tag] = {}
-        for m in ("ours", "qed", "fc_srvf", "ted"):
+        for m in ("ours", "qed", "fc_srvf", "ted", "tmd"):
             nn = rs.loo_accuracy(D[m], np.asarray(labels), rule="nearest_neighbour")["accuracy"]
             nm_ = rs.loo_accuracy(D[m], np.asarray(labels), rule="nearest_mean")["accuracy"]
             pur = purity(D[m], labels, k)
@@ -1227,7 +1247,7 @@ def main(argv=None):
     n_pairs_data = len(roots) * (len(roots) - 1) // 2
     paper_matrix_h = 147.0 * n_pairs_data / 3600
     mrows = []
-    for m in ("ours", "qed", "fc_srvf", "ted"):
+    for m in ("ours", "qed", "fc_srvf", "ted", "tmd"):
         t = timing_data[m]
         mrows.append(
             [
@@ -1286,6 +1306,9 @@ def main(argv=None):
     results["cache_hits"] = cache.hits
     results["section_seconds"] = section_s
     results["figures"] = report.figures
+    learned = out / "learn_weights.md"
+    if learned.is_file():  # written by bench_learn.py (nested CV of learned weights)
+        report.add(learned.read_text())
     path = report.write()
     if out.resolve() == RESULTS.resolve():
         jpath = write_json(NAME, results)

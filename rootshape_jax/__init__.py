@@ -40,6 +40,7 @@ from ._errors import (
     InputError as InputError,
     InvalidCostError as InvalidCostError,
     InvalidRootError as InvalidRootError,
+    LabelError as LabelError,
     MetadataError as MetadataError,
     MissingDependencyError as MissingDependencyError,
     RootShapeError as RootShapeError,
@@ -50,6 +51,13 @@ from ._errors import (
 )
 from ._geodesic import geodesic as geodesic
 from ._groups import PairTest as PairTest, holm as holm, pairwise_permanova as pairwise_permanova
+from ._learn import (
+    CVAccuracy as CVAccuracy,
+    LearnedWeights as LearnedWeights,
+    fold_accuracy as fold_accuracy,
+    learn_weights as learn_weights,
+    nested_cv_accuracy as nested_cv_accuracy,
+)
 from ._mds import MDS as MDS, mds as mds
 from ._mean import (
     KarcherMean as KarcherMean,

@@ -62,3 +62,8 @@ class ConvergenceError(RootShapeError, RuntimeError):
 
 class RSMLWarning(UserWarning):
     """Part of an RSML file was skipped (non-strict reading): the message names file and root."""
+
+
+class LabelError(RootShapeError, ValueError):
+    """Labels unusable for learning or cross-validation: wrong length, missing (NaN) values, a
+    single class, or a class too small for a same-class neighbour or for the folds."""

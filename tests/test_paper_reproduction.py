@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 SCRIPT = Path(__file__).parent.parent / "benchmarks" / "paper_reproduction.py"
-METHODS = ("ours", "qed", "fc_srvf", "ted")
+METHODS = ("ours", "qed", "fc_srvf", "ted", "tmd")
 
 
 def _run(out: Path) -> subprocess.CompletedProcess:

@@ -17,6 +17,7 @@ from ._steps import (
     run_compare,
     run_distances,
     run_geodesic,
+    run_learn_weights,
     run_mean,
     run_pca,
     run_regress,
@@ -80,6 +81,11 @@ def cmd_cluster(args) -> None:
 def cmd_compare(args) -> None:
     # The groups are checked before the distances are computed.
     _pipeline(args, [lambda ctx, out, args: group_labels(ctx.pop), run_distances, run_compare], min_roots=3)
+
+
+def cmd_learn_weights(args) -> None:
+    # The classes are checked before anything is registered.
+    _pipeline(args, [lambda ctx, out, args: group_labels(ctx.pop), run_learn_weights], min_roots=4)
 
 
 def cmd_traits(args) -> None:

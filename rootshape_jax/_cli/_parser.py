@@ -12,6 +12,7 @@ from ._commands import (
     cmd_distances,
     cmd_extract,
     cmd_geodesic,
+    cmd_learn_weights,
     cmd_mean,
     cmd_pca,
     cmd_regress,
@@ -418,6 +419,35 @@ def build_parser() -> argparse.ArgumentParser:
         default=999,
         metavar="N",
         help="permutations of each PERMANOVA (default 999; the smallest p-value is 1/(N+1))",
+    )
+
+    p = add(
+        "learn-weights",
+        "learn the metric weights from labelled roots (CSV + loss plot + cross-validation)",
+        "Learn how much main-root shape, lateral shape and lateral positions (and thickness, "
+        "where the files give diameters) should count so that roots of the same class (--by "
+        "COLUMN of --labels/--metadata) are nearest each other. Writes weights.csv (use them "
+        "with --weights), loss_trace.png, and cross_validation.csv: accuracy on held-out "
+        "roots with the weights learned on the other folds only, against the starting weights.",
+        cmd_learn_weights,
+    )
+    _add_common(p)
+    p.add_argument("--labels", dest="metadata", metavar="CSV", help="the same as --metadata")
+    _add_by_option(p, "the classes")
+    g = p.add_argument_group("learning")
+    g.add_argument(
+        "--folds",
+        type=int,
+        default=5,
+        metavar="N",
+        help="outer cross-validation folds (default 5; every class needs N members; 0 skips it)",
+    )
+    g.add_argument(
+        "--reregistrations",
+        type=_positive_int,
+        default=2,
+        metavar="N",
+        help="at most N re-registrations of every pair at the new weights (default 2)",
     )
 
     p = add(

@@ -5,6 +5,8 @@
 - Father–child elastic SRVF edges (Wang et al. 2018): the same topology, each edge an SRVF
   registered by the exact DP warp.
 - Zhang–Shasha tree edit distance on the ordered father–child topology (edge lengths as labels).
+- TMD (Kanari et al. 2018): persistence barcode of the radial-distance filtration (`tmd`
+  package, ``bench`` extra) and the persistence-image distance.
 - `geodesic_shrinkage`: total-length shrinkage along any path of roots.
 
 Every method takes `rootshape_jax.Root` objects and matches laterals by their order along the
@@ -30,4 +32,11 @@ from ._ted import (
     edit_tree as edit_tree,
     tree_edit_distance as tree_edit_distance,
     tree_edit_distance_matrix as tree_edit_distance_matrix,
+)
+from ._tmd import (
+    TMDImages as TMDImages,
+    tmd_barcode as tmd_barcode,
+    tmd_distance_matrix as tmd_distance_matrix,
+    tmd_images as tmd_images,
+    to_tmd_tree as to_tmd_tree,
 )

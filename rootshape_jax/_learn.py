@@ -1,0 +1,640 @@
+"""Learning the metric weights λ from labelled roots (docs/design.md §12).
+
+With every registration (rotation, warps, lateral correspondence) held fixed, the squared
+distance of a pair is a sum of per-term energies, ``d² = Σ_t λ_t E_t``: linear in λ (the
+thickness weight enters through the extended SRVF and is not linear; it is then evaluated
+exactly by re-applying the fixed registrations to the SRVFs built at the trial λr). So a
+labelled set gives an exact, cheap objective in λ:
+
+- **Loss**: the soft nearest-neighbour (NCA, Goldberger et al. 2005) log-loss over the distance
+  matrix, ``L = −mean_i log Σ_{j ≠ i, y_j = y_i} p_ij`` with
+  ``p_ij = softmax_{j ≠ i}(−d²_ij / τ)``; roots without a same-class partner are left out.
+  The temperature is relative, ``τ = softness · mean_{i<j} d²_ij``, so the loss does not
+  depend on the overall scale of λ. (A free τ is degenerate: on training classes that some λ
+  separates, the loss falls to 0 as τ → 0 and λ stops moving.)
+- **Parameters**: ``log λ_t`` of the learned terms. The overall scale of λ is fixed by holding
+  ``λ_lateral`` at its starting value (1 for the paper's weights): without thickness, 1-NN and
+  class-mean decisions and the loss depend only on the ratios of λ. A weak quadratic penalty
+  ``regularisation · Σ (log λ_t − log λ_t⁰)²`` keeps a term that the data do not constrain
+  at its starting value.
+- **Solve**: BFGS (optimistix) with the registrations fixed, then every pair is registered
+  again at the new λ (the chunked engine, progress shown), until no lateral correspondence
+  changes, or the matrix moves by less than `tol` (relative), or `max_reregistrations`.
+
+`nested_cv_accuracy` is the honest evaluation: λ is learned on the training folds only and
+the test roots are classified by 1-NN and by the nearest class mean.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Float
+from tqdm.auto import tqdm
+
+from ._engine import RegistrationOptions, apply_registration, canonical_pairs, register_pairs, registration_options
+from ._errors import LabelError
+from ._metric import Weights, preshape_terms
+from ._tree import RootTree, SRVFTree, batch_size, to_srvf
+
+LINEAR_TERMS = ("main", "lateral", "position")
+
+
+# --------------------------------------------------------------------------------------------
+# Labels
+
+
+def check_labels(labels, n: int, *, min_per_class: int = 2) -> np.ndarray:
+    """Labels as a numpy array of n values, at least two classes of `min_per_class` members;
+    raises `LabelError` naming the problem (before anything is registered)."""
+    if isinstance(labels, (str, bytes)):
+        raise LabelError("labels must be a sequence with one label per root, not a single string.")
+    y = np.asarray(list(labels) if not isinstance(labels, np.ndarray) else labels)
+    if y.ndim != 1 or y.shape[0] != n:
+        raise LabelError(
+            f"got {y.shape[0] if y.ndim else 'a scalar'} labels for {n} roots; give exactly one label per "
+            "root, in the order of the batch."
+        )
+    missing = [i for i, v in enumerate(y.tolist()) if v is None or (isinstance(v, float) and np.isnan(v))]
+    if missing:
+        raise LabelError(
+            f"labels of roots {missing[:10]} are missing (NaN or None); drop those roots or give them a label."
+        )
+    classes, counts = np.unique(y, return_counts=True)
+    if len(classes) < 2:
+        raise LabelError(
+            f"all {n} roots have the same label {classes[0]!r}; learning a metric needs at least two classes."
+        )
+    small = [f"{c!r} ({k})" for c, k in zip(classes.tolist(), counts.tolist()) if k < min_per_class]
+    if small:
+        raise LabelError(
+            f"classes {', '.join(small)} have fewer than {min_per_class} members, so there is no "
+            "same-class neighbour to learn from or cross-validate on; merge or drop them."
+        )
+    return y
+
+
+def stratified_folds(labels, n_folds: int, *, seed: int = 0) -> list[np.ndarray]:
+    """Test indices of `n_folds` stratified folds (seeded): each class is shuffled and dealt
+    round-robin, starting where the previous class stopped, so fold sizes differ by ≤ 1."""
+    y = np.asarray(labels)
+    rng = np.random.default_rng(seed)
+    folds: list[list[int]] = [[] for _ in range(n_folds)]
+    start = 0
+    for cls in np.unique(y):
+        members = rng.permutation(np.flatnonzero(y == cls))
+        for k, i in enumerate(members):
+            folds[(start + k) % n_folds].append(int(i))
+        start = (start + len(members)) % n_folds
+    return [np.sort(np.asarray(f, dtype=np.int64)) for f in folds]
+
+
+# --------------------------------------------------------------------------------------------
+# The loss
+
+
+def nca_loss(d2: Float[Array, "N N"], same: Array, temperature) -> Float[Array, ""]:
+    """Soft nearest-neighbour log-loss of a squared-distance matrix (module docstring).
+
+    `same[i, j]`: True where roots i ≠ j share a label (diagonal False)."""
+    n = d2.shape[0]
+    off = ~jnp.eye(n, dtype=bool)
+    logits = jnp.where(off, -d2 / temperature, -jnp.inf)
+    log_p = logits - jax.nn.logsumexp(logits, axis=1, keepdims=True)
+    has = jnp.any(same, axis=1)
+    per_root = jax.nn.logsumexp(jnp.where(same, log_p, -jnp.inf), axis=1)
+    per_root = jnp.where(has, per_root, 0.0)
+    return -jnp.sum(per_root) / jnp.maximum(jnp.sum(has), 1)
+
+
+# --------------------------------------------------------------------------------------------
+# Registrations of a list of pairs (the chunked engine)
+
+
+class PairRegistrations(eqx.Module):
+    """Registrations of a list of pairs of a batch, each in the engine's canonical order: root
+    `second[k]` registered onto root `first[k]` (indices into the batch); `energy` is the
+    minimised d² at the weights used, `unit_energies` its main/lateral/position energies at
+    λ = 1 (so ``d²(λ) = unit_energies @ λ`` with the registrations fixed, without thickness)."""
+
+    first: np.ndarray
+    second: np.ndarray
+    permutation: np.ndarray
+    rotation: np.ndarray
+    main_warp: np.ndarray
+    lateral_warps: np.ndarray
+    energy: np.ndarray
+    unit_energies: np.ndarray  # (P, 3): E_main, E_lateral, E_position at λ = 1 (no thickness)
+
+    def take(self, k: np.ndarray) -> PairRegistrations:
+        return jax.tree.map(lambda x: x[k], self)
+
+
+@eqx.filter_jit
+def _register_chunk(a: SRVFTree, b: SRVFTree, active, weights: Weights, options: RegistrationOptions):
+    ac, bc = canonical_pairs(a, b)
+    # canonical_pairs puts b first where it swaps; read the swap off the content.
+    swap = jnp.any(ac.q0 != a.q0, axis=(1, 2)) | jnp.any(ac.q != a.q, axis=(1, 2, 3)) | jnp.any(ac.s != a.s, axis=1)
+    reg = register_pairs(ac, bc, weights, options, active)
+    unit = preshape_terms(ac, reg.registered, Weights(main=1.0, lateral=1.0, position=1.0, thickness=0.0))
+    E = jnp.stack([unit[n] for n in LINEAR_TERMS], axis=-1)
+    return swap, reg.permutation, reg.rotation, reg.main_warp, reg.lateral_warps, reg.energy, E
+
+
+def register_pair_list(
+    s: SRVFTree, I, J, weights: Weights, options: RegistrationOptions, *, chunk_size: int, progress: bool, desc: str
+) -> PairRegistrations:
+    """Register the pairs (s[I[k]], s[J[k]]), `chunk_size` per compiled call (one program
+    for every chunk), keeping the registrations (not only the energies)."""
+    I = np.asarray(I, np.int64)
+    J = np.asarray(J, np.int64)
+    n = len(I)
+    parts = []
+    with tqdm(total=n, desc=desc, unit="pair", disable=not progress, leave=False) as bar:
+        for start in range(0, n, chunk_size):
+            m = min(start + chunk_size, n) - start
+            ii = np.zeros(chunk_size, np.int64)
+            jj = np.zeros(chunk_size, np.int64)
+            ii[:m] = I[start : start + m]
+            jj[:m] = J[start : start + m]
+            a = jax.tree.map(lambda x: x[ii], s)
+            b = jax.tree.map(lambda x: x[jj], s)
+            out = _register_chunk(a, b, jnp.asarray(np.arange(chunk_size) < m), weights, options)
+            parts.append([np.asarray(x)[:m] for x in out])
+            bar.update(m)
+    if not parts:
+        raise ValueError("no pairs to register.")
+    swap, perm, rot, g0, gam, energy, E = (np.concatenate(x) for x in zip(*parts))
+    return PairRegistrations(
+        first=np.where(swap, J, I),
+        second=np.where(swap, I, J),
+        permutation=perm,
+        rotation=rot,
+        main_warp=g0,
+        lateral_warps=gam,
+        energy=energy,
+        unit_energies=E,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Learning
+
+
+class LearnedWeights(eqx.Module):
+    """Result of `learn_weights`.
+
+    - `weights`: the learned `Weights` (λ_lateral held at its starting value).
+    - `softness`: the loss's relative temperature (``τ = softness · mean d²``).
+    - `loss_trace`: the NCA loss (penalty included) at freshly registered distances: entry 0
+      at the starting λ and τ, entry k after the k-th re-registration (at the λ and τ that
+      the k-th inner solve found).
+    - `inner_loss_trace`: the loss reached by each inner solve (registrations fixed).
+    - `status`: "converged" (no lateral correspondence changed at the last re-registration),
+      "tolerance" (distances moved by less than `tol`), or "max_reregistrations".
+    - `steps`: inner optimiser steps, summed over the solves.
+    - `n_reregistrations`: registrations of every pair after the first.
+    - `distances`: (n, n) matrix at the learned weights (from the last registration).
+    """
+
+    weights: Weights
+    softness: float
+    loss_trace: np.ndarray
+    inner_loss_trace: np.ndarray
+    status: str = eqx.field(static=True)
+    steps: int = eqx.field(static=True)
+    n_reregistrations: int = eqx.field(static=True)
+    distances: np.ndarray
+
+
+class _Problem(eqx.Module):
+    """What the inner solve needs: which terms are learned, the fixed registrations."""
+
+    names: tuple[str, ...] = eqx.field(static=True)
+    fixed: dict
+    log0: Array
+    local_i: Array
+    local_j: Array
+    same: Array
+    n: int = eqx.field(static=True)
+    regularisation: float = eqx.field(static=True)
+    softness: float = eqx.field(static=True)
+
+
+def _weights_of(names, log_lam, fixed) -> Weights:
+    values = dict(fixed)
+    for k, name in enumerate(names):
+        values[name] = jnp.exp(log_lam[k])
+    return Weights(**values)
+
+
+def pair_d2_linear(lam_linear: Array, E: Array) -> Array:
+    """Squared distances of registered pairs at λ (registrations fixed): Σ_t λ_t E_t."""
+    return E @ lam_linear
+
+
+def _d2_thickness(weights: Weights, tree: RootTree, regs: PairRegistrations) -> Array:
+    """Squared distances with the registrations fixed, the SRVFs built at the trial λr."""
+    s = to_srvf(tree, weights=weights)
+    a = jax.tree.map(lambda x: x[regs.first], s)
+    b = jax.tree.map(lambda x: x[regs.second], s)
+    registered = jax.vmap(apply_registration)(a, b, regs.rotation, regs.permutation, regs.main_warp, regs.lateral_warps)
+    return preshape_terms(a, registered, weights).total
+
+
+def _matrix(d2_pairs, li, lj, n):
+    D2 = jnp.zeros((n, n), d2_pairs.dtype)
+    return D2.at[li, lj].set(d2_pairs).at[lj, li].set(d2_pairs)
+
+
+def _objective(theta, args):
+    problem, tree, regs = args
+    k = len(problem.names)
+    W = _weights_of(problem.names, theta[:k], problem.fixed)
+    if tree is None:
+        lam = jnp.stack([jnp.asarray(W[n], theta.dtype) for n in LINEAR_TERMS])
+        d2 = pair_d2_linear(lam, jnp.asarray(regs.unit_energies))
+    else:
+        d2 = _d2_thickness(W, tree, regs)
+    d2 = jnp.maximum(d2, 0.0)
+    D2 = _matrix(d2, problem.local_i, problem.local_j, problem.n)
+    loss = nca_loss(D2, problem.same, problem.softness * jnp.mean(d2))
+    return loss + problem.regularisation * jnp.sum((theta[:k] - problem.log0) ** 2)
+
+
+def learn_loss(theta, problem, tree, regs):
+    """The inner objective (for tests): NCA loss + penalty at ``theta = log λ_learned``."""
+    return _objective(theta, (problem, tree, regs))
+
+
+def _learned_names(learn_thickness: bool) -> tuple[str, ...]:
+    names = ["main", "position"]
+    if learn_thickness:
+        names.append("thickness")
+    return tuple(names)
+
+
+def _prepare(trees, weights, registration, options):
+    weights = Weights() if weights is None else weights
+    opts = registration_options(registration, **options)
+    if not isinstance(trees, (RootTree, SRVFTree)):
+        raise TypeError(
+            f"trees must be a batched RootTree or SRVFTree (rootshape_jax.batch(roots)), got {type(trees).__name__}."
+        )
+    radii = isinstance(trees, RootTree) and trees.main_radius is not None
+    return weights, opts, radii
+
+
+def _start_weights(weights: Weights, radii: bool) -> Weights:
+    """Starting λ: the given weights, with λr = 1 where radii are learned from a zero start
+    (a log-parameter cannot start at 0)."""
+    if radii and float(weights.thickness) <= 0:
+        return Weights(**{**dict(weights.items()), "thickness": 1.0})
+    return weights
+
+
+class _Fitter:
+    """Alternation of inner solves and re-registrations on the roots `idx` of a batch."""
+
+    def __init__(
+        self, trees, weights, opts, radii, *, chunk_size, progress, regularisation, max_steps, rtol, softness=0.1
+    ):
+        if not (isinstance(softness, (int, float)) and softness > 0):
+            raise ValueError(f"softness must be a positive number, got {softness!r}.")
+        self.softness = float(softness)
+        self.trees = trees
+        self.opts = opts
+        self.radii = radii
+        self.chunk_size = chunk_size
+        self.progress = progress
+        self.regularisation = float(regularisation)
+        self.max_steps = int(max_steps)
+        self.rtol = float(rtol)
+        self.start = _start_weights(weights, radii)
+
+    def srvf(self, weights):
+        return to_srvf(self.trees, weights=weights)
+
+    def register(self, weights, I, J, desc):
+        return register_pair_list(
+            self.srvf(weights), I, J, weights, self.opts, chunk_size=self.chunk_size, progress=self.progress, desc=desc
+        )
+
+    def solve(self, problem, regs, theta0):
+        tree = self.trees if self.radii else None
+        solver = optx.BFGS(rtol=self.rtol, atol=self.rtol)
+        sol = optx.minimise(
+            _objective, solver, theta0, args=(problem, tree, regs), max_steps=self.max_steps, throw=False
+        )
+        return sol.value, float(_objective(sol.value, (problem, tree, regs))), int(sol.stats["num_steps"])
+
+    def fit(self, idx, y, *, regs=None, max_reregistrations: int, tol: float):
+        idx = np.asarray(idx, np.int64)
+        n = len(idx)
+        li, lj = np.triu_indices(n, 1)
+        I, J = idx[li], idx[lj]
+        names = _learned_names(self.radii)
+        dtype = np.asarray(self.trees.main if isinstance(self.trees, RootTree) else self.trees.q0).dtype
+        fixed = {k: v for k, v in self.start.items() if k not in names}
+        log0 = jnp.log(jnp.asarray([float(self.start[k]) for k in names], dtype))
+        same = jnp.asarray((y[:, None] == y[None, :]) & ~np.eye(n, dtype=bool))
+        problem = _Problem(
+            names=names,
+            fixed=fixed,
+            log0=log0,
+            local_i=jnp.asarray(li),
+            local_j=jnp.asarray(lj),
+            same=same,
+            n=n,
+            regularisation=self.regularisation,
+            softness=self.softness,
+        )
+        weights = self.start
+        if regs is None:
+            regs = self.register(weights, I, J, "registering (start λ)")
+        theta = log0
+        tree = self.trees if self.radii else None
+        loss_trace = [float(_objective(theta, (problem, tree, regs)))]
+        inner, steps, n_rereg, status = [], 0, 0, "max_reregistrations"
+        bar = tqdm(total=max_reregistrations, desc="learning λ", unit="re-registration", disable=not self.progress)
+        try:
+            while True:
+                theta, loss, k = self.solve(problem, regs, theta)
+                inner.append(loss)
+                steps += k
+                weights = _weights_of(names, theta[: len(names)], fixed)
+                weights = Weights(**{name: float(v) for name, v in weights.items()})
+                new = self.register(weights, I, J, f"re-registering ({n_rereg + 1})")
+                n_rereg += 1
+                bar.update(1)
+                loss_trace.append(float(_objective(theta, (problem, tree, new))))
+                same_perm = np.array_equal(new.permutation, regs.permutation)
+                moved = np.linalg.norm(new.energy - regs.energy) / max(np.linalg.norm(new.energy), 1e-300)
+                regs = new
+                if same_perm:
+                    status = "converged"
+                    break
+                if moved < tol:
+                    status = "tolerance"
+                    break
+                if n_rereg >= max_reregistrations:
+                    break
+        finally:
+            bar.close()
+        D = np.zeros((n, n), dtype)
+        D[li, lj] = np.sqrt(np.maximum(regs.energy, 0.0))
+        D[lj, li] = D[li, lj]
+        result = LearnedWeights(
+            weights=weights,
+            softness=problem.softness,
+            loss_trace=np.asarray(loss_trace),
+            inner_loss_trace=np.asarray(inner),
+            status=status,
+            steps=steps,
+            n_reregistrations=n_rereg,
+            distances=D,
+        )
+        return result, regs
+
+
+def learn_weights(
+    trees: RootTree | SRVFTree,
+    labels: Sequence,
+    *,
+    weights: Weights | None = None,
+    max_reregistrations: int = 3,
+    tol: float = 1e-3,
+    regularisation: float = 1e-3,
+    softness: float = 0.1,
+    max_steps: int = 200,
+    rtol: float = 1e-6,
+    registration: RegistrationOptions | None = None,
+    chunk_size: int = 32,
+    progress: bool = True,
+    **options,
+) -> LearnedWeights:
+    """Learn the metric weights λ that best separate labelled roots (docs/design.md §12).
+
+    Minimises the soft nearest-neighbour (NCA) loss of the distance matrix over
+    ``log λ_main``, ``log λ_position`` (and ``log λ_thickness`` when `trees` is a `RootTree`
+    with radii), with ``λ_lateral`` held at its starting value (the overall scale of λ is
+    fixed; see the module docstring) and the temperature ``τ = softness · mean d²``. The registrations are held fixed
+    during each BFGS solve (then d² is linear in λ), and every pair is registered again at the
+    new λ, until no lateral correspondence changes, the distances move by less than `tol`
+    (relative), or after `max_reregistrations`.
+
+    - `labels`: one label per root (any hashable values); at least two classes, each with
+      at least two members. Bad labels raise `LabelError` before anything is registered.
+    - `weights`: the starting λ (default the paper's (0.02, 1, 1)); the penalty
+      ``regularisation · Σ (log λ − log λ_start)²`` keeps unconstrained terms there.
+    - `max_steps`, `rtol`: of each inner BFGS solve.
+    - `registration`, `chunk_size`, `progress`, `**options`: as in `pairwise_distances`.
+
+    Returns a `LearnedWeights`. Its accuracy on the training roots is not a result: use
+    `nested_cv_accuracy`.
+    """
+    weights, opts, radii = _prepare(trees, weights, registration, options)
+    n = batch_size(trees)
+    y = check_labels(labels, n)
+    _check_counts(max_reregistrations, max_steps)
+    fitter = _Fitter(
+        trees,
+        weights,
+        opts,
+        radii,
+        chunk_size=chunk_size,
+        progress=progress,
+        regularisation=regularisation,
+        max_steps=max_steps,
+        rtol=rtol,
+        softness=softness,
+    )
+    result, _ = fitter.fit(np.arange(n), y, max_reregistrations=max_reregistrations, tol=tol)
+    return result
+
+
+def _check_counts(max_reregistrations, max_steps):
+    for name, v, low in (("max_reregistrations", max_reregistrations, 1), ("max_steps", max_steps, 1)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+            raise ValueError(f"{name} must be an integer >= {low}, got {v!r}.")
+
+
+# --------------------------------------------------------------------------------------------
+# Evaluation
+
+
+def fold_predictions(D_test_train: np.ndarray, D_train: np.ndarray, y_train: np.ndarray):
+    """Labels of test roots by 1-NN and by the nearest class mean, from distances alone.
+
+    The class mean is the centroid in the distance-matrix (Euclidean-embedding) sense, no
+    Karcher mean: ``|x − m_C|² = mean_j d²(x, x_j) − mean_{j,k} d²(x_j, x_k) / 2`` over the
+    training members j, k of class C (as `loo_accuracy`'s ``"nearest_mean"``)."""
+    nn = y_train[np.argmin(D_test_train, axis=1)]
+    classes = np.unique(y_train)
+    d2 = np.empty((D_test_train.shape[0], len(classes)))
+    for c, cls in enumerate(classes):
+        m = np.flatnonzero(y_train == cls)
+        spread = (D_train[np.ix_(m, m)] ** 2).sum() / (2 * m.size**2)
+        d2[:, c] = (D_test_train[:, m] ** 2).mean(axis=1) - spread
+    return nn, classes[np.argmin(d2, axis=1)]
+
+
+class CVAccuracy(eqx.Module):
+    """Result of `nested_cv_accuracy` (accuracies are on the held-out fold only).
+
+    - `learned_nn`, `learned_mean`: per outer fold, 1-NN and nearest-class-mean accuracy with
+      λ learned on that fold's training roots.
+    - `paper_nn`, `paper_mean`: the same folds at the starting λ (the paper's by default).
+    - `weights`: per fold, the learned λ as a dict; `folds`: the test indices of each fold.
+    - `n_reregistrations`, `status`: per fold, from `learn_weights`.
+    - `seconds_learning`: wall time of each fold's learning (registrations included).
+    """
+
+    learned_nn: np.ndarray
+    learned_mean: np.ndarray
+    paper_nn: np.ndarray
+    paper_mean: np.ndarray
+    weights: list
+    folds: list
+    n_reregistrations: np.ndarray
+    status: tuple = eqx.field(static=True)
+    seconds_learning: np.ndarray
+
+    def summary(self) -> dict:
+        """Mean and standard deviation over folds of each accuracy."""
+        return {
+            name: (float(np.mean(v)), float(np.std(v)))
+            for name, v in (
+                ("learned_nn", self.learned_nn),
+                ("learned_mean", self.learned_mean),
+                ("paper_nn", self.paper_nn),
+                ("paper_mean", self.paper_mean),
+            )
+        }
+
+
+def fold_accuracy(distances, labels, *, n_folds: int = 5, seed: int = 0) -> dict:
+    """Cross-validated 1-NN and nearest-class-mean accuracy of a fixed distance matrix (no
+    learning), on the same stratified folds as `nested_cv_accuracy` with the same seed:
+    ``{"nn": per-fold array, "mean": per-fold array}``."""
+    D = np.asarray(distances, np.float64)
+    y = check_labels(labels, D.shape[0], min_per_class=n_folds)
+    nn, mean = [], []
+    for test in stratified_folds(y, n_folds, seed=seed):
+        train = np.setdiff1d(np.arange(len(y)), test)
+        p_nn, p_mean = fold_predictions(D[np.ix_(test, train)], D[np.ix_(train, train)], y[train])
+        nn.append(np.mean(p_nn == y[test]))
+        mean.append(np.mean(p_mean == y[test]))
+    return {"nn": np.asarray(nn), "mean": np.asarray(mean)}
+
+
+def nested_cv_accuracy(
+    trees: RootTree | SRVFTree,
+    labels: Sequence,
+    *,
+    n_folds: int = 5,
+    seed: int = 0,
+    weights: Weights | None = None,
+    max_reregistrations: int = 2,
+    tol: float = 1e-3,
+    regularisation: float = 1e-3,
+    softness: float = 0.1,
+    max_steps: int = 200,
+    registration: RegistrationOptions | None = None,
+    chunk_size: int = 32,
+    progress: bool = True,
+    **options,
+) -> CVAccuracy:
+    """Held-out accuracy of learned λ against the starting (paper's) λ, by cross-validation.
+
+    The roots are split into `n_folds` stratified folds (seeded by `seed`). For each fold, λ is
+    learned (`learn_weights`) on the other folds only; the held-out roots are registered onto
+    the training roots at that λ and classified by 1-NN and by the nearest class mean
+    (`fold_predictions`). The starting λ is scored on the same folds. Every pair is registered
+    once at the starting λ (shared by the folds' first inner solves and the starting λ's
+    scores); each fold then re-registers its training pairs up to `max_reregistrations` times
+    and its test × training pairs once.
+
+    Every class needs at least `n_folds` members (`LabelError` otherwise, before any work).
+    Other options as in `learn_weights`.
+    """
+    weights, opts, radii = _prepare(trees, weights, registration, options)
+    n = batch_size(trees)
+    if isinstance(n_folds, bool) or not isinstance(n_folds, (int, np.integer)) or n_folds < 2:
+        raise ValueError(f"n_folds must be an integer >= 2, got {n_folds!r}.")
+    y = check_labels(labels, n, min_per_class=n_folds)
+    _check_counts(max_reregistrations, max_steps)
+    fitter = _Fitter(
+        trees,
+        weights,
+        opts,
+        radii,
+        chunk_size=chunk_size,
+        progress=progress,
+        regularisation=regularisation,
+        max_steps=max_steps,
+        rtol=1e-6,
+        softness=softness,
+    )
+    I, J = np.triu_indices(n, 1)
+    position = np.full((n, n), -1, np.int64)
+    position[I, J] = np.arange(len(I))
+    position[J, I] = position[I, J]
+    start = fitter.register(fitter.start, I, J, "registering all pairs (start λ)")
+    D0 = np.zeros((n, n))
+    D0[I, J] = np.sqrt(np.maximum(start.energy, 0.0))
+    D0[J, I] = D0[I, J]
+    # The paper's λ is scored at the given weights (λr = 0 means no thickness, as given).
+    D_paper = D0 if fitter.start is weights else _matrix_at(fitter, weights, I, J, n)
+
+    out = {k: [] for k in ("lnn", "lmean", "pnn", "pmean", "w", "folds", "rereg", "status", "sec")}
+    for f, test in enumerate(stratified_folds(y, n_folds, seed=seed)):
+        train = np.setdiff1d(np.arange(n), test)
+        p_nn, p_mean = fold_predictions(D_paper[np.ix_(test, train)], D_paper[np.ix_(train, train)], y[train])
+        out["pnn"].append(np.mean(p_nn == y[test]))
+        out["pmean"].append(np.mean(p_mean == y[test]))
+        li, lj = np.triu_indices(len(train), 1)
+        t0 = time.perf_counter()
+        res, _ = fitter.fit(
+            train,
+            y[train],
+            regs=start.take(position[train[li], train[lj]]),
+            max_reregistrations=max_reregistrations,
+            tol=tol,
+        )
+        out["sec"].append(time.perf_counter() - t0)
+        TI, TJ = (x.ravel() for x in np.meshgrid(test, train, indexing="ij"))
+        cross = fitter.register(res.weights, TI, TJ, f"fold {f + 1}: test × train")
+        D_tt = np.sqrt(np.maximum(cross.energy, 0.0)).reshape(len(test), len(train))
+        l_nn, l_mean = fold_predictions(D_tt, np.asarray(res.distances, np.float64), y[train])
+        out["lnn"].append(np.mean(l_nn == y[test]))
+        out["lmean"].append(np.mean(l_mean == y[test]))
+        out["w"].append({k: float(v) for k, v in res.weights.items()})
+        out["folds"].append(test)
+        out["rereg"].append(res.n_reregistrations)
+        out["status"].append(res.status)
+    return CVAccuracy(
+        learned_nn=np.asarray(out["lnn"]),
+        learned_mean=np.asarray(out["lmean"]),
+        paper_nn=np.asarray(out["pnn"]),
+        paper_mean=np.asarray(out["pmean"]),
+        weights=out["w"],
+        folds=out["folds"],
+        n_reregistrations=np.asarray(out["rereg"]),
+        status=tuple(out["status"]),
+        seconds_learning=np.asarray(out["sec"]),
+    )
+
+
+def _matrix_at(fitter, weights, I, J, n):
+    regs = fitter.register(weights, I, J, "registering all pairs (paper λ)")
+    D = np.zeros((n, n))
+    D[I, J] = np.sqrt(np.maximum(regs.energy, 0.0))
+    D[J, I] = D[I, J]
+    return D

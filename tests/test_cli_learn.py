@@ -1,0 +1,66 @@
+"""`rootshape learn-weights FOLDER --labels CSV --by COLUMN`: weights, loss plot, CV table."""
+
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+
+import pytest
+
+from rootshape_jax import io
+from rootshape_jax.datasets import synthetic_roots
+
+
+def run_cli(*args) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "rootshape_jax", *map(str, args)], capture_output=True, text=True, timeout=1800
+    )
+
+
+def read_csv(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture
+def labelled_folder(tmp_path):
+    d = tmp_path / "roots"
+    d.mkdir()
+    conds = ["control"] * 3 + ["drought"] * 3
+    for i, c in enumerate(conds):
+        io.write_rsml(synthetic_roots(1, condition=c, seed=20 + i), d / f"p{i}.rsml")
+    table = tmp_path / "labels.csv"
+    table.write_text("file,condition\n" + "".join(f"p{i},{c}\n" for i, c in enumerate(conds)))
+    return d, table
+
+
+def test_single_class_fails_before_registering(labelled_folder, tmp_path):
+    d, _ = labelled_folder
+    table = tmp_path / "one.csv"
+    table.write_text("file,condition\n" + "".join(f"p{i},control\n" for i in range(6)))
+    proc = run_cli("learn-weights", d, "--labels", table, "--by", "condition", "--out", tmp_path / "o")
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    assert "same value" in proc.stderr or "same label" in proc.stderr, proc.stderr
+    assert not (tmp_path / "o" / "weights.csv").exists()
+
+
+@pytest.mark.slow
+def test_learn_weights_end_to_end(labelled_folder, tmp_path):
+    d, table = labelled_folder
+    out = tmp_path / "o"
+    proc = run_cli(
+        "learn-weights", d, "--labels", table, "--by", "condition", "--out", out, "--points", "12",
+        "--laterals", "3", "--folds", "3", "--reregistrations", "1", "--quiet",
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    w = {r["term"]: r for r in read_csv(out / "weights.csv")}
+    assert set(w) == {"main", "lateral", "position", "thickness"}
+    assert float(w["lateral"]["learned"]) == 1.0 and float(w["main"]["start"]) == pytest.approx(0.02, rel=1e-6)
+    cv = read_csv(out / "cross_validation.csv")
+    assert [r["fold"] for r in cv] == ["1", "2", "3", "mean", "sd"]
+    assert sum(int(r["held_out"]) for r in cv[:3]) == 6
+    for r in cv[:3]:
+        for k in ("learned_1nn", "learned_class_mean", "start_1nn", "start_class_mean"):
+            assert 0.0 <= float(r[k]) <= 1.0
+    assert (out / "loss_trace.png").is_file()

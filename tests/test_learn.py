@@ -1,0 +1,295 @@
+"""Learning the metric weights (docs/design.md §12): loss, gradient, synthetic signal, errors."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import smooth_curve
+
+import rootshape_jax as rs
+import rootshape_jax._learn as learn
+from rootshape_jax import LabelError, Root, Weights
+from rootshape_jax._learn import PairRegistrations, learn_loss, nca_loss, stratified_folds
+
+
+def numpy_nca(D2: np.ndarray, y: np.ndarray, tau: float) -> float:
+    """The NCA log-loss written out with loops (reference)."""
+    n = len(y)
+    total, count = 0.0, 0
+    for i in range(n):
+        others = [j for j in range(n) if j != i]
+        w = np.array([np.exp(-D2[i, j] / tau) for j in others])
+        p = w / w.sum()
+        p_same = sum(pk for pk, j in zip(p, others) if y[j] == y[i])
+        if any(y[j] == y[i] for j in others):
+            total += -np.log(p_same)
+            count += 1
+    return total / count
+
+
+def fake_problem(rng, n=9, n_classes=3, signal="position"):
+    """Unit energies (no registration) where one term carries the class signal."""
+    y = np.repeat(np.arange(n_classes), n // n_classes)
+    li, lj = np.triu_indices(n, 1)
+    P = len(li)
+    # main: noise that swamps the signal at λ_main = 0.02; the signal overlaps a little, so
+    # that the loss has a finite optimum (separable classes send τ to 0).
+    E = np.abs(rng.normal(size=(P, 3))) * np.array([100.0, 0.2, 0.2])
+    between = y[li] != y[lj]
+    col = learn.LINEAR_TERMS.index(signal)
+    E[:, col] = np.where(between, 1.0, 0.3) + 0.5 * np.abs(rng.normal(size=P))
+    regs = PairRegistrations(
+        first=li,
+        second=lj,
+        permutation=np.zeros((P, 1), np.int64),
+        rotation=np.zeros((P, 2, 2)),
+        main_warp=np.zeros((P, 2)),
+        lateral_warps=np.zeros((P, 1, 2)),
+        energy=E @ np.array([0.02, 1.0, 1.0]),
+        unit_energies=E,
+    )
+    same = (y[:, None] == y[None, :]) & ~np.eye(n, dtype=bool)
+    problem = learn._Problem(
+        names=("main", "position"),
+        fixed={"lateral": jnp.asarray(1.0), "thickness": jnp.asarray(0.0)},
+        log0=jnp.log(jnp.asarray([0.02, 1.0])),
+        local_i=jnp.asarray(li),
+        local_j=jnp.asarray(lj),
+        same=jnp.asarray(same),
+        n=n,
+        regularisation=1e-3,
+        softness=0.3,
+    )
+    return y, E, regs, problem
+
+
+def test_inner_loss_matches_numpy_reference():
+    rng = np.random.default_rng(0)
+    y, E, regs, problem = fake_problem(rng)
+    theta = np.array([np.log(0.3), np.log(2.0)])
+    lam = np.array([0.3, 1.0, 2.0])
+    d2 = E @ lam
+    D2 = np.zeros((len(y), len(y)))
+    D2[problem.local_i, problem.local_j] = d2
+    D2 = D2 + D2.T
+    penalty = 1e-3 * ((np.log(0.3) - np.log(0.02)) ** 2 + (np.log(2.0) - 0.0) ** 2)
+    expected = numpy_nca(D2, y, 0.3 * d2.mean()) + penalty
+    got = float(learn_loss(jnp.asarray(theta), problem, None, regs))
+    assert got == pytest.approx(expected, rel=1e-12)
+
+
+def test_nca_loss_skips_roots_without_a_partner():
+    D2 = np.array([[0, 1.0, 4.0], [1.0, 0, 2.0], [4.0, 2.0, 0]])
+    y = np.array([0, 0, 1])
+    same = (y[:, None] == y[None, :]) & ~np.eye(3, dtype=bool)
+    assert float(nca_loss(jnp.asarray(D2), jnp.asarray(same), 1.3)) == pytest.approx(numpy_nca(D2, y, 1.3), rel=1e-12)
+
+
+def test_loss_gradient_matches_finite_differences():
+    rng = np.random.default_rng(1)
+    _, _, regs, problem = fake_problem(rng)
+    theta = jnp.asarray([np.log(0.1), np.log(0.5)])
+    g = np.asarray(jax.grad(learn_loss)(theta, problem, None, regs))
+    h = 1e-6
+    for k in range(2):
+        e = np.zeros(2)
+        e[k] = h
+        fd = (float(learn_loss(theta + e, problem, None, regs)) - float(learn_loss(theta - e, problem, None, regs))) / (
+            2 * h
+        )
+        assert g[k] == pytest.approx(fd, rel=1e-6, abs=1e-9)
+
+
+@pytest.mark.parametrize("signal", ["main", "position"])
+def test_inner_solve_upweights_the_term_with_the_signal(signal):
+    rng = np.random.default_rng(2)
+    y, E, regs, problem = fake_problem(rng, n=12, signal=signal)
+    if signal == "main":  # the noise goes to position instead
+        E[:, 2] = np.abs(rng.normal(size=len(E))) * 5.0
+        regs = eqx.tree_at(lambda r: r.unit_energies, regs, E)
+    fitter = learn._Fitter(None, Weights(), None, False, chunk_size=1, progress=False, regularisation=1e-3, softness=0.3,
+                           max_steps=200, rtol=1e-8)  # fmt: skip
+    theta0 = jnp.asarray([np.log(0.02), 0.0])
+    theta, loss, steps = fitter.solve(problem, regs, theta0)
+    assert loss < float(learn_loss(theta0, problem, None, regs))
+    lam_main, lam_pos = np.exp(np.asarray(theta[:2]))
+    ratio0 = 1.0 / 0.02
+    if signal == "position":
+        assert lam_pos / lam_main > 10 * ratio0
+    else:
+        assert lam_main / lam_pos > 10 / ratio0
+
+
+# --------------------------------------------------------------------------------------------
+# Real registrations
+
+
+def point_at(main, f):
+    seg = np.linalg.norm(np.diff(main, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)]) / seg.sum()
+    return np.array([np.interp(f, s, main[:, k]) for k in range(main.shape[1])])
+
+
+def position_signal_roots(n_per_class=4, seed=0):
+    """Two classes that differ only in where two identical laterals attach; the main roots
+    bend at random (class-free noise)."""
+    rng = np.random.default_rng(seed)
+    roots, labels = [], []
+    for cls, fracs in enumerate(([0.2, 0.45], [0.45, 0.7])):
+        for _ in range(n_per_class):
+            main = smooth_curve(rng, n=60, bend=2.5)
+            lats = []
+            for f in fracs:
+                base = point_at(main, f + 0.02 * rng.normal())
+                t = np.linspace(0, 0.35, 20)[:, None]
+                lats.append(base + t * np.array([[1.0, 0.3]]))
+            roots.append(Root(main=main, laterals=tuple(lats)))
+            labels.append(f"c{cls}")
+    return roots, labels
+
+
+def test_learned_weights_up_weight_position_and_reproduce_the_matrix():
+    roots, labels = position_signal_roots()
+    trees = rs.batch(roots, n_points=24, normalise_scale=True, dtype=np.float64)
+    res = rs.learn_weights(trees, labels, progress=False, max_reregistrations=2)
+    w = res.weights
+    assert float(w.position) / float(w.main) > 2 * (1.0 / 0.02)
+    assert float(w.lateral) == 1.0
+    assert res.status in ("converged", "tolerance", "max_reregistrations")
+    assert 1 <= res.n_reregistrations <= 2
+    assert len(res.loss_trace) == res.n_reregistrations + 1
+    assert len(res.inner_loss_trace) == res.n_reregistrations
+    assert res.loss_trace[-1] < res.loss_trace[0]
+    # The returned matrix is the engine's at the learned weights.
+    D = np.asarray(rs.pairwise_distances(trees, weights=w, progress=False))
+    np.testing.assert_allclose(res.distances, D, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.slow
+def test_thickness_path_gradient_and_agreement_with_linear_path():
+    rng = np.random.default_rng(3)
+    roots = []
+    for _ in range(4):
+        main = smooth_curve(rng, n=40, bend=1.0)
+        lat = point_at(main, 0.3 + 0.2 * rng.random()) + np.linspace(0, 0.3, 15)[:, None] * np.array([[1.0, 0.2]])
+        r_main = np.linspace(0.05, 0.01 + 0.02 * rng.random(), 40)
+        r_lat = np.linspace(0.02, 0.005, 15)
+        roots.append(Root(main=main, laterals=(lat,), main_radius=r_main, lateral_radii=(r_lat,)))
+    y = np.array([0, 0, 1, 1])
+    trees = rs.batch(roots, n_points=16, dtype=np.float64)
+    W = Weights(main=0.05, lateral=1.0, position=0.5, thickness=2.0)
+    I, J = np.triu_indices(4, 1)
+    regs = learn.register_pair_list(
+        rs.to_srvf(trees, weights=W), I, J, W, rs.RegistrationOptions(), chunk_size=8, progress=False, desc=""
+    )
+    same = (y[:, None] == y[None, :]) & ~np.eye(4, dtype=bool)
+    problem = learn._Problem(
+        names=("main", "position", "thickness"),
+        fixed={"lateral": jnp.asarray(1.0)},
+        log0=jnp.log(jnp.asarray([0.05, 0.5, 2.0])),
+        local_i=jnp.asarray(I),
+        local_j=jnp.asarray(J),
+        same=jnp.asarray(same),
+        n=4,
+        regularisation=1e-3,
+        softness=0.3,
+    )
+    theta = jnp.log(jnp.asarray([0.05, 0.5, 2.0]))
+    # At the registration's own λ the fixed-registration d² is the engine's energy.
+    d2 = learn._d2_thickness(W, trees, regs)
+    np.testing.assert_allclose(np.asarray(d2), regs.energy, rtol=1e-10)
+    g = np.asarray(jax.grad(learn_loss)(theta, problem, trees, regs))
+    h = 1e-6
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = h
+        fd = (
+            float(learn_loss(theta + e, problem, trees, regs)) - float(learn_loss(theta - e, problem, trees, regs))
+        ) / (2 * h)
+        assert g[k] == pytest.approx(fd, rel=1e-5, abs=1e-8)
+
+
+# --------------------------------------------------------------------------------------------
+# Folds and cross-validation
+
+
+def test_stratified_folds_partition_and_balance():
+    y = np.array(list("aaaaabbbbbbbccc"))
+    folds = stratified_folds(y, 3, seed=4)
+    assert np.array_equal(np.sort(np.concatenate(folds)), np.arange(len(y)))
+    for cls in "abc":
+        counts = [int(np.sum(y[f] == cls)) for f in folds]
+        assert max(counts) - min(counts) <= 1
+    assert max(map(len, folds)) - min(map(len, folds)) <= 1
+    assert all(np.array_equal(a, b) for a, b in zip(folds, stratified_folds(y, 3, seed=4)))
+
+
+def test_fold_accuracy_reference():
+    rng = np.random.default_rng(5)
+    X = np.concatenate([rng.normal(0, 1, (6, 2)), rng.normal(3, 1, (6, 2))])
+    y = np.repeat([0, 1], 6)
+    D = np.linalg.norm(X[:, None] - X[None], axis=-1)
+    acc = rs.fold_accuracy(D, y, n_folds=3, seed=0)
+    for k, test in enumerate(stratified_folds(y, 3, seed=0)):
+        train = np.setdiff1d(np.arange(12), test)
+        nn = [y[train][np.argmin(D[i, train])] for i in test]
+        means = [X[train][y[train] == c].mean(0) for c in (0, 1)]  # Euclidean: exact class means
+        nm = [int(np.argmin([np.linalg.norm(X[i] - m) for m in means])) for i in test]
+        assert acc["nn"][k] == pytest.approx(np.mean(np.array(nn) == y[test]))
+        assert acc["mean"][k] == pytest.approx(np.mean(np.array(nm) == y[test]))
+
+
+@pytest.mark.slow
+def test_nested_cv_scores_the_paper_weights_like_fold_accuracy():
+    roots, labels = position_signal_roots(n_per_class=4, seed=1)
+    trees = rs.batch(roots, n_points=20, normalise_scale=True, dtype=np.float64)
+    cv = rs.nested_cv_accuracy(trees, labels, n_folds=2, seed=0, progress=False, max_reregistrations=1)
+    D = np.asarray(rs.pairwise_distances(trees, progress=False))
+    ref = rs.fold_accuracy(D, labels, n_folds=2, seed=0)
+    np.testing.assert_allclose(cv.paper_nn, ref["nn"])
+    np.testing.assert_allclose(cv.paper_mean, ref["mean"])
+    assert cv.learned_nn.shape == (2,) and np.all((cv.learned_nn >= 0) & (cv.learned_nn <= 1))
+    assert all(w["lateral"] == 1.0 for w in cv.weights)
+    assert set(cv.summary()) == {"learned_nn", "learned_mean", "paper_nn", "paper_mean"}
+
+
+# --------------------------------------------------------------------------------------------
+# Bad labels: named errors before any registration
+
+
+@pytest.fixture
+def no_registration(monkeypatch):
+    def refuse(*args, **kwargs):
+        raise AssertionError("registered before checking the labels")
+
+    monkeypatch.setattr(learn, "register_pair_list", refuse)
+
+
+@pytest.mark.parametrize(
+    "labels, match",
+    [
+        (["a"] * 6, "same label"),
+        (["a", "a", "a", "b", "b", "c"], "fewer than 2"),
+        (["a", "a", "b", "b", "a"], "5 labels for 6 roots"),
+        ([0.0, 0.0, 1.0, np.nan, 1.0, 1.0], "missing"),
+        (["a", "a", None, "b", "b", "b"], "missing"),
+    ],
+)
+def test_bad_labels_raise_before_registering(labels, match, no_registration):
+    roots, _ = position_signal_roots(n_per_class=3)
+    trees = rs.batch(roots, n_points=12, dtype=np.float64)
+    with pytest.raises(LabelError, match=match):
+        rs.learn_weights(trees, labels, progress=False)
+    with pytest.raises(LabelError):
+        rs.nested_cv_accuracy(trees, labels, progress=False)
+    assert issubclass(LabelError, ValueError)
+
+
+def test_nested_cv_needs_n_folds_members_per_class(no_registration):
+    roots, _ = position_signal_roots(n_per_class=3)
+    trees = rs.batch(roots, n_points=12, dtype=np.float64)
+    with pytest.raises(LabelError, match="fewer than 5"):
+        rs.nested_cv_accuracy(trees, ["a"] * 3 + ["b"] * 3, n_folds=5, progress=False)
