@@ -141,7 +141,12 @@ def run_mean(ctx: Context, out: Output, args) -> None:
             title=f"Mean of {len(pop.names)} roots",
             unit=figure_unit(ctx.pop),
         )
-        out.figure(sec, fig, "mean.png", "input roots (left, named) and their mean root (right, at its own scale)" + figure_note(pop))
+        out.figure(
+            sec,
+            fig,
+            "mean.png",
+            "input roots (left, named) and their mean root (right, at its own scale)" + figure_note(pop),
+        )
         fig, _ = plot_energy_trace(trace)
         out.figure(sec, fig, "mean_energy.png", "mean squared distance to the mean at each solver step (must fall)")
         n_drop = int(np.sum(np.asarray(km.dropped)))
