@@ -117,9 +117,13 @@ print("RESULT " + json.dumps(out))
 
 def run_child(spec: dict, package: Path | None) -> dict:
     env = dict(os.environ)
-    if package is not None:
-        env["PYTHONPATH"] = str(package)
-    proc = subprocess.run([sys.executable, "-c", CHILD, json.dumps(spec)], capture_output=True, text=True, env=env)
+    # Run from the checkout itself: `python -c` puts the working directory first on sys.path,
+    # ahead of PYTHONPATH and of the editable install.
+    package = Path(package) if package is not None else Path(__file__).resolve().parents[1]
+    env["PYTHONPATH"] = str(package)
+    proc = subprocess.run(
+        [sys.executable, "-c", CHILD, json.dumps(spec)], capture_output=True, text=True, env=env, cwd=package
+    )
     for line in proc.stdout.splitlines():
         if line.startswith("RESULT "):
             return json.loads(line[7:])
