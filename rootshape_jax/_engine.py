@@ -471,7 +471,8 @@ def lazy_assignment(p: Prepared, qb: Array, axes_b: Array, energy_bound: Array, 
     picked again, its DP is run. The assignment is solved again until it picks only computed
     pairs: it is then optimal for the true costs too, since every uncomputed cost is at least
     its bound (`lower_bounds`). With ``prune=False`` every real–real DP is run up front (the
-    reference behaviour). Returns (cost matrix, permutation, pairs computed).
+    reference behaviour). Returns (cost matrix, permutation, pairs computed, their warps
+    ``[B, K, K, T]``: kept, so the matched pairs' DPs are not solved twice).
     """
     B, K = p.La.shape
     dtype = p.La.dtype
@@ -502,30 +503,30 @@ def lazy_assignment(p: Prepared, qb: Array, axes_b: Array, energy_bound: Array, 
 
     computed = p.both & rows[:, None, None] if not options.prune else jnp.zeros_like(p.both)
     computed = computed.reshape(-1)
-    E, _ = slabs(computed, lateral_pair, jnp.zeros((n_items,), dtype))
+    T = qb.shape[-2]
+    E, G = slabs(computed, lateral_pair, jnp.zeros((n_items,), dtype), jnp.zeros((n_items, T), dtype))
     bound = energy_bound.reshape(-1)
 
     def body(state):
-        E, computed, refined, bound, _, chosen = state
+        E, G, computed, refined, bound, _, chosen = state
         bound = refine(chosen & ~refined, bound)
-        E, _ = slabs(chosen & refined, lateral_pair, E)
+        E, G = slabs(chosen & refined, lateral_pair, E, G)
         computed = computed | (chosen & refined)
         refined = refined | chosen
         perm = solve(costs(E, computed, bound))
-        return E, computed, refined, bound, perm, picks(perm, computed)
+        return E, G, computed, refined, bound, perm, picks(perm, computed)
 
     perm = solve(costs(E, computed, bound))
-    state = (E, computed, jnp.zeros_like(computed), bound, perm, picks(perm, computed))
-    E, computed, _, bound, perm, _ = lax.while_loop(lambda s: jnp.any(s[-1]), body, state)
-    return costs(E, computed, bound), perm, computed.reshape(B, K, K)
+    state = (E, G, computed, jnp.zeros_like(computed), bound, perm, picks(perm, computed))
+    E, G, computed, _, bound, perm, _ = lax.while_loop(lambda s: jnp.any(s[-1]), body, state)
+    return costs(E, computed, bound), perm, computed.reshape(B, K, K), G.reshape(B, K, K, T)
 
 
 def evaluate(p: Prepared, O: Array, rows: Array, options: RegistrationOptions):
     """Energy, permutation and warps of every pair at rotations O (rows: pairs to do).
 
-    Only costs are kept while searching; the few warps of the final matching (main roots and
-    matched real–real laterals) are solved again at the end, which is far cheaper than storing
-    a warp for every candidate pair.
+    The lateral warps of the matching are those the assignment's DPs found (`lazy_assignment`
+    keeps them); the main roots' DPs are run here.
     """
     a, b = p.a, p.b
     B, K, T, _ = b.q.shape
@@ -533,34 +534,24 @@ def evaluate(p: Prepared, O: Array, rows: Array, options: RegistrationOptions):
     qb0 = rotate_batch(b.q0, O)
     qb = rotate_batch(b.q, O)
     axes_b = rotate_batch(p.blocks_b[0], O)
-    C, perm, computed = lazy_assignment(p, qb, axes_b, lower_bounds(p, O), rows, options)
+    C, perm, computed, G = lazy_assignment(p, qb, axes_b, lower_bounds(p, O), rows, options)
     lap = jnp.sum(jnp.take_along_axis(C, perm[:, :, None], axis=2)[:, :, 0], axis=1)
 
-    # Warps of the final matching: the B main roots, then the matched real-real slots.
-    matched_slots = jnp.any(jax.nn.one_hot(perm, K, dtype=bool) & p.both, axis=2)
-
-    def final_pair(lanes):
-        is_main = lanes < B
-        bm = jnp.clip(lanes, 0, B - 1)
-        bi, k = jnp.divmod(jnp.clip(lanes - B, 0, B * K - 1), K)
-        j = perm[bi, k]
-        q1 = jnp.where(is_main[:, None, None], a.q0[bm], a.q[bi, k])
-        q2 = jnp.where(is_main[:, None, None], qb0[bm], qb[bi, j])
-        return q1, q2
-
-    need = jnp.concatenate([rows, (matched_slots & rows[:, None]).reshape(-1)])
-    n_final = B + B * K
-    identity = jnp.broadcast_to(_identity_grid(T, dtype), (n_final, T))
-    Ef, Gf = run_dp_slabs(
-        need,
-        final_pair,
-        jnp.zeros((n_final,), dtype),
-        identity,
+    # Matched real-real slots take their DP's warp; every other slot the identity.
+    identity = _identity_grid(T, dtype)
+    matched = jnp.any(jax.nn.one_hot(perm, K, dtype=bool) & p.both, axis=2) & rows[:, None]
+    gam = jnp.take_along_axis(G, perm[:, :, None, None], axis=2)[:, :, 0]
+    gam = jnp.where(matched[..., None], gam, identity)
+    Em, g0 = run_dp_slabs(
+        rows,
+        lambda lanes: (a.q0[lanes], qb0[lanes]),
+        jnp.zeros((B,), dtype),
+        jnp.broadcast_to(identity, (B, T)),
         neighbourhood=options.neighbourhood,
         dp_batch_size=options.dp_batch_size,
     )
     n_dp = jnp.sum(computed.reshape(B, K * K), axis=1, dtype=jnp.int32)
-    return p.lam_main * Ef[:B] + lap, perm, Gf[:B], Gf[B:].reshape(B, K, T), n_dp
+    return p.lam_main * Em + lap, perm, g0, gam, n_dp
 
 
 def refit_rotation(p: Prepared, perm: Array, g0: Array, gam: Array) -> Array:
