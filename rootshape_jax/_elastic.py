@@ -124,6 +124,16 @@ def _register(q1, q2, *, rotation: bool, neighbourhood: int, max_iterations, rto
     return O, gamma, energy, n_it
 
 
+def _check_options(n_samples, max_iterations, rtol, neighbourhood) -> None:
+    if isinstance(n_samples, bool) or not isinstance(n_samples, int) or n_samples < 2:
+        raise ValueError(f"n_samples must be a Python int >= 2, got {n_samples!r}.")
+    if isinstance(max_iterations, bool) or not isinstance(max_iterations, int) or max_iterations < 1:
+        raise ValueError(f"max_iterations must be a Python int >= 1, got {max_iterations!r}.")
+    if not isinstance(rtol, (int, float)) or not rtol >= 0:
+        raise ValueError(f"rtol must be a float >= 0, got {rtol!r}.")
+    check_neighbourhood(neighbourhood)
+
+
 def elastic_curve_distance(
     beta1: Float[ArrayLike, "n1 d"],
     beta2: Float[ArrayLike, "n2 d"],
@@ -156,14 +166,7 @@ def elastic_curve_distance(
     `jax.vmap` for curves that share a shape; compiled once per shapes, dtype and static
     options.
     """
-    if isinstance(n_samples, bool) or not isinstance(n_samples, int) or n_samples < 2:
-        raise ValueError(f"n_samples must be a Python int >= 2, got {n_samples!r}.")
-    bad_cap = isinstance(max_iterations, bool) or not isinstance(max_iterations, int)
-    if bad_cap or max_iterations < 1:
-        raise ValueError(f"max_iterations must be a Python int >= 1, got {max_iterations!r}.")
-    if not isinstance(rtol, (int, float)) or not rtol >= 0:
-        raise ValueError(f"rtol must be a float >= 0, got {rtol!r}.")
-    check_neighbourhood(neighbourhood)
+    _check_options(n_samples, max_iterations, rtol, neighbourhood)
     return _elastic_curve_distance(
         beta1,
         beta2,
@@ -262,14 +265,7 @@ def elastic_curve_distances(
     n = A.shape[0]
     if n == 0:
         raise ValueError("elastic_curve_distances: empty batch; give at least one pair of curves.")
-    # Validates the options (and compiles nothing).
-    if isinstance(n_samples, bool) or not isinstance(n_samples, int) or n_samples < 2:
-        raise ValueError(f"n_samples must be a Python int >= 2, got {n_samples!r}.")
-    if isinstance(max_iterations, bool) or not isinstance(max_iterations, int) or max_iterations < 1:
-        raise ValueError(f"max_iterations must be a Python int >= 1, got {max_iterations!r}.")
-    if not isinstance(rtol, (int, float)) or not rtol >= 0:
-        raise ValueError(f"rtol must be a float >= 0, got {rtol!r}.")
-    check_neighbourhood(neighbourhood)
+    _check_options(n_samples, max_iterations, rtol, neighbourhood)
     executor = LocalExecutor(workers)
     n_chunks = min(executor.n_workers(), n)
     size = -(-n // n_chunks)
