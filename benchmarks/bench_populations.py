@@ -2,7 +2,7 @@
 from Python with default settings, on three populations, scale-normalised and not.
 
     python benchmarks/bench_populations.py [--populations synthetic pea rootnav]
-        [--what matrix mean rounds] [--baseline /path/to/old/checkout] [--all-cores]
+        [--what matrix mean rounds] [--baseline /path/to/old/checkout] [--paths default all-cores]
 
 Populations:
 - ``synthetic``: the bundled 53 (`datasets.default_dataset`, 2D, ~10 laterals);
@@ -16,7 +16,7 @@ Each measurement is a fresh process that does what a user's script does: ``impor
 rootshape_jax``, `batch`, then `pairwise_distances(trees)` or `karcher_mean(trees)` with
 default options (``progress=False``). The matrix's compile time is the first call on two of
 the roots (same chunk shapes), reported apart; the mean's is its first call minus its second.
-``--all-cores`` adds the same runs after ``rs.use_all_cores()`` (one XLA device per core).
+``--paths all-cores`` runs the same after ``rs.use_all_cores()`` (one XLA device per core).
 ``rounds``: lateral DPs run and skipped per alternation round, on 32 random pairs (the engine
 is deterministic, so round r's counts are the difference of runs capped at r and r − 1 rounds).
 With ``--baseline`` every matrix and mean run is repeated with that checkout of the package,
@@ -55,9 +55,10 @@ def population(name):
         return simulated_roots("pea", 53, days=10, seed=0)
     if name == "rootnav":
         from pathlib import Path
+        from rootshape_jax.io import read_rsml
         roots = []
         for f in sorted(Path(spec["shared"], "rsml", "rootnav_osr").glob("*.rsml")):
-            roots += rs.io.read_rsml(f)
+            roots += read_rsml(f)
         return roots
     raise ValueError(name)
 
@@ -136,7 +137,13 @@ def main(argv=None):
     p.add_argument("--what", nargs="+", default=["matrix", "mean", "rounds"])
     p.add_argument("--normalise", nargs="+", default=["no", "yes"], choices=["no", "yes"])
     p.add_argument("--baseline", type=Path, default=None, help="checkout of the package to compare with")
-    p.add_argument("--all-cores", action="store_true", help="also run after rs.use_all_cores()")
+    p.add_argument(
+        "--paths",
+        nargs="+",
+        default=["default"],
+        choices=["default", "all-cores"],
+        help="Python defaults, and/or after rs.use_all_cores()",
+    )
     p.add_argument("--mean-calls", type=int, default=2, help="mean calls per process (the last is timed)")
     p.add_argument("--out", default="populations", help="name of the JSON file in results/")
     args = p.parse_args(argv)
@@ -148,7 +155,7 @@ def main(argv=None):
             continue
         for norm in args.normalise:
             for what in args.what:
-                paths = [False, True] if (args.all_cores and what != "rounds") else [False]
+                paths = [p == "all-cores" for p in args.paths] if what != "rounds" else [False]
                 for all_cores in paths:
                     spec = {
                         "population": pop,

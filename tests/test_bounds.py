@@ -3,6 +3,7 @@ energy of actual warps (random monotone warps and the DP's own), and pruning wit
 running every DP, on roots with many similar laterals (the hard case for the bounds)."""
 
 import itertools
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -96,3 +97,35 @@ def test_pruning_equals_every_dp_on_many_similar_laterals(seed):
     assert int(pruned.n_lateral_dp) < int(full.n_lateral_dp)
     assert float(pruned.energy) == pytest.approx(float(full.energy), rel=1e-12)
     np.testing.assert_allclose(np.asarray(pruned.rotation), np.asarray(full.rotation), atol=1e-12)
+
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def _real_population(name):
+    if name == "rootnav":
+        files = sorted((SHARED / "rsml" / "rootnav_osr").glob("*.rsml"))[:3]
+        if not files:
+            pytest.skip("../shared/data is absent")
+        from rootshape_jax.io import read_rsml
+
+        return [r for f in files for r in read_rsml(f)]
+    pytest.importorskip("plantbox", reason="CPlantBox (the sim extra)")
+    from rootshape_jax.datasets import simulated_roots
+
+    return simulated_roots("pea", 3, days=10, seed=0)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name,normalise", list(itertools.product(["rootnav", "pea"], [False, True])))
+def test_pruning_equals_every_dp_on_real_populations(name, normalise):
+    # The populations users have (real tracings in pixels, CPlantBox taproots in mm with ~20
+    # similar laterals): pruned registration equals running every DP, in float64.
+    roots = _real_population(name)
+    trees = rs.batch(roots, n_points=50, normalise_scale=normalise)
+    parts = rs.unstack(trees)
+    for i, j in [(0, 1), (1, 2)]:
+        full = rs.register(parts[i], parts[j], prune=False)
+        pruned = rs.register(parts[i], parts[j], prune=True)
+        assert int(pruned.n_lateral_dp) < int(full.n_lateral_dp)
+        assert float(pruned.energy) == pytest.approx(float(full.energy), rel=1e-12)
