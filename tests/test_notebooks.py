@@ -25,6 +25,7 @@ STEMS = (
     "02_gradient_mean_fitting",
     "03_classification_clustering",
     "04_synthesis",
+    "05_learning_weights",
     "06_real_data",
 )
 # Stored figures stay small: the repository must not grow by megabytes per notebook run.
