@@ -218,18 +218,9 @@ _elastic_curve_distance = eqx.filter_jit(_curve_distance)
 
 
 @eqx.filter_jit
-def _elastic_curve_distances(beta1, beta2, max_iterations, rtol, *, rotation, scale, n_samples, neighbourhood):
+def _elastic_curve_distances(beta1, beta2, max_iterations, rtol, **static):
     def one(b1, b2):
-        return _curve_distance(
-            b1,
-            b2,
-            max_iterations,
-            rtol,
-            rotation=rotation,
-            scale=scale,
-            n_samples=n_samples,
-            neighbourhood=neighbourhood,
-        )
+        return _curve_distance(b1, b2, max_iterations, rtol, **static)
 
     return split_over_devices(jax.vmap(one), (beta1, beta2))
 

@@ -487,8 +487,8 @@ def lazy_assignment(p: Prepared, qb: Array, axes_b: Array, energy_bound: Array, 
 
     def refine(need, bound):
         def step(lanes, bound):
-            new = refined_energy_bounds(p, axes_b, jnp.clip(lanes, 0, n_items - 1))
             safe = jnp.clip(lanes, 0, n_items - 1)
+            new = refined_energy_bounds(p, axes_b, safe)
             return bound.at[lanes].set(jnp.maximum(bound[safe], new), mode="drop")
 
         return run_in_slabs(need, step, bound, slab=_slab_size(n_items, 128))
