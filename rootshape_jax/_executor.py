@@ -145,6 +145,7 @@ class Executor:
         progress: bool = True,
         desc: str = "",
         unit: str = "item",
+        leave: bool = True,
     ) -> tuple[list[dict], dict]:
         """``[fn(*block, *shared) for block in blocks]`` (each a dict of numpy arrays), and
         counts ``blocks``, ``blocks_computed``, ``blocks_from_store``.
@@ -170,7 +171,8 @@ class Executor:
                     else:
                         results[b] = got
                         counts["blocks_from_store"] += 1
-        with tqdm(total=sum(sizes[b] for b in todo), desc=desc, unit=unit, disable=not progress) as bar:
+        total = sum(sizes[b] for b in todo)
+        with tqdm(total=total, desc=desc, unit=unit, disable=not progress, leave=leave) as bar:
             for b, result in self._run(fn, blocks, todo, shared):
                 result = {k: np.asarray(v) for k, v in result.items()}
                 if store is not None:
@@ -193,6 +195,22 @@ def usable_cores() -> int:
         return os.cpu_count() or 1
 
 
+# Signatures of block calls already run in this process: a block function called again with
+# the same shapes is compiled already, so its first block need not run alone.
+_COMPILED: set = set()
+
+
+def _call_signature(fn, block: tuple, shared: tuple):
+    leaves, treedef = jax.tree.flatten((block, shared))
+    parts = []
+    for x in leaves:
+        if hasattr(x, "shape") and hasattr(x, "dtype"):
+            parts.append((tuple(x.shape), str(x.dtype)))
+        else:
+            parts.append((type(x).__name__, x if isinstance(x, (int, float, str, bool)) else id(x)))
+    return (getattr(fn, "__module__", ""), getattr(fn, "__qualname__", repr(fn)), str(treedef), tuple(parts))
+
+
 class LocalExecutor(Executor):
     """Runs every block in this process, on `workers` threads (Ctrl-C stops between blocks).
 
@@ -200,7 +218,8 @@ class LocalExecutor(Executor):
     blocks on several threads use several cores with no global JAX setting. The default,
     ``workers=None``, takes one thread per usable core left over by the devices: with
     `use_all_cores` each call is already split over every core, so one thread. The first block
-    runs alone, so its compilation is done once and then shared by the threads.
+    of a block function not yet run with these shapes runs alone, so its compilation is done
+    once and then shared by the threads.
     """
 
     def __init__(self, workers: int | None = None):
@@ -220,10 +239,16 @@ class LocalExecutor(Executor):
             for b in todo:
                 yield b, fn(*blocks[b], *shared)
             return
-        yield todo[0], fn(*blocks[todo[0]], *shared)
+        first = []
+        key = _call_signature(fn, blocks[todo[0]], shared)
+        if key not in _COMPILED:
+            # Its compilation is done once, then shared by the threads.
+            yield todo[0], fn(*blocks[todo[0]], *shared)
+            _COMPILED.add(key)
+            first = todo[:1]
         pool = ThreadPoolExecutor(workers, thread_name_prefix="rootshape")
         try:
-            pending = {pool.submit(fn, *blocks[b], *shared): b for b in todo[1:]}
+            pending = {pool.submit(fn, *blocks[b], *shared): b for b in todo[len(first) :]}
             for future in as_completed(pending):
                 yield pending[future], future.result()
         finally:

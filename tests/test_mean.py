@@ -10,6 +10,7 @@ import scipy.optimize
 from helpers import random_root, rotation_matrix, transformed_copies
 
 import rootshape_jax as rs
+from rootshape_jax import _mean
 from rootshape_jax._mean import (
     KarcherMean,
     _exact_update,
@@ -354,3 +355,14 @@ def test_multi_start_picks_the_lowest_warm_up(population):
         np.testing.assert_allclose(two.energy, one.energy, rtol=1e-12)
     with pytest.raises(ValueError, match="n_starts"):
         karcher_mean(population, n_starts=0)
+
+
+def test_progress_moves_within_a_registration_pass(population, fp_population, monkeypatch, capsys):
+    # With progress, each registration pass of the fixed point shows a bar of roots that moves
+    # block by block (so it updates every few seconds on real populations), and the result is
+    # the one without progress: blocks of inactive padding do no work and change nothing.
+    monkeypatch.setattr(_mean, "_LOCAL_BLOCK", 2)
+    res = karcher_mean(population, max_steps=30, progress=True)
+    err = capsys.readouterr().err
+    assert "registering" in err and "root" in err
+    np.testing.assert_allclose(float(res.energy), float(fp_population.energy), rtol=1e-9)

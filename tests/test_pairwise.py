@@ -1,5 +1,7 @@
 """Distance matrices and geodesics."""
 
+import time
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -127,3 +129,26 @@ def test_worker_threads_give_the_same_matrix():
     one = rs.pairwise_distances(trees, chunk_size=4, progress=False, client=LocalExecutor(workers=1))
     three = rs.pairwise_distances(trees, chunk_size=4, progress=False, client=LocalExecutor(workers=3))
     np.testing.assert_array_equal(np.asarray(one), np.asarray(three))
+
+
+def _sleepy_block(i, delay):
+    start = time.perf_counter()
+    time.sleep(delay)
+    return {"i": np.asarray(i), "span": np.asarray([start, time.perf_counter()])}
+
+
+def test_local_blocks_overlap_once_the_function_has_run():
+    # The first block of a new block function runs alone (its compilation is then shared);
+    # called again with the same shapes, every block starts at once on the worker threads.
+    from rootshape_jax import LocalExecutor
+
+    ex = LocalExecutor(workers=2)
+    spans = []
+    for _ in range(2):
+        results, _ = ex.map_blocks(_sleepy_block, [(0,), (1,)], shared=(0.3,), progress=False)
+        assert sorted(int(r["i"]) for r in results) == [0, 1]
+        spans.append(sorted(tuple(r["span"]) for r in results))
+    (a0, a1), (b0, b1) = spans[0]
+    assert b0 >= a1  # first call: one after the other
+    (a0, a1), (b0, b1) = spans[1]
+    assert b0 < a1  # second call: together
