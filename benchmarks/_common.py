@@ -28,6 +28,39 @@ PAPER_STATS = {
 }
 
 
+POPULATIONS = ("synthetic", "pea", "rootnav")
+
+
+def population(name: str, shared: str | None = None) -> list:
+    """The benchmark populations (issue 21): the bundled synthetic set, 53 CPlantBox pea
+    taproots (the `sim` extra, ~20 laterals, not designed by us) and the real RootNav
+    tracings in ``../shared/data`` (when present). Self-contained: bench_populations runs its
+    source in a child process against any checkout of the package."""
+    from pathlib import Path
+
+    if name == "synthetic":
+        from rootshape_jax.datasets import default_dataset
+
+        return default_dataset()
+    if name == "pea":
+        from rootshape_jax.datasets import simulated_roots
+
+        return simulated_roots("pea", 53, days=10, seed=0)
+    if name == "rootnav":
+        from rootshape_jax.io import read_rsml
+
+        if shared is None:
+            shared = str(Path(__file__).resolve().parents[2] / "shared" / "data")
+        files = sorted(Path(shared, "rsml", "rootnav_osr").glob("*.rsml"))
+        if not files:
+            raise FileNotFoundError(f"no RootNav tracings under {shared}/rsml/rootnav_osr (../shared/data)")
+        roots = []
+        for f in files:
+            roots += read_rsml(f)
+        return roots
+    raise ValueError(f"unknown population {name!r}; choose synthetic, pea or rootnav")
+
+
 def setup_jax(n_devices: int | None = None, *, x64: bool = False):
     """Import JAX with `n_devices` CPU devices (default: every core) and optional float64."""
     import jax

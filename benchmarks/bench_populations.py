@@ -33,6 +33,9 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
+import inspect  # noqa: E402
+
+import _common  # noqa: E402
 from _common import machine, write_json  # noqa: E402
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -46,23 +49,9 @@ if spec["all_cores"]:
 import jax
 import numpy as np
 
-def population(name):
-    if name == "synthetic":
-        from rootshape_jax.datasets import default_dataset
-        return default_dataset()
-    if name == "pea":
-        from rootshape_jax.datasets import simulated_roots
-        return simulated_roots("pea", 53, days=10, seed=0)
-    if name == "rootnav":
-        from pathlib import Path
-        from rootshape_jax.io import read_rsml
-        roots = []
-        for f in sorted(Path(spec["shared"], "rsml", "rootnav_osr").glob("*.rsml")):
-            roots += read_rsml(f)
-        return roots
-    raise ValueError(name)
+__POPULATION__
 
-roots = population(spec["population"])
+roots = population(spec["population"], spec["shared"])
 trees = rs.batch(roots, n_points=100, normalise_scale=spec["normalise"])
 out = {"package": rs.__file__, "n_roots": len(roots), "capacity": int(trees.capacity),
        "laterals_mean": float(np.mean([r.n_laterals for r in roots])), "devices": len(jax.devices())}
@@ -123,7 +112,16 @@ def run_child(spec: dict, package: Path | None) -> dict:
     package = Path(package) if package is not None else Path(__file__).resolve().parents[1]
     env["PYTHONPATH"] = str(package)
     proc = subprocess.run(
-        [sys.executable, "-c", CHILD, json.dumps(spec)], capture_output=True, text=True, env=env, cwd=package
+        [
+            sys.executable,
+            "-c",
+            CHILD.replace("__POPULATION__", inspect.getsource(_common.population)),
+            json.dumps(spec),
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=package,
     )
     for line in proc.stdout.splitlines():
         if line.startswith("RESULT "):

@@ -4,6 +4,12 @@ paper's Matlab timings (i5-4460): mean 9 h 4 min, PCA 1.1 s, random root 0.22 s,
 fit 0.01 s, regressed root 0.001 s.
 
     python benchmarks/bench_stats.py [--quick] [--x64] [--methods fixed_point gradient]
+    python benchmarks/bench_stats.py --population pea --normalise no --path default
+
+`--population` (issue 21): the bundled synthetic set (default), 53 CPlantBox pea taproots (`sim`
+extra) or the real RootNav tracings in ../shared/data; `--normalise` whether they are
+scale-normalised; `--path default` (default) is a user's Python with nothing configured (one XLA
+device, blocks on worker threads), `--path all-cores` one XLA device per core.
 
 The mean is run twice per method: the first call includes compilation, the second is the
 run time (compile ≈ first − second). Small operations: first call, then the median of
@@ -23,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from _common import (  # noqa: E402
     PAPER_STATS as PAPER,  # noqa: E402
     machine,
+    population,
     setup_jax,
     write_json,
 )
@@ -54,6 +61,9 @@ def main(argv=None):
     p.add_argument("--x64", action="store_true", help="float64 (default float32)")
     p.add_argument("--methods", nargs="+", default=["fixed_point", "gradient"])
     p.add_argument("--max-steps", type=int, default=60)
+    p.add_argument("--population", default="synthetic", choices=["synthetic", "pea", "rootnav"])
+    p.add_argument("--normalise", default="yes", choices=["yes", "no"], help="normalise_scale of batch")
+    p.add_argument("--path", default="default", choices=["default", "all-cores"])
     p.add_argument("--once", action="store_true", help="run each mean once (no compile split)")
     p.add_argument(
         "--mean-cache",
@@ -75,7 +85,7 @@ def main(argv=None):
         "shows what the worker-thread hand-off costs a sub-millisecond call",
     )
     args = p.parse_args(argv)
-    jax = setup_jax(1, x64=args.x64)
+    jax = setup_jax(1 if args.path == "default" else None, x64=args.x64)
     if args.sync_dispatch:
         jax.config.update("jax_cpu_enable_async_dispatch", False)
     import numpy as np
@@ -84,16 +94,22 @@ def main(argv=None):
     from rootshape_jax._mean import karcher_mean
     from rootshape_jax._pca import sample, tangent_pca
     from rootshape_jax._regression import TraitRegression
-    from rootshape_jax.datasets import default_dataset
 
-    roots = default_dataset()
+    roots = population(args.population)
     T = 100
     if args.quick:
         roots, T = roots[::5][:12], 40
-    trees = rs.batch(roots, n_points=T, normalise_scale=True)
+    normalise = args.normalise == "yes"
+    trees = rs.batch(roots, n_points=T, normalise_scale=normalise)
     n, K = trees.laterals.shape[:2]
+    suffix = ""
+    if (args.population, args.normalise, args.path) != ("synthetic", "yes", "default"):
+        suffix = f"_{args.population}_{'normalised' if normalise else 'raw'}_{args.path.replace('-', '_')}"
     out = {
         "machine": machine(),
+        "population": args.population,
+        "normalise_scale": normalise,
+        "path": args.path,
         "dtype": str(trees.main.dtype),
         "n_roots": n,
         "T": T,
@@ -102,7 +118,7 @@ def main(argv=None):
         "paper": PAPER,
         "mean": {},
     }
-    print(f"{n} roots, T = {T}, K = {K}, {out['dtype']}", flush=True)
+    print(f"{args.population}: {n} roots, T = {T}, K = {K}, {out['dtype']}, path {args.path}", flush=True)
 
     import pickle
 
@@ -142,7 +158,7 @@ def main(argv=None):
         entry["speedup_vs_paper"] = PAPER["karcher_mean_s"] / t
         out["mean"][method] = entry
         means[method] = res
-        write_json("bench_stats" + ("_quick" if args.quick else ""), out)  # partial results
+        write_json("bench_stats" + suffix + ("_quick" if args.quick else ""), out)  # partial results
         print(
             f"{method}: first {first:.1f} s, run {second} s, steps {entry['steps']}, "
             f"energy {entry['energy']:.5f} (start {entry['energy_start']:.5f}), "
@@ -211,6 +227,7 @@ def main(argv=None):
 
     name = (
         "bench_stats"
+        + suffix
         + ("_synthesis" if args.synthesis_only else "")
         + ("_quick" if args.quick else "")
         + ("_sync" if args.sync_dispatch else "")

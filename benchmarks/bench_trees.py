@@ -2,6 +2,13 @@
 53-root distance matrix, and geodesics — beside the paper's Matlab timings.
 
     python benchmarks/bench_trees.py [--quick] [--x64] [--devices N]
+    python benchmarks/bench_trees.py --population pea --normalise no --path default
+
+`--population` picks the roots of the geodesic and the matrix (issue 21): the bundled synthetic
+set (default), 53 CPlantBox pea taproots (`sim` extra) or the real RootNav tracings in
+../shared/data; `--normalise` whether they are scale-normalised; `--path default` runs as a
+user's Python does with nothing configured (one XLA device, blocks on worker threads), and
+`--path all-cores` (default, as before) with one XLA device per core.
 
 Paper (Matlab, i5-4460): 147 s to align one pair (23 laterals), 0.04 s per geodesic once aligned,
 so the 53-root matrix (1,378 pairs) would take ≈ 56 h.
@@ -15,29 +22,43 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import machine, setup_jax, timed, write_json  # noqa: E402
+from _common import machine, population, setup_jax, timed, write_json  # noqa: E402
 
 PAPER_ALIGN_S = 147.0
 PAPER_GEODESIC_S = 0.04
+
+
+def _suffix(args) -> str:
+    """Results of the historical setting (synthetic, normalised, all cores) keep their name."""
+    if (args.population, args.normalise, args.path) == ("synthetic", "yes", "all-cores"):
+        return ""
+    return f"_{args.population}_{'normalised' if args.normalise == 'yes' else 'raw'}_{args.path.replace('-', '_')}"
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--quick", action="store_true", help="small sizes, for a smoke run")
     p.add_argument("--x64", action="store_true", help="float64 (default float32)")
-    p.add_argument("--devices", type=int, default=None)
+    p.add_argument("--devices", type=int, default=None, help="XLA devices for --path all-cores (default: every core)")
+    p.add_argument("--population", default="synthetic", choices=["synthetic", "pea", "rootnav"])
+    p.add_argument("--normalise", default="yes", choices=["yes", "no"], help="normalise_scale of batch")
+    p.add_argument("--path", default="all-cores", choices=["default", "all-cores"])
     p.add_argument(
         "--geodesic-only", action="store_true", help="time only the geodesic; its entry replaces the one in trees.json"
     )
     args = p.parse_args(argv)
-    jax = setup_jax(args.devices, x64=args.x64)
+    jax = setup_jax(1 if args.path == "default" else args.devices, x64=args.x64)
     import numpy as np
 
     import rootshape_jax as rs
-    from rootshape_jax.datasets import default_dataset, synthetic_roots
+    from rootshape_jax.datasets import synthetic_roots
 
+    normalise = args.normalise == "yes"
     results = {
         "machine": machine(),
+        "population": args.population,
+        "normalise_scale": normalise,
+        "path": args.path,
         "dtype": "float64" if args.x64 else "float32",
         "per_pair": [],
         "paper": {
@@ -47,6 +68,7 @@ def main(argv=None):
         },
     }
     w = rs.Weights()  # the paper's (0.02, 1, 1)
+    name = "trees" + _suffix(args) + ("_quick" if args.quick else "")
 
     # 1. One registration against T and the number of laterals per root.
     pool = synthetic_roots(12, condition="high_nitrate", seed=1, lateral_density=0.9, max_laterals=40)
@@ -79,13 +101,13 @@ def main(argv=None):
             )
 
     # 2. Geodesic of 9 steps between two aligned roots.
-    data = default_dataset()
+    data = population(args.population)
     n_roots = 12 if args.quick else len(data)
     data = data[:n_roots]
     T = 50 if args.quick else 100
-    trees = rs.batch(data, n_points=T, normalise_scale=True)
+    trees = rs.batch(data, n_points=T, normalise_scale=normalise)
     print(
-        f"dataset: {n_roots} roots, laterals per root {min(r.n_laterals for r in data)}–"
+        f"{args.population} ({'normalised' if normalise else 'not normalised'}, path {args.path}): {n_roots} roots, laterals per root {min(r.n_laterals for r in data)}–"
         f"{max(r.n_laterals for r in data)} (mean {np.mean([r.n_laterals for r in data]):.1f}), K = {trees.capacity}, T = {T}"
     )
     a, b = rs.unstack(jax.tree.map(lambda x: x[:2], trees))
@@ -98,7 +120,7 @@ def main(argv=None):
     if args.geodesic_only:
         import json
 
-        path = Path(__file__).parent / "results" / ("trees" + ("_quick" if args.quick else "") + ".json")
+        path = Path(__file__).parent / "results" / (name + ".json")
         previous = json.loads(path.read_text()) if path.exists() else {}
         previous["geodesic"] = dict(results["geodesic"], machine=results["machine"])
         path.write_text(json.dumps(previous, indent=2))
@@ -139,7 +161,7 @@ def main(argv=None):
         f"lateral DPs run {stats['lateral_dp']} of {slots} real–real pair-rounds "
         f"({stats['lateral_skipped'] / slots:.0%} skipped; {real_pairs} real–real pairs per round)"
     )
-    path = write_json("trees" + ("_quick" if args.quick else ""), results)
+    path = write_json(name, results)
     print("wrote", path)
 
 
