@@ -455,7 +455,7 @@ def root_to_level_arrays(
     lat_radius = np.zeros((capacity, n_points))
     attach = np.zeros((capacity,))
     mask = np.zeros((capacity,), dtype=bool)
-    placed = []  # each lateral's polyline as resampled (joined to the main root, shifted)
+    placed = []  # each lateral's polyline joined to the main root, before the resampling shift
     for k, (lat, s) in enumerate(zip(root.laterals, root.attach)):
         lat = o + (lat.astype(np.float64) - o) * scale
         radius = None
@@ -469,13 +469,13 @@ def root_to_level_arrays(
                 radius = np.concatenate([radius[:1], radius])
         # Resampling the main root moves its points slightly (chords); move the lateral with it
         # so that it starts exactly at the resampled main root's point at `attach`.
+        placed.append(lat)
         lat = lat + (_point_at_fraction(main_resampled, float(s)) - base)
         lats[k] = resample_polyline(lat, n_points)
         if radius is not None:
             lat_radius[k] = resample_values(lat, radius, n_points)
         attach[k] = s
         mask[k] = True
-        placed.append(lat)
     for k in range(root.n_laterals, capacity):
         lats[k] = np.repeat(main_resampled[:1], n_points, axis=0)
     levels = _deeper_levels(root, placed, lats, capacities, n_points=n_points, origin=o, scale=scale)
@@ -535,7 +535,8 @@ def _deeper_levels(root, placed, lats, capacities, *, n_points, origin, scale):
         return levels
 
     def fill(node: Root | None, slot: tuple, parent_poly, parent_res, ell: int):
-        """Children (level ell) of the branch at `slot` (level ell − 1), placed on `parent_poly`."""
+        """Children (level ell) of the branch at `slot` (level ell − 1): joined to `parent_poly`
+        (the parent in the input's frame), then moved with it onto `parent_res` (resampled)."""
         curves, attach, mask, radius = levels[ell - 2]
         if node is None or node.n_laterals == 0:
             return
@@ -557,6 +558,9 @@ def _deeper_levels(root, placed, lats, capacities, *, n_points, origin, scale):
                 poly = np.concatenate([base[None], poly], axis=0)
                 if rad is not None:
                     rad = np.concatenate([rad[:1], rad])
+            # Children are placed on this polyline before it moves with its parent's resampling
+            # (their coordinates are in the frame of the input, as the parent's are).
+            joined = poly
             poly = poly + (_point_at_fraction(parent_res, frac) - base)
             here = slot + (k,)
             curves[here] = resample_polyline(poly, n_points)
@@ -566,7 +570,7 @@ def _deeper_levels(root, placed, lats, capacities, *, n_points, origin, scale):
             mask[here] = True
             if ell < len(capacities):
                 grand = node.children[k] if node.children else None
-                fill(grand, here, poly, curves[here], ell + 1)
+                fill(grand, here, joined, curves[here], ell + 1)
 
     def fill_nulls(slot: tuple, ell: int):
         # Every descendant slot of a null or childless branch collapses to its first point.
