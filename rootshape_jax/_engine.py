@@ -433,32 +433,43 @@ def child_lower_bounds(p: Prepared, O: Float[Array, "B d d"]) -> Float[Array, "B
     matrix, so its cost is at least the sum of the row minima, and of the column minima.
     """
     la, lb = p.a.deeper[0], p.b.deeper[0]
-    (ca, ha), (cb, hb) = p.child_cone_a, p.child_cone_b
-    dtype = p.La.dtype
-    # Layout [B, i, j, k, l]: lateral i of a, lateral j of b, their children k and l.
-    if ca.shape[-1] == O.shape[-1]:
-        cos_axes = jnp.einsum("bike,bjld,bed->bijkl", ca, cb, O)
-    else:
-        cos_axes = jnp.einsum("bike,bjle->bijkl", ca, rotate_batch(cb, O))
-    half_a, half_b = ha[:, :, None, :, None], hb[:, None, :, None, :]
-    cap = _cone_cap(cos_axes, half_a + half_b, dtype)
-    cap = jnp.where((half_a < jnp.pi / 2) & (half_b < jnp.pi / 2), cap, 1.0)
-    La = (l2_norm_squared(la.q) * la.mask)[:, :, None, :, None]
-    Lb = (l2_norm_squared(lb.q) * lb.mask)[:, None, :, None, :]
-    energy = jnp.maximum(La + Lb - 2 * cap * jnp.sqrt(La * Lb), 0.0)
-    # The terms read only the attachments of the two sides; broadcast to [B, i, j, k, l].
-    side_a = types.SimpleNamespace(s=la.s[:, :, None, :])
-    side_b = types.SimpleNamespace(s=lb.s[:, None, :, :])
-    real_real = pair_lower_bounds(p.weights, side_a, side_b, energy)
     lam = p.lam_lateral
+    La = l2_norm_squared(la.q) * la.mask
+    Lb = l2_norm_squared(lb.q) * lb.mask
     sub_a = descendant_norms(p.a.deeper[1:], lam)
     sub_b = descendant_norms(p.b.deeper[1:], lam)
-    own_a = lam * La + (0.0 if sub_a is None else sub_a[:, :, None, :, None])
-    own_b = lam * Lb + (0.0 if sub_b is None else sub_b[:, None, :, None, :])
-    ma, mb = la.mask[:, :, None, :, None], lb.mask[:, None, :, None, :]
-    M = jnp.where(ma & mb, real_real, jnp.where(ma, own_a, jnp.where(mb, own_b, 0.0)))
-    rows = jnp.sum(jnp.min(M, axis=4), axis=3)
-    cols = jnp.sum(jnp.min(M, axis=3), axis=3)
+    # What leaving a child unmatched costs: its own norm and its whole subtree's.
+    own_a = lam * La + (0.0 if sub_a is None else sub_a)
+    own_b = lam * Lb + (0.0 if sub_b is None else sub_b)
+    rows = (p.child_cone_a, p.child_cone_b, O, La, Lb, la.s, lb.s, la.mask, lb.mask, own_a, own_b)
+    # One pair at a time: the [K, K, K2, K2] table of a pair is the largest array here.
+    return lax.map(lambda r: _child_bound_one(p.weights, *r), rows)
+
+
+def _child_bound_one(weights, cone_a, cone_b, O, La, Lb, sa, sb, ma, mb, own_a, own_b):
+    """`child_lower_bounds` of one pair (no batch axis); layout [i, j, k, l]: lateral i of a,
+    lateral j of b, their children k and l."""
+    (ca, ha), (cb, hb) = cone_a, cone_b
+    dtype = La.dtype
+    if ca.shape[-1] == O.shape[-1]:
+        cos_axes = jnp.einsum("ike,jld,ed->ijkl", ca, cb, O)
+    else:
+        cos_axes = jnp.einsum("ike,jle->ijkl", ca, rotate_srvf(cb, O))
+    half_a, half_b = ha[:, None, :, None], hb[None, :, None, :]
+    cap = _cone_cap(cos_axes, half_a + half_b, dtype)
+    cap = jnp.where((half_a < jnp.pi / 2) & (half_b < jnp.pi / 2), cap, 1.0)
+    La, Lb = La[:, None, :, None], Lb[None, :, None, :]
+    energy = jnp.maximum(La + Lb - 2 * cap * jnp.sqrt(La * Lb), 0.0)
+    # The terms read only the attachments of the two sides; broadcast to [i, j, k, l].
+    side_a = types.SimpleNamespace(s=sa[:, None, :])
+    side_b = types.SimpleNamespace(s=sb[None, :, :])
+    real_real = pair_lower_bounds(weights, side_a, side_b, energy)
+    ma, mb = ma[:, None, :, None], mb[None, :, None, :]
+    M = jnp.where(
+        ma & mb, real_real, jnp.where(ma, own_a[:, None, :, None], jnp.where(mb, own_b[None, :, None, :], 0.0))
+    )
+    rows = jnp.sum(jnp.min(M, axis=3), axis=2)
+    cols = jnp.sum(jnp.min(M, axis=2), axis=2)
     return jnp.maximum(rows, cols)
 
 
