@@ -977,10 +977,11 @@ def pair_distances_squared(
     a: SRVFTree, b: SRVFTree, weights: Weights, options: RegistrationOptions, active=None
 ) -> tuple[Array, Array, Array]:
     """Symmetric squared distances of a batch of pairs (canonical order, `canonical_pairs`):
-    (energies, lateral DPs run, lateral DPs skipped). Differentiable in a and b."""
+    (energies, lateral DPs run, lateral DPs skipped, DPs run per deeper level ``[B, D − 2]``).
+    Differentiable in a and b."""
     a, b = canonical_pairs(a, b)
     reg = register_pairs(a, b, weights, options, active)
-    return reg.energy, reg.n_lateral_dp, reg.n_lateral_skipped
+    return reg.energy, reg.n_lateral_dp, reg.n_lateral_skipped, reg.n_deeper_dp
 
 
 # --------------------------------------------------------------------------------------------
