@@ -8,6 +8,7 @@ import dataclasses
 import warnings
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -478,9 +479,19 @@ def test_simulated_roots_keep_higher_orders():
 
     (root,) = simulated_roots("lupin", 1, days=25, seed=1, dim=2)
     n2 = sum(c.n_laterals for c in root.children)
-    assert len(root.children) == root.n_laterals and n2 > 0
-    t = rs.batch(root, n_points=20, depth=3)
+    n3 = sum(g.n_laterals for c in root.children for g in c.children)
+
+    def below(r):  # every lateral of r's laterals, at any depth
+        return sum(c.n_laterals + below(c) for c in r.children)
+
+    n_deep = sum(below(c) for c in root.children)
+    assert len(root.children) == root.n_laterals and n2 > 0 and n3 > 0 and n_deep >= n3
+    with pytest.warns(UserWarning, match=f"{n_deep} laterals of order 3"):
+        t = rs.batch(root, n_points=20, depth=3)
     assert int(t.deeper[0].mask.sum()) == n2
+    with pytest.warns(UserWarning, match=f"{n_deep - n3} laterals of order 4"):
+        t4 = rs.batch(root, n_points=20, depth=4)
+    assert int(t4.deeper[1].mask.sum()) == n3
 
 
 # --------------------------------------------------------------------------------------------
@@ -573,3 +584,18 @@ def test_reference_at_depth_three_properties():
         jnp.sum(rs.l2_norm_squared(t.deeper[0].q[k]))
     )
     assert e_cut == pytest.approx(subtree, rel=1e-9)
+
+
+@pytest.mark.slow
+def test_plant_systems_register_today_without_nan():
+    # The engine (depth 2 today) on systems with a virtual zero-length main root: the main
+    # term vanishes and the axes are matched as laterals; nothing is NaN.
+    rng = np.random.default_rng(13)
+    axes = [random_root(rng, n_laterals=2) for _ in range(3)]
+    plants = [plant_system(axes[:2]), plant_system(axes[2:])]
+    ta, tb = rs.unstack(rs.batch(plants, n_points=12, normalise_scale=True, dtype=np.float64))
+    reg = rs.register(ta, tb, neighbourhood=3)
+    assert float(reg.terms.main) == 0.0
+    assert np.isfinite(float(reg.energy)) and float(reg.energy) > 0
+    g = jax.grad(lambda x: rs.distance(eqx.tree_at(lambda t: t.laterals, ta, x), tb, neighbourhood=3))(ta.laterals)
+    assert np.all(np.isfinite(np.asarray(g))) and np.any(np.asarray(g) != 0)
