@@ -8,6 +8,7 @@ import dataclasses
 import warnings
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -181,7 +182,11 @@ def test_truncation_warns_once_with_the_number_left_out():
 def test_batch_to_roots_batch_round_trip(depth):
     rng = np.random.default_rng(4 + depth)
     roots = [deep_root(rng, n_laterals=3, max_sub=2, sub_sub=2, radius=True) for _ in range(2)]
-    t = rs.batch(roots, n_points=60, depth=depth, dtype=np.float64)
+    if depth == 3:  # the third-order laterals are left out, with a warning
+        with pytest.warns(UserWarning, match="laterals of order 3"):
+            t = rs.batch(roots, n_points=60, depth=depth, dtype=np.float64)
+    else:
+        t = rs.batch(roots, n_points=60, depth=depth, dtype=np.float64)
     back = rs.to_roots(t)
 
     def shape(r, level):
@@ -353,7 +358,8 @@ def test_read_rsml_by_plant_on_a_hand_built_file(tmp_path):
     np.testing.assert_array_equal(a.main_radius, [0.0, 0.0])
     assert b.main_radius is None
     # Orders: axes are level 1, their laterals level 2, the order-3 root of A1a is level 3.
-    t = rs.batch(plants, n_points=10, depth=4, dtype=np.float64)
+    with pytest.warns(UserWarning, match="'plants/B' has no radius data"):
+        t = rs.batch(plants, n_points=10, depth=4, dtype=np.float64)
     assert [int(x) for x in t.mask.sum(1)] == [2, 1]
     assert int(t.deeper[0].mask.sum()) == 2 and int(t.deeper[1].mask.sum()) == 1
     assert rs.traits(a)["n_laterals_order3"] == 1
@@ -478,9 +484,19 @@ def test_simulated_roots_keep_higher_orders():
 
     (root,) = simulated_roots("lupin", 1, days=25, seed=1, dim=2)
     n2 = sum(c.n_laterals for c in root.children)
-    assert len(root.children) == root.n_laterals and n2 > 0
-    t = rs.batch(root, n_points=20, depth=3)
+    n3 = sum(g.n_laterals for c in root.children for g in c.children)
+
+    def below(r):  # every lateral of r's laterals, at any depth
+        return sum(c.n_laterals + below(c) for c in r.children)
+
+    n_deep = sum(below(c) for c in root.children)
+    assert len(root.children) == root.n_laterals and n2 > 0 and n3 > 0 and n_deep >= n3
+    with pytest.warns(UserWarning, match=f"{n_deep} laterals of order 3"):
+        t = rs.batch(root, n_points=20, depth=3)
     assert int(t.deeper[0].mask.sum()) == n2
+    with pytest.warns(UserWarning, match=f"{n_deep - n3} laterals of order 4"):
+        t4 = rs.batch(root, n_points=20, depth=4)
+    assert int(t4.deeper[1].mask.sum()) == n3
 
 
 # --------------------------------------------------------------------------------------------
@@ -573,3 +589,18 @@ def test_reference_at_depth_three_properties():
         jnp.sum(rs.l2_norm_squared(t.deeper[0].q[k]))
     )
     assert e_cut == pytest.approx(subtree, rel=1e-9)
+
+
+@pytest.mark.slow
+def test_plant_systems_register_today_without_nan():
+    # The engine (depth 2 today) on systems with a virtual zero-length main root: the main
+    # term vanishes and the axes are matched as laterals; nothing is NaN.
+    rng = np.random.default_rng(13)
+    axes = [random_root(rng, n_laterals=2) for _ in range(3)]
+    plants = [plant_system(axes[:2]), plant_system(axes[2:])]
+    ta, tb = rs.unstack(rs.batch(plants, n_points=12, normalise_scale=True, dtype=np.float64))
+    reg = rs.register(ta, tb, neighbourhood=3)
+    assert float(reg.terms.main) == 0.0
+    assert np.isfinite(float(reg.energy)) and float(reg.energy) > 0
+    g = jax.grad(lambda x: rs.distance(eqx.tree_at(lambda t: t.laterals, ta, x), tb, neighbourhood=3))(ta.laterals)
+    assert np.all(np.isfinite(np.asarray(g))) and np.any(np.asarray(g) != 0)
