@@ -90,7 +90,9 @@ from ._root import Root as Root, limit_laterals as limit_laterals
 from ._rotation import optimal_rotation as optimal_rotation
 from ._traits import trait_column as trait_column, traits as traits, traits_to_csv as traits_to_csv
 from ._tree import (
+    BranchLevel as BranchLevel,
     RootTree as RootTree,
+    SRVFLevel as SRVFLevel,
     SRVFTree as SRVFTree,
     batch as batch,
     scale_tree as scale_tree,

@@ -24,6 +24,7 @@ projection and the Dask blocks all call `register_pairs`.
 from __future__ import annotations
 
 import functools
+import types
 
 import equinox as eqx
 import jax
@@ -37,7 +38,7 @@ from ._curves import l2_norm_squared, safe_norm, safe_normalise, safe_sqrt, tiny
 from ._devices import split_over_devices
 from ._metric import MetricTerms, Weights, level_weight, null_costs, pair_costs, pair_lower_bounds, preshape_terms
 from ._rotation import optimal_rotation
-from ._tree import SRVFTree
+from ._tree import SRVFLevel, SRVFTree
 from ._warp import apply_warp_srvf, dp_warp_if
 
 # --------------------------------------------------------------------------------------------
@@ -177,6 +178,11 @@ class Registration(eqx.Module):
     - `n_iterations`: rotation ↔ correspondence alternations performed.
     - `n_lateral_dp`: lateral DP warps actually run; `n_lateral_skipped`: real–real lateral
       pairs, summed over rounds, whose DP the exact lower bound made unnecessary.
+    - `child_permutations`, `child_warps` (depth D > 2, docs/design.md §11): one entry per
+      deeper level ℓ = 2 … D−1, shaped ``[K1, …, Kℓ]`` and ``[K1, …, Kℓ, T]``: under slot
+      ``(k1, …)`` of `registered`, child slot kℓ holds child ``child_permutations[ℓ−2][k1, …, kℓ]``
+      of the branch placed in the parent slot, warped by the matching warp. ``()`` at depth 2.
+    - `n_deeper_dp`: ``[D − 2]`` DP warps run per deeper level (``[0]`` entries at depth 2).
     """
 
     registered: SRVFTree
@@ -188,6 +194,9 @@ class Registration(eqx.Module):
     n_iterations: Int[Array, "*B"]
     n_lateral_dp: Int[Array, "*B"]
     n_lateral_skipped: Int[Array, "*B"]
+    child_permutations: tuple = ()
+    child_warps: tuple = ()
+    n_deeper_dp: Int[Array, "*B L"] | None = None
 
     @property
     def energy(self) -> Float[Array, "*B"]:
@@ -311,6 +320,36 @@ class Prepared(eqx.Module):
     dir_a: Array  # [B, K, T, C] unit direction of each node of a (0 where q = 0)
     mass_a: Array  # [B, K, T] trapezoid weight times |q|² of each node of a
     blocks_b: tuple  # block cones of b (`block_cones`): axes [B, K, N_BLOCKS, C], half-angles
+    # Depth D > 2 only (None otherwise): direction cones of the children of every lateral.
+    child_cone_a: tuple | None = None  # axes [B, K, K2, C], half-angles [B, K, K2]
+    child_cone_b: tuple | None = None
+
+
+def descendant_norms(levels: tuple, lam) -> Array | None:
+    """λ-weighted squared norms of every branch's descendants, summed per parent slot of
+    ``levels[0]`` (shape ``levels[0].mask.shape[:-1]``): what leaving the parent unmatched
+    costs below it. None when there are no levels."""
+    acc = None
+    for lv in reversed(levels):
+        own = lam * l2_norm_squared(lv.q) * lv.mask
+        acc = own if acc is None else own + jnp.sum(acc, axis=-1)
+    return None if acc is None else jnp.sum(acc, axis=-1)
+
+
+def children_of(t: SRVFTree, bi: Array, i: Array) -> SRVFTree:
+    """The children of branch ``(bi[k], i[k])`` of a batch of trees, with their own
+    descendants, as a batch of trees without a main root (its slot holds zeros)."""
+    lv = t.deeper[0]
+    q = lv.q[bi, i]
+    q0 = jnp.zeros(q.shape[:1] + q.shape[2:], q.dtype)
+    return SRVFTree(
+        q0=q0,
+        q=q,
+        s=lv.s[bi, i],
+        mask=lv.mask[bi, i],
+        origin=jnp.zeros(q.shape[:1] + (t.dim,), q.dtype),
+        deeper=tuple(SRVFLevel(q=x.q[bi, i], s=x.s[bi, i], mask=x.mask[bi, i]) for x in t.deeper[1:]),
+    )
 
 
 def prepare(a: SRVFTree, b: SRVFTree, weights: Weights) -> Prepared:
@@ -322,6 +361,13 @@ def prepare(a: SRVFTree, b: SRVFTree, weights: Weights) -> Prepared:
     Lb = l2_norm_squared(b.q) * b.mask
     both = a.mask[:, :, None] & b.mask[:, None, :]
     others = null_costs(weights, a, b, La, Lb)
+    child_cones = (None, None)
+    if a.deeper:
+        # A real lateral left unmatched costs its whole subtree (docs/design.md §11).
+        sub_a, sub_b = descendant_norms(a.deeper, lam_s), descendant_norms(b.deeper, lam_s)
+        below = jnp.where(a.mask[:, :, None], sub_a[:, :, None], jnp.where(b.mask[:, None, :], sub_b[:, None, :], 0.0))
+        others = others + below
+        child_cones = (direction_cone(a.deeper[0].q), direction_cone(b.deeper[0].q))
     fixed = pair_costs(weights, a, b).astype(dtype)
     T = a.q.shape[-2]
     mass_a = jnp.sum(a.q**2, axis=-1) * trapezoid_weights(T, dtype)
@@ -341,6 +387,7 @@ def prepare(a: SRVFTree, b: SRVFTree, weights: Weights) -> Prepared:
         safe_normalise(a.q),
         mass_a,
         block_cones(b.q, min(N_BLOCKS, T - 1)),
+        *child_cones,
     )
 
 
@@ -373,6 +420,57 @@ def lower_bounds(p: Prepared, O: Float[Array, "B d d"]) -> Float[Array, "B K K"]
     cos_cap = jnp.where(convex, cos_cap, 1.0)
     sqrt_LaLb = jnp.sqrt(p.La)[:, :, None] * jnp.sqrt(p.Lb)[:, None, :]
     return jnp.maximum(p.La[:, :, None] + p.Lb[:, None, :] - 2 * cos_cap * sqrt_LaLb, 0.0)
+
+
+def child_lower_bounds(p: Prepared, O: Float[Array, "B d d"]) -> Float[Array, "B K K"]:
+    """Depth D > 2: a lower bound of the exact assignment cost of the children of every
+    lateral pair (i, j), without any DP.
+
+    Why it is a bound: each child pair's cost is bounded below as a lateral pair's is
+    (`lower_bounds`, the cone bound of its branch energy, plus its exact DP-free terms; the
+    cost of its own children, ≥ 0, is bounded by 0), and a child left unmatched costs its
+    exact subtree norm. Every assignment picks one entry per row (and per column) of that
+    matrix, so its cost is at least the sum of the row minima, and of the column minima.
+    """
+    la, lb = p.a.deeper[0], p.b.deeper[0]
+    lam = p.lam_lateral
+    La = l2_norm_squared(la.q) * la.mask
+    Lb = l2_norm_squared(lb.q) * lb.mask
+    sub_a = descendant_norms(p.a.deeper[1:], lam)
+    sub_b = descendant_norms(p.b.deeper[1:], lam)
+    # What leaving a child unmatched costs: its own norm and its whole subtree's.
+    own_a = lam * La + (0.0 if sub_a is None else sub_a)
+    own_b = lam * Lb + (0.0 if sub_b is None else sub_b)
+    rows = (p.child_cone_a, p.child_cone_b, O, La, Lb, la.s, lb.s, la.mask, lb.mask, own_a, own_b)
+    # One pair at a time: the [K, K, K2, K2] table of a pair is the largest array here.
+    return lax.map(lambda r: _child_bound_one(p.weights, *r), rows)
+
+
+def _child_bound_one(weights, cone_a, cone_b, O, La, Lb, sa, sb, ma, mb, own_a, own_b):
+    """`child_lower_bounds` of one pair (no batch axis); layout [i, j, k, l]: lateral i of a,
+    lateral j of b, their children k and l."""
+    (ca, ha), (cb, hb) = cone_a, cone_b
+    dtype = La.dtype
+    if ca.shape[-1] == O.shape[-1]:
+        cos_axes = jnp.einsum("ike,jld,ed->ijkl", ca, cb, O)
+    else:
+        cos_axes = jnp.einsum("ike,jle->ijkl", ca, rotate_srvf(cb, O))
+    half_a, half_b = ha[:, None, :, None], hb[None, :, None, :]
+    cap = _cone_cap(cos_axes, half_a + half_b, dtype)
+    cap = jnp.where((half_a < jnp.pi / 2) & (half_b < jnp.pi / 2), cap, 1.0)
+    La, Lb = La[:, None, :, None], Lb[None, :, None, :]
+    energy = jnp.maximum(La + Lb - 2 * cap * jnp.sqrt(La * Lb), 0.0)
+    # The terms read only the attachments of the two sides; broadcast to [i, j, k, l].
+    side_a = types.SimpleNamespace(s=sa[:, None, :])
+    side_b = types.SimpleNamespace(s=sb[None, :, :])
+    real_real = pair_lower_bounds(weights, side_a, side_b, energy)
+    ma, mb = ma[:, None, :, None], mb[None, :, None, :]
+    M = jnp.where(
+        ma & mb, real_real, jnp.where(ma, own_a[:, None, :, None], jnp.where(mb, own_b[None, :, None, :], 0.0))
+    )
+    rows = jnp.sum(jnp.min(M, axis=3), axis=2)
+    cols = jnp.sum(jnp.min(M, axis=2), axis=2)
+    return jnp.maximum(rows, cols)
 
 
 def bound_costs(p: Prepared, energy_bound: Float[Array, "B K K"]) -> Float[Array, "B K K"]:
@@ -463,7 +561,16 @@ def run_dp_slabs(need, pair_of, E, G=None, *, neighbourhood: int, dp_batch_size:
     return run_in_slabs(need, step, (E, G), slab=_slab_size(n_items, dp_batch_size))
 
 
-def lazy_assignment(p: Prepared, qb: Array, axes_b: Array, energy_bound: Array, rows: Array, options):
+def lazy_assignment(
+    p: Prepared,
+    qb: Array,
+    axes_b: Array,
+    energy_bound: Array,
+    rows: Array,
+    options,
+    O: Array | None = None,
+    child_bound: Array | None = None,
+):
     """Exact optimal lateral correspondence at one rotation, running as few DPs as possible.
 
     The assignment is solved with lower bounds in place of the lateral costs not computed yet.
@@ -472,11 +579,19 @@ def lazy_assignment(p: Prepared, qb: Array, axes_b: Array, energy_bound: Array, 
     pairs: it is then optimal for the true costs too, since every uncomputed cost is at least
     its bound (`lower_bounds`). With ``prune=False`` every real–real DP is run up front (the
     reference behaviour). Returns (cost matrix, permutation, pairs computed, their warps
-    ``[B, K, K, T]``: kept, so the matched pairs' DPs are not solved twice).
+    ``[B, K, K, T]``: kept, so the matched pairs' DPs are not solved twice, DPs run per deeper
+    level ``[B, D − 2]``).
+
+    Depth D > 2 (docs/design.md §11): a real–real pair's cost also holds the exact assignment
+    cost of the two laterals' children at the rotations O (`child_assignment`, the same
+    procedure one level down). Until a pair is computed its bound holds `child_bound`
+    (`child_lower_bounds`); computing it runs its DP and its children's assignment together,
+    so nested costs whose bound already loses are never computed.
     """
     B, K = p.La.shape
     dtype = p.La.dtype
     n_items = B * K * K
+    n_below = len(p.a.deeper)
     solve = jax.vmap(lambda c: linear_assignment(c, method=options.assignment))
     slabs = functools.partial(run_dp_slabs, neighbourhood=options.neighbourhood, dp_batch_size=options.dp_batch_size)
 
@@ -493,9 +608,32 @@ def lazy_assignment(p: Prepared, qb: Array, axes_b: Array, energy_bound: Array, 
 
         return run_in_slabs(need, step, bound, slab=_slab_size(n_items, 128))
 
-    def costs(E, computed, bound):
+    def children(need, A, counts):
+        def step(lanes, carry):
+            A, counts = carry
+            safe = jnp.clip(lanes, 0, n_items - 1)
+            bi, rem = jnp.divmod(safe, K * K)
+            i, j = jnp.divmod(rem, K)
+            total, n_dp = child_assignment(
+                children_of(p.a, bi, i), children_of(p.b, bi, j), p.weights, O[bi], lanes < n_items, options
+            )
+            return A.at[lanes].set(total, mode="drop"), counts.at[lanes].set(n_dp, mode="drop")
+
+        return run_in_slabs(need, step, (A, counts), slab=_slab_size(n_items, 32))
+
+    def exact(need, E, G, A, counts):
+        E, G = slabs(need, lateral_pair, E, G)
+        if n_below:
+            A, counts = children(need, A, counts)
+        return E, G, A, counts
+
+    def costs(E, A, computed, bound):
         known = p.lam_lateral * E.reshape(B, K, K) + p.fixed
-        return jnp.where(computed.reshape(B, K, K), known, bound_costs(p, bound.reshape(B, K, K)))
+        unknown = bound_costs(p, bound.reshape(B, K, K))
+        if n_below:
+            known = known + A.reshape(B, K, K)
+            unknown = unknown + jnp.where(p.both, child_bound, 0.0)
+        return jnp.where(computed.reshape(B, K, K), known, unknown)
 
     def picks(perm, computed):
         chosen = jax.nn.one_hot(perm, K, dtype=bool)
@@ -504,29 +642,105 @@ def lazy_assignment(p: Prepared, qb: Array, axes_b: Array, energy_bound: Array, 
     computed = p.both & rows[:, None, None] if not options.prune else jnp.zeros_like(p.both)
     computed = computed.reshape(-1)
     T = qb.shape[-2]
-    E, G = slabs(computed, lateral_pair, jnp.zeros((n_items,), dtype), jnp.zeros((n_items, T), dtype))
+    E, G, A, counts = exact(
+        computed,
+        jnp.zeros((n_items,), dtype),
+        jnp.zeros((n_items, T), dtype),
+        jnp.zeros((n_items,), dtype),
+        jnp.zeros((n_items, n_below), jnp.int32),
+    )
     bound = energy_bound.reshape(-1)
 
     def body(state):
-        E, G, computed, refined, bound, _, chosen = state
+        E, G, A, counts, computed, refined, bound, _, chosen = state
         bound = refine(chosen & ~refined, bound)
-        E, G = slabs(chosen & refined, lateral_pair, E, G)
+        E, G, A, counts = exact(chosen & refined, E, G, A, counts)
         computed = computed | (chosen & refined)
         refined = refined | chosen
-        perm = solve(costs(E, computed, bound))
-        return E, G, computed, refined, bound, perm, picks(perm, computed)
+        perm = solve(costs(E, A, computed, bound))
+        return E, G, A, counts, computed, refined, bound, perm, picks(perm, computed)
 
-    perm = solve(costs(E, computed, bound))
-    state = (E, G, computed, jnp.zeros_like(computed), bound, perm, picks(perm, computed))
-    E, G, computed, _, bound, perm, _ = lax.while_loop(lambda s: jnp.any(s[-1]), body, state)
-    return costs(E, computed, bound), perm, computed.reshape(B, K, K), G.reshape(B, K, K, T)
+    perm = solve(costs(E, A, computed, bound))
+    state = (E, G, A, counts, computed, jnp.zeros_like(computed), bound, perm, picks(perm, computed))
+    E, G, A, counts, computed, _, bound, perm, _ = lax.while_loop(lambda s: jnp.any(s[-1]), body, state)
+    below = jnp.sum(counts.reshape(B, K * K, n_below), axis=1, dtype=jnp.int32)
+    return costs(E, A, computed, bound), perm, computed.reshape(B, K, K), G.reshape(B, K, K, T), below
+
+
+def _assign_children(a: SRVFTree, b: SRVFTree, weights: Weights, O: Array, active: Array, options):
+    """The lazy assignment of a batch of children sets (b's rotated by O)."""
+    p = prepare(a, b, weights)
+    qb = rotate_batch(b.q, O)
+    axes_b = rotate_batch(p.blocks_b[0], O)
+    child_bound = child_lower_bounds(p, O) if a.deeper else None
+    return p, lazy_assignment(p, qb, axes_b, lower_bounds(p, O), active, options, O, child_bound)
+
+
+def child_assignment(a: SRVFTree, b: SRVFTree, weights: Weights, O: Array, active: Array, options):
+    """Exact assignment cost of a batch of children sets (`children_of`) at rotations O, and
+    the DPs it ran per level ``[S, levels below a's top level + 1]``."""
+    p, (C, perm, computed, _, below) = _assign_children(a, b, weights, O, active, options)
+    total = jnp.sum(jnp.take_along_axis(C, perm[:, :, None], axis=2)[:, :, 0], axis=1)
+    n_dp = jnp.sum(computed.reshape(computed.shape[0], -1), axis=1, dtype=jnp.int32)
+    return jnp.where(active, total, 0.0), jnp.concatenate([n_dp[:, None], below], axis=1)
+
+
+def child_registrations(p: Prepared, O: Array, perm: Array, matched: Array, options) -> tuple[list, Array]:
+    """Depth D > 2: the children's registrations under every matched real–real lateral pair
+    (lateral i of a with ``perm[i]`` of b): one ``(permutation, warps)`` per deeper level,
+    shaped ``[B, K, K2, …]`` and ``[B, K, K2, …, T]`` (identity where not matched), and the
+    DPs run per deeper level ``[B, D − 2]``. Solving the matched pairs' children again costs a
+    few DPs and keeps no warps of unmatched pairs in memory."""
+    B, K = perm.shape
+    n_items = B * K
+    T = p.a.q.shape[-2]
+    dtype = p.La.dtype
+
+    def identity_like(lv):
+        shape = lv.mask.shape
+        return (
+            jnp.broadcast_to(jnp.arange(shape[-1]), shape).reshape((n_items,) + shape[2:]),
+            jnp.broadcast_to(_identity_grid(T, dtype), shape + (T,)).reshape((n_items,) + shape[2:] + (T,)),
+        )
+
+    regs = [identity_like(lv) for lv in p.a.deeper]
+    counts = jnp.zeros((n_items, len(p.a.deeper)), jnp.int32)
+
+    def step(lanes, carry):
+        regs, counts = carry
+        safe = jnp.clip(lanes, 0, n_items - 1)
+        bi, i = jnp.divmod(safe, K)
+        a_c, b_c = children_of(p.a, bi, i), children_of(p.b, bi, perm[bi, i])
+        active = lanes < n_items
+        pc, (_, perm_c, computed, G, _) = _assign_children(a_c, b_c, p.weights, O[bi], active, options)
+        S, K2 = perm_c.shape
+        both = jnp.any(jax.nn.one_hot(perm_c, K2, dtype=bool) & pc.both, axis=2) & active[:, None]
+        gam = jnp.take_along_axis(G, perm_c[:, :, None, None], axis=2)[:, :, 0]
+        gam = jnp.where(both[..., None], gam, _identity_grid(T, dtype))
+        new = [(perm_c, gam)]
+        n_dp = jnp.sum(computed.reshape(S, -1), axis=1, dtype=jnp.int32)[:, None]
+        if a_c.deeper:
+            below, below_dp = child_registrations(pc, O[bi], perm_c, both, options)
+            new += [(pm.reshape((S, K2) + pm.shape[2:]), gm.reshape((S, K2) + gm.shape[2:])) for pm, gm in below]
+            n_dp = jnp.concatenate([n_dp, below_dp], axis=1)
+        regs = [
+            (pm.at[lanes].set(npm, mode="drop"), gm.at[lanes].set(ngm, mode="drop"))
+            for (pm, gm), (npm, ngm) in zip(regs, new)
+        ]
+        return regs, counts.at[lanes].set(n_dp, mode="drop")
+
+    regs, counts = run_in_slabs(matched.reshape(-1), step, (regs, counts), slab=_slab_size(n_items, 32))
+    regs = [(pm.reshape((B, K) + pm.shape[1:]), gm.reshape((B, K) + gm.shape[1:])) for pm, gm in regs]
+    return regs, jnp.sum(counts.reshape(B, K, -1), axis=1, dtype=jnp.int32)
 
 
 def evaluate(p: Prepared, O: Array, rows: Array, options: RegistrationOptions):
     """Energy, permutation and warps of every pair at rotations O (rows: pairs to do).
 
     The lateral warps of the matching are those the assignment's DPs found (`lazy_assignment`
-    keeps them); the main roots' DPs are run here.
+    keeps them); the main roots' DPs are run here. Depth D > 2: also the children's
+    registrations under every matched lateral pair (`child_registrations`) and the DPs run
+    per deeper level.
     """
     a, b = p.a, p.b
     B, K, T, _ = b.q.shape
@@ -534,7 +748,8 @@ def evaluate(p: Prepared, O: Array, rows: Array, options: RegistrationOptions):
     qb0 = rotate_batch(b.q0, O)
     qb = rotate_batch(b.q, O)
     axes_b = rotate_batch(p.blocks_b[0], O)
-    C, perm, computed, G = lazy_assignment(p, qb, axes_b, lower_bounds(p, O), rows, options)
+    child_bound = child_lower_bounds(p, O) if a.deeper else None
+    C, perm, computed, G, below_dp = lazy_assignment(p, qb, axes_b, lower_bounds(p, O), rows, options, O, child_bound)
     lap = jnp.sum(jnp.take_along_axis(C, perm[:, :, None], axis=2)[:, :, 0], axis=1)
 
     # Matched real-real slots take their DP's warp; every other slot the identity.
@@ -551,11 +766,31 @@ def evaluate(p: Prepared, O: Array, rows: Array, options: RegistrationOptions):
         dp_batch_size=options.dp_batch_size,
     )
     n_dp = jnp.sum(computed.reshape(B, K * K), axis=1, dtype=jnp.int32)
-    return p.lam_main * Em + lap, perm, g0, gam, n_dp
+    children = []
+    if a.deeper:
+        children, again = child_registrations(p, O, perm, matched, options)
+        below_dp = below_dp + again
+    return p.lam_main * Em + lap, perm, g0, gam, n_dp, children, below_dp
 
 
-def refit_rotation(p: Prepared, perm: Array, g0: Array, gam: Array) -> Array:
-    """Weighted Kabsch over every matched branch (spatial channels), with the metric's weights."""
+def reorder_level(x: Array, perms: list) -> Array:
+    """A deeper level's array ``[B, K1, …, Kℓ, …]`` of b put into a's slot order, given the
+    permutations of every level down to ℓ (``perms[k]`` shaped ``[B, K1, …, K(k+1)]``)."""
+    for k, pm in enumerate(perms, start=1):
+        idx = pm.reshape(pm.shape + (1,) * (x.ndim - pm.ndim))
+        x = jnp.take_along_axis(x, idx, axis=k)
+    return x
+
+
+def _warp_all(q: Array, gam: Array) -> Array:
+    """`warp_preserving_norm` over any leading axes of q ``[..., T, C]`` and gam ``[..., T]``."""
+    flat = jax.vmap(warp_preserving_norm)(q.reshape((-1,) + q.shape[-2:]), gam.reshape((-1, gam.shape[-1])))
+    return flat.reshape(q.shape)
+
+
+def refit_rotation(p: Prepared, perm: Array, g0: Array, gam: Array, children=()) -> Array:
+    """Weighted Kabsch over every matched branch (spatial channels, every level), with the
+    metric's weights."""
     a, b = p.a, p.b
     B = b.q.shape[0]
     d = a.dim
@@ -567,6 +802,14 @@ def refit_rotation(p: Prepared, perm: Array, g0: Array, gam: Array) -> Array:
     A = jnp.concatenate([a.q0[:, None], a.q], axis=1)[..., :d]
     Bm = jnp.concatenate([q0w[:, None], qw], axis=1)[..., :d]
     w = jnp.concatenate([jnp.broadcast_to(p.lam_main, (B, 1)), p.lam_lateral * (a.mask & mbp).astype(dtype)], axis=1)
+    perms, matched = [perm], a.mask & mbp
+    for la, lb, (pm, gm) in zip(a.deeper, b.deeper, children):
+        perms.append(pm)
+        qb = _warp_all(reorder_level(lb.q, perms), gm)
+        matched = matched[..., None] & la.mask & reorder_level(lb.mask, perms)
+        A = jnp.concatenate([A, la.q.reshape(B, -1, *la.q.shape[-2:])[..., :d]], axis=1)
+        Bm = jnp.concatenate([Bm, qb.reshape(B, -1, *qb.shape[-2:])[..., :d]], axis=1)
+        w = jnp.concatenate([w, p.lam_lateral * matched.reshape(B, -1).astype(dtype)], axis=1)
     return jax.vmap(optimal_rotation)(A, Bm, w)
 
 
@@ -578,6 +821,20 @@ class SearchResult(eqx.Module):
     n_iterations: Array
     n_lateral_dp: Array
     n_lateral_skipped: Array
+    children: tuple = ()  # depth D > 2: (permutation, warps) per deeper level
+    n_deeper_dp: Array | None = None  # [B, D − 2]
+
+
+def _initial_children(p: Prepared) -> list:
+    B, _, T, _ = p.a.q.shape
+    dtype = p.La.dtype
+    return [
+        (
+            jnp.broadcast_to(jnp.arange(lv.mask.shape[-1]), lv.mask.shape),
+            jnp.broadcast_to(_identity_grid(T, dtype), lv.mask.shape + (T,)),
+        )
+        for lv in p.a.deeper
+    ]
 
 
 def search(a: SRVFTree, b: SRVFTree, weights: Weights, active: Array, options: RegistrationOptions) -> SearchResult:
@@ -603,10 +860,10 @@ def search(a: SRVFTree, b: SRVFTree, weights: Weights, active: Array, options: R
         return (it < n_rounds) & jnp.any(~done)
 
     def body(state):
-        it, O, E, perm, g0, gam, done, iters, n_dp = state
+        it, O, E, perm, g0, gam, done, iters, n_dp, children, deeper_dp = state
         # Round 0 evaluates the starting rotation; later rounds refit it to the matching.
-        O_new = lax.cond(it == 0, lambda: O_start, lambda: refit_rotation(p, perm, g0, gam))
-        E_new, perm_new, g0_new, gam_new, n_dp_new = evaluate(p, O_new, ~done, options)
+        O_new = lax.cond(it == 0, lambda: O_start, lambda: refit_rotation(p, perm, g0, gam, children))
+        E_new, perm_new, g0_new, gam_new, n_dp_new, children_new, deeper_new = evaluate(p, O_new, ~done, options)
         better = (E_new < E) & ~done
         rel = jnp.where(jnp.isinf(E), jnp.inf, (E - E_new) / jnp.maximum(E, tiny(dtype)))
 
@@ -618,7 +875,8 @@ def search(a: SRVFTree, b: SRVFTree, weights: Weights, active: Array, options: R
         new = (O_new, E_new, perm_new, g0_new, gam_new)
         old = (O, E, perm, g0, gam)
         O, E, perm, g0, gam = (pick(n, o) for n, o in zip(new, old))
-        return it + 1, O, E, perm, g0, gam, done, iters, n_dp + n_dp_new
+        children = jax.tree.map(pick, children_new, children)
+        return it + 1, O, E, perm, g0, gam, done, iters, n_dp + n_dp_new, children, deeper_dp + deeper_new
 
     state = (
         jnp.asarray(0),
@@ -630,16 +888,19 @@ def search(a: SRVFTree, b: SRVFTree, weights: Weights, active: Array, options: R
         ~active,
         jnp.zeros((B,), jnp.int32),
         jnp.zeros((B,), jnp.int32),
+        _initial_children(p),
+        jnp.zeros((B, len(a.deeper)), jnp.int32),
     )
-    _, O, _, perm, g0, gam, _, iters, n_dp = lax.while_loop(cond, body, state)
+    _, O, _, perm, g0, gam, _, iters, n_dp, children, deeper_dp = lax.while_loop(cond, body, state)
     n_real = jnp.sum(p.both.reshape(B, -1), axis=1, dtype=jnp.int32)
     # Lateral DPs skipped: real-real pairs of every round that were never solved.
     n_skipped = jnp.maximum(n_real * iters - n_dp, 0)
-    return SearchResult(O, perm, g0, gam, iters, n_dp, n_skipped)
+    return SearchResult(O, perm, g0, gam, iters, n_dp, n_skipped, tuple(children), deeper_dp)
 
 
-def apply_registration(a: SRVFTree, b: SRVFTree, O, perm, g0, gam) -> SRVFTree:
-    """b registered into a's slot order (single pair); differentiable in a and b."""
+def apply_registration(a: SRVFTree, b: SRVFTree, O, perm, g0, gam, children=()) -> SRVFTree:
+    """b registered into a's slot order (single pair); differentiable in a and b. Deeper
+    levels (`children`: one (permutation, warps) per level) follow their parents' slots."""
     q0 = warp_preserving_norm(rotate_srvf(b.q0, O), g0)
     qb = rotate_srvf(b.q, O)[perm]
     mb = b.mask[perm]
@@ -648,7 +909,23 @@ def apply_registration(a: SRVFTree, b: SRVFTree, O, perm, g0, gam) -> SRVFTree:
     base = None
     if b.base_radius is not None:
         base = jnp.concatenate([b.base_radius[:1], jnp.where(mb, b.base_radius[1:][perm], a.base_radius[1:])])
-    return SRVFTree(q0=q0, q=qw, s=s, mask=mb, origin=b.origin, base_radius=base, thickness_scale=b.thickness_scale)
+    deeper, perms = [], [perm[None]]
+    for la, lb, (pm, gm) in zip(a.deeper, b.deeper, children):
+        perms.append(pm[None])
+        m = reorder_level(lb.mask[None], perms)[0]
+        q = _warp_all(rotate_srvf(reorder_level(lb.q[None], perms)[0], O), gm) * m[..., None, None]
+        s_b = reorder_level(lb.s[None], perms)[0]
+        deeper.append(SRVFLevel(q=q, s=jnp.where(m, s_b, la.s), mask=m))
+    return SRVFTree(
+        q0=q0,
+        q=qw,
+        s=s,
+        mask=mb,
+        origin=b.origin,
+        base_radius=base,
+        thickness_scale=b.thickness_scale,
+        deeper=tuple(deeper),
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -670,6 +947,8 @@ def _order_key(t: SRVFTree) -> Float[Array, "B F"]:
         jnp.sum(t.q, axis=(-3, -2, -1)),
         jnp.sum(t.origin, axis=-1),
     ]
+    for lv in t.deeper:
+        feats.append(jnp.sum(lv.q.reshape(lv.q.shape[:1] + (-1,)), axis=-1))
     return jnp.stack(feats, axis=-1)
 
 
@@ -698,10 +977,11 @@ def pair_distances_squared(
     a: SRVFTree, b: SRVFTree, weights: Weights, options: RegistrationOptions, active=None
 ) -> tuple[Array, Array, Array]:
     """Symmetric squared distances of a batch of pairs (canonical order, `canonical_pairs`):
-    (energies, lateral DPs run, lateral DPs skipped). Differentiable in a and b."""
+    (energies, lateral DPs run, lateral DPs skipped, DPs run per deeper level ``[B, D − 2]``).
+    Differentiable in a and b."""
     a, b = canonical_pairs(a, b)
     reg = register_pairs(a, b, weights, options, active)
-    return reg.energy, reg.n_lateral_dp, reg.n_lateral_skipped
+    return reg.energy, reg.n_lateral_dp, reg.n_lateral_skipped, reg.n_deeper_dp
 
 
 # --------------------------------------------------------------------------------------------
@@ -727,13 +1007,22 @@ def register_pairs(
     ``split=True`` the pairs are spread over every XLA device. Trace-safe: call it inside
     `eqx.filter_jit` functions; `register_pairs_jit` is the compiled entry for eager callers.
     """
+    if a.deeper and (a.thickness_scale is not None or b.thickness_scale is not None):
+        raise NotImplementedError(
+            "registration of trees deeper than 2 levels with a thickness channel is not supported "
+            "yet: use Weights(thickness=0) or batch(..., depth=2)."
+        )
+    if len(a.deeper) != len(b.deeper):
+        raise ValueError(f"trees of depth {a.depth} and {b.depth} cannot be registered: batch them together.")
     if active is None:
         active = jnp.ones(a.q0.shape[:1], bool)
     if split:
         res = split_over_devices(_search_split, (a, b, active), (weights, options.device_safe()))
     else:
         res = search(a, b, weights, active, options)
-    registered = jax.vmap(apply_registration)(a, b, res.rotation, res.permutation, res.main_warp, res.lateral_warps)
+    registered = jax.vmap(apply_registration)(
+        a, b, res.rotation, res.permutation, res.main_warp, res.lateral_warps, res.children
+    )
     return Registration(
         registered=registered,
         permutation=res.permutation,
@@ -744,6 +1033,9 @@ def register_pairs(
         n_iterations=res.n_iterations,
         n_lateral_dp=res.n_lateral_dp,
         n_lateral_skipped=res.n_lateral_skipped,
+        child_permutations=tuple(pm for pm, _ in res.children),
+        child_warps=tuple(gm for _, gm in res.children),
+        n_deeper_dp=res.n_deeper_dp,
     )
 
 

@@ -18,7 +18,8 @@ class CoordinateRangeError(InvalidRootError):
 
 
 class CapacityError(InvalidRootError):
-    """A root has more laterals than the padded capacity ``K`` (or more points than ``T``)."""
+    """A root has more laterals than the padded capacity ``K`` (or more points than ``T``), or a
+    branch has more children than the capacity ``Kℓ`` of its level (`batch(max_children=...)`)."""
 
 
 class RSMLError(RootShapeError, ValueError):

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 from ._engine import Registration
 from ._metric import Weights
 from ._registration import register
-from ._tree import RootTree, SRVFTree, scale_tree, to_curves, to_srvf
+from ._tree import RootTree, SRVFLevel, SRVFTree, scale_tree, to_curves, to_srvf
 
 
 def geodesic_srvf(a: SRVFTree, registered_b: SRVFTree, taus) -> SRVFTree:
@@ -17,11 +17,16 @@ def geodesic_srvf(a: SRVFTree, registered_b: SRVFTree, taus) -> SRVFTree:
 
     A null lateral takes its partner's attachment fraction at both ends, so a lateral that
     exists on one side only grows from (or shrinks to) zero length at a fixed position.
-    The result has a leading axis over `taus`.
+    The result has a leading axis over `taus`. Deeper levels (docs/design.md §11) follow the
+    same rule slot by slot, so matched branches keep their slot at every level.
     """
     s_a = jnp.where(a.mask, a.s, registered_b.s)
     s_b = jnp.where(registered_b.mask, registered_b.s, s_a)
     mask = a.mask | registered_b.mask
+    levels = []
+    for la, lb in zip(a.deeper, registered_b.deeper):
+        ls_a = jnp.where(la.mask, la.s, lb.s)
+        levels.append((la.q, lb.q, ls_a, jnp.where(lb.mask, lb.s, ls_a), la.mask | lb.mask))
 
     def point(tau):
         lerp = lambda x, y: (1 - tau) * x + tau * y  # noqa: E731
@@ -41,6 +46,7 @@ def geodesic_srvf(a: SRVFTree, registered_b: SRVFTree, taus) -> SRVFTree:
             origin=lerp(a.origin, registered_b.origin),
             base_radius=base,
             thickness_scale=a.thickness_scale,
+            deeper=tuple(SRVFLevel(q=lerp(qa, qb), s=lerp(sa, sb), mask=m) for qa, qb, sa, sb, m in levels),
         )
 
     return jax.vmap(point)(jnp.asarray(taus, a.q0.dtype))
@@ -127,7 +133,12 @@ def _unrotate(path: RootTree, rotation, taus) -> RootTree:
     main = o + jnp.einsum("spd,sde->spe", path.main - o, Rs)
     o_lat = o[:, None]
     laterals = o_lat + jnp.einsum("skpd,sde->skpe", path.laterals - o_lat, Rs)
-    return eqx.tree_at(lambda t: (t.main, t.laterals), path, (main, laterals))
+    deeper = []
+    for lv in path.deeper:
+        o_lv = o.reshape(o.shape[:1] + (1,) * (lv.curves.ndim - 2) + o.shape[-1:])
+        curves = o_lv + jnp.einsum("s...d,sde->s...e", lv.curves - o_lv, Rs)
+        deeper.append(eqx.tree_at(lambda t: t.curves, lv, curves))
+    return eqx.tree_at(lambda t: (t.main, t.laterals, t.deeper), path, (main, laterals, tuple(deeper)))
 
 
 @eqx.filter_jit

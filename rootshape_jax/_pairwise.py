@@ -37,6 +37,7 @@ def run_pair_chunks(s, t, I, J, weights, options, chunk_size: int) -> dict:
     n = len(I)
     energies = np.zeros(n, dtype=np.asarray(s.q0).dtype)
     n_dp = n_skipped = 0
+    n_deeper = np.zeros(len(s.deeper), np.int64)
     for start in range(0, n, chunk_size):
         stop = min(start + chunk_size, n)
         m = stop - start
@@ -47,11 +48,17 @@ def run_pair_chunks(s, t, I, J, weights, options, chunk_size: int) -> dict:
         active = np.arange(chunk_size) < m
         a = jax.tree.map(lambda x: x[ii], s)
         b = jax.tree.map(lambda x: x[jj], t)
-        e, dp, sk = chunk_energies(a, b, jnp.asarray(active), weights, options)
+        e, dp, sk, deeper = chunk_energies(a, b, jnp.asarray(active), weights, options)
         energies[start:stop] = np.asarray(e)[:m]
         n_dp += int(np.sum(np.asarray(dp)[:m]))
         n_skipped += int(np.sum(np.asarray(sk)[:m]))
-    return {"energies": energies, "lateral_dp": np.int64(n_dp), "lateral_skipped": np.int64(n_skipped)}
+        n_deeper += np.sum(np.asarray(deeper)[:m], axis=0).astype(np.int64)
+    return {
+        "energies": energies,
+        "lateral_dp": np.int64(n_dp),
+        "lateral_skipped": np.int64(n_skipped),
+        "deeper_dp": n_deeper,
+    }
 
 
 def pair_block(I, J, s, t, weights, options, chunk_size: int) -> dict:
@@ -117,6 +124,8 @@ def run_pairs(
         "pairs": n_pairs,
         "lateral_dp": int(sum(int(r["lateral_dp"]) for r in results)),
         "lateral_skipped": int(sum(int(r["lateral_skipped"]) for r in results)),
+        # DPs run per deeper level (docs/design.md §11): [] at depth 2.
+        "deeper_dp": [int(sum(int(r["deeper_dp"][k]) for r in results)) for k in range(len(s.deeper))],
         **counts,
     }
     return energies, stats

@@ -102,5 +102,5 @@ def distance(
 
 @eqx.filter_jit
 def _distances(a, b, weights, opts):
-    energy, _, _ = pair_distances_squared(a, b, weights, opts)
+    energy = pair_distances_squared(a, b, weights, opts)[0]
     return safe_sqrt(energy)

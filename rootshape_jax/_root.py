@@ -121,9 +121,10 @@ class Root:
     - `name`: a label (file name, plant id, ...).
     - `metadata`: free-form dict (unit, resolution, species, condition, time index, ...).
     - `children`: optional deeper topology: one `Root` per lateral whose `main` is that lateral
-      and whose `laterals` are its own (order-3) children, recursively. Empty when unknown. The
-      shape analysis uses main + first-order laterals only; this keeps higher orders for I/O.
-      Each child carries its own radii (`main_radius` = that lateral's radii).
+      and whose `laterals` are its own (second-order) laterals, recursively. Empty when unknown.
+      `batch(..., depth=3)` (or more) brings these orders into the padded tree (`RootTree.deeper`);
+      the default depth 2 uses main + first-order laterals only. Each child carries its own radii
+      (`main_radius` = that lateral's radii, `lateral_radii` = its laterals').
     - `main_radius`: optional (n,) radius of the root at each main-root point, in the unit of the
       coordinates; ``None`` when unknown.
     - `lateral_radii`: optional tuple of (m_i,) radii, one array per lateral; ``None`` when

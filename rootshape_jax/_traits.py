@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+import re
 from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
@@ -128,6 +129,38 @@ def _diameter(points: np.ndarray) -> float:
     return float(np.sqrt(np.max(np.sum(diff * diff, axis=-1))))
 
 
+def deepest_order(root: Root) -> int:
+    """Highest lateral order present in `root` (0: no laterals, 1: first-order laterals only,
+    2: laterals of laterals in `Root.children`, ...)."""
+    best, stack = 0, [(root, 0)]
+    while stack:  # iterative: deep files nest deeply
+        node, order = stack.pop()
+        if node.n_laterals:
+            best = max(best, order + 1)
+        stack.extend((c, order + 1) for c in node.children)
+    return best
+
+
+def order_traits(root: Root, orders: int) -> dict:
+    """Per-order counts and lengths for lateral orders 1 … `orders` (0 where an order is
+    absent): ``n_laterals_order{k}``, ``length_order{k}`` (total length of the order-k
+    laterals) and ``mean_length_order{k}``. Order k+1 comes from `Root.children`."""
+    lengths: list[list[float]] = [[] for _ in range(orders)]
+    stack = [(root, 1)]
+    while stack:
+        node, order = stack.pop()
+        if order > orders:
+            continue
+        lengths[order - 1].extend(polyline_length(np.asarray(lat, dtype=float)) for lat in node.laterals)
+        stack.extend((c, order + 1) for c in node.children)
+    out = {}
+    for k, ls in enumerate(lengths, start=1):
+        out[f"n_laterals_order{k}"] = len(ls)
+        out[f"length_order{k}"] = float(np.sum(ls)) if ls else 0.0
+        out[f"mean_length_order{k}"] = float(np.mean(ls)) if ls else 0.0
+    return out
+
+
 def _root_traits(root: Root, window: float | None) -> dict:
     if not isinstance(root, Root):
         raise InvalidRootError(
@@ -160,7 +193,9 @@ def _root_traits(root: Root, window: float | None) -> dict:
     }
 
 
-def traits(root_or_roots: Root | Sequence[Root], *, window: float | None = None) -> dict | list[dict]:
+def traits(
+    root_or_roots: Root | Sequence[Root], *, window: float | None = None, orders: int | None = None
+) -> dict | list[dict]:
     """Architecture traits of one root (a dict) or of each root of a sequence (a list of dicts).
 
     Lengths are in the root's own units (see ``root.metadata.get("unit")``), angles in degrees.
@@ -186,14 +221,34 @@ def traits(root_or_roots: Root | Sequence[Root], *, window: float | None = None)
       hull of the points projected on the horizontal plane (the root system's footprint, which
       does not depend on how the plant is turned about the vertical). 0 for degenerate hulls.
     - ``convex_hull_volume``: 3D — volume of the convex hull; NaN in 2D.
+
+    The traits above use the main root and the first-order laterals. Higher orders (whole root
+    systems, `Root.children`) add per-order columns for lateral orders k = 1 … `orders`
+    (`order_traits`): ``n_laterals_order{k}``, ``length_order{k}`` (their total length) and
+    ``mean_length_order{k}``. By default `orders` is the deepest order present in the root (in
+    any root of a sequence, so the table is rectangular) when that is 2 or more; roots with
+    first-order laterals only get no extra columns. ``orders=N`` always gives orders 1 … N
+    (0 where absent). For a plant's system (``read_rsml(by="plant")``) the axes are order 1.
     """
+    if orders is not None and (isinstance(orders, bool) or not isinstance(orders, (int, np.integer)) or orders < 0):
+        raise ValueError(f"`orders` must be a whole number >= 0 or None, got {orders!r}.")
     if isinstance(root_or_roots, Root):
-        return _root_traits(root_or_roots, window)
+        row = _root_traits(root_or_roots, window)
+        n = deepest_order(root_or_roots) if orders is None else orders
+        if orders is not None or n >= 2:
+            row.update(order_traits(root_or_roots, n))
+        return row
     if isinstance(root_or_roots, (str, bytes, Mapping)) or not isinstance(root_or_roots, Iterable):
         raise InvalidRootError(
             f"traits() expects a rootshape_jax.Root or a sequence of them, got {type(root_or_roots).__name__}."
         )
-    return [_root_traits(r, window) for r in root_or_roots]
+    roots = list(root_or_roots)
+    rows = [_root_traits(r, window) for r in roots]
+    n = max((deepest_order(r) for r in roots), default=0) if orders is None else orders
+    if orders is not None or n >= 2:
+        for row, r in zip(rows, roots):
+            row.update(order_traits(r, n))
+    return rows
 
 
 # Power of length in each trait's unit (None: no unit); the insertion angle is in degrees.
@@ -215,11 +270,14 @@ TRAIT_LENGTH_POWER: dict[str, int | None] = {
 
 def trait_column(name: str, unit: str | None) -> str:
     """The column name of trait `name` with its unit: ``main_length_mm``,
-    ``convex_hull_area_mm2``, ``lateral_density_per_mm``, ``mean_insertion_angle_deg``
+    ``convex_hull_area_mm2``, ``lateral_density_per_mm``, ``mean_insertion_angle_deg``,
+    ``length_order2_mm``
     (pixels: ``px``). Names of other columns, and every name when `unit` is None, are kept."""
     if name == "mean_insertion_angle":
         return f"{name}_deg"
     power = TRAIT_LENGTH_POWER.get(name)
+    if re.fullmatch(r"(mean_)?length_order\d+", name):
+        power = 1
     if power is None or unit is None:
         return name
     u = "px" if unit.lower() in ("pixel", "pixels", "px") else unit.replace(" ", "_")

@@ -7,6 +7,11 @@ and vmaps over batches. A batch is the same Module with a leading axis on every 
 Padding: a slot with ``mask = False`` is one of the paper's *null* (virtual) laterals. It holds
 finite zeros in the SRVF (``q = 0``) and, in a `RootTree`, a lateral collapsed to its attachment
 point. Never NaN: a NaN in a masked branch of ``jnp.where`` still poisons gradients.
+
+Deeper orders (docs/design.md §11): a tree of depth ``D > 2`` carries levels ℓ = 2 … D−1 of
+laterals (second-order laterals and below) in `deeper`, one padded `BranchLevel` (geometry) or
+`SRVFLevel` (shape) per level, shaped ``[K1, …, Kℓ, T, d]``. A depth-2 tree has ``deeper = ()``
+and is exactly the paper's main root + first-order laterals.
 """
 
 from __future__ import annotations
@@ -30,6 +35,129 @@ def _is_array(x) -> bool:
     return isinstance(x, (jax.Array, np.ndarray))
 
 
+class BranchLevel(eqx.Module):
+    """One deeper level ℓ ≥ 2 of a `RootTree`: the children of the level-(ℓ−1) branches, padded.
+
+    Level 1 is `RootTree.laterals` (children of the main root); level 2 holds the laterals of
+    those laterals, and so on. Write ``P = (K1, …, K(ℓ−1))`` for the parent slots and ``Kℓ``
+    for this level's capacity of children per parent slot.
+
+    **Fields** (a batch adds leading axes ``*B`` to every field)
+
+    - `curves`: ``[*P, Kℓ, T, d]`` child branches, each starting at its parent's point at
+      `attach` (``T`` points uniform in arc length). Null slots are collapsed to their parent's
+      first point.
+    - `attach`: ``[*P, Kℓ]`` arc-length fraction in [0, 1] of the attachment point along the
+      parent branch (0 in null slots).
+    - `mask`: ``[*P, Kℓ]`` True for real branches. A child slot of a null parent is null.
+    - `radius`: ``[*P, Kℓ, T]`` radius along each child (0 in null slots), or ``None``; set
+      exactly when the tree's `RootTree.main_radius` is.
+    """
+
+    curves: Float[Array, "*B *P K T d"]
+    attach: Float[Array, "*B *P K"]
+    mask: Bool[Array, "*B *P K"]
+    radius: Float[Array, "*B *P K T"] | None = None
+
+    def __check_init__(self):
+        _check_level("BranchLevel", self.curves, self.attach, self.mask, "curves", "attach")
+        if self.radius is not None and _is_array(self.radius) and _is_array(self.curves):
+            if self.radius.shape != self.curves.shape[:-1]:
+                raise ValueError(
+                    f"BranchLevel: radius has shape {self.radius.shape}, expected {self.curves.shape[:-1]} "
+                    "(one radius per point of each child, 0 in null slots)."
+                )
+
+    @property
+    def capacity(self) -> int:
+        return self.mask.shape[-1]
+
+
+class SRVFLevel(eqx.Module):
+    """One deeper level ℓ ≥ 2 of an `SRVFTree` (the shape of a `BranchLevel`).
+
+    **Fields** (``*P`` the parent slots ``K1, …, K(ℓ−1)``; a batch adds ``*B`` in front)
+
+    - `q`: ``[*P, Kℓ, T, C]`` SRVFs of the children; null slots are exactly 0. ``C = d``, or
+      ``d + 1`` with a thickness channel (as in `SRVFTree`).
+    - `s`: ``[*P, Kℓ]`` attachment arc-length fractions along the parent branch.
+    - `mask`: ``[*P, Kℓ]`` True for real branches; a child slot of a null parent is null.
+    - `base_radius`: ``[*P, Kℓ]`` starting radius of each child, present exactly when the tree
+      has a thickness channel; otherwise None.
+    """
+
+    q: Float[Array, "*B *P K T C"]
+    s: Float[Array, "*B *P K"]
+    mask: Bool[Array, "*B *P K"]
+    base_radius: Float[Array, "*B *P K"] | None = None
+
+    def __check_init__(self):
+        _check_level("SRVFLevel", self.q, self.s, self.mask, "q", "s")
+        if self.base_radius is not None and _is_array(self.base_radius) and _is_array(self.mask):
+            if self.base_radius.shape != self.mask.shape:
+                raise ValueError(
+                    f"SRVFLevel: base_radius has shape {self.base_radius.shape}, expected {self.mask.shape}."
+                )
+
+    @property
+    def capacity(self) -> int:
+        return self.mask.shape[-1]
+
+
+def _check_level(cls, curves, attach, mask, curves_name, attach_name):
+    if not all(_is_array(x) for x in (curves, attach, mask)):
+        return
+    if curves.ndim < 3 or curves.shape[:-2] != mask.shape:
+        raise ValueError(f"{cls}: {curves_name} has shape {curves.shape}, expected mask's shape {mask.shape} + (T, d).")
+    if attach.shape != mask.shape:
+        raise ValueError(f"{cls}: {attach_name} has shape {attach.shape}, expected {mask.shape} (the mask's).")
+    if mask.dtype != jnp.bool_:
+        raise ValueError(f"{cls}: mask must be boolean, got {mask.dtype}.")
+
+
+def _check_deeper(cls, parent_curves, parent_mask, deeper, level_cls, curves_of, *, radius: bool | None):
+    """Each level's slots nest in the previous level's, with the same ``T`` and channels, and
+    no real child under a null parent (checked when the values are concrete)."""
+    if not isinstance(deeper, tuple):
+        raise ValueError(f"{cls}: deeper must be a tuple of {level_cls.__name__}, got {type(deeper).__name__}.")
+    for i, level in enumerate(deeper):
+        if not isinstance(level, level_cls):
+            raise ValueError(f"{cls}: deeper[{i}] is a {type(level).__name__}, expected a {level_cls.__name__}.")
+        if radius is not None and (level_radius(level) is not None) != radius:
+            raise ValueError(
+                f"{cls}: deeper[{i}] (level {i + 2}) must carry radii exactly when the tree does "
+                "(pass zeros for branches whose radius is unknown)."
+            )
+    prev_curves, prev_mask = parent_curves, parent_mask
+    for i, level in enumerate(deeper):
+        curves = curves_of(level)
+        if not all(_is_array(x) for x in (prev_curves, prev_mask, curves, level.mask)):
+            return
+        if level.mask.shape[:-1] != prev_mask.shape:
+            raise ValueError(
+                f"{cls}: level {i + 2} has slots {level.mask.shape}, expected the parent level's "
+                f"{prev_mask.shape} + (K{i + 2},)."
+            )
+        if curves.shape[-2:] != prev_curves.shape[-2:]:
+            raise ValueError(
+                f"{cls}: level {i + 2} branches have (T, channels) = {curves.shape[-2:]}, expected "
+                f"{prev_curves.shape[-2:]} as in the level above."
+            )
+        if not isinstance(level.mask, jax.core.Tracer) and not isinstance(prev_mask, jax.core.Tracer):
+            orphan = np.asarray(level.mask) & ~np.asarray(prev_mask)[..., None]
+            if np.any(orphan):
+                raise ValueError(
+                    f"{cls}: level {i + 2} has real branches under null parent slots "
+                    f"(first at {tuple(int(v) for v in np.argwhere(orphan)[0])}); a null branch has no children."
+                )
+        prev_curves, prev_mask = curves, level.mask
+
+
+def level_radius(level):
+    """The radius data of a level (`BranchLevel.radius` or `SRVFLevel.base_radius`)."""
+    return level.radius if isinstance(level, BranchLevel) else level.base_radius
+
+
 class RootTree(eqx.Module):
     """Geometry of a root (or a batch of roots) resampled onto fixed capacities.
 
@@ -45,6 +173,10 @@ class RootTree(eqx.Module):
     - `lateral_radius`: ``[K, T]`` radius of each lateral at each point, or ``None`` (set
       together with `main_radius`).
 
+    - `deeper`: ``()`` for the paper's depth-2 tree; otherwise one `BranchLevel` per deeper
+      level ℓ = 2 … D−1 (second-order laterals, their laterals, ...), level ℓ shaped
+      ``[K1, …, Kℓ, T, d]`` (docs/design.md §11). ``depth = 2 + len(deeper)``.
+
     Radius padding: null slots have radius 0; so does every branch of a root that came without
     radius data in a batch where other roots have it (`batch` warns and names those roots).
     """
@@ -55,10 +187,30 @@ class RootTree(eqx.Module):
     mask: Bool[Array, "*B K"]
     main_radius: Float[Array, "*B T"] | None = None
     lateral_radius: Float[Array, "*B K T"] | None = None
+    deeper: tuple[BranchLevel, ...] = ()
 
     def __check_init__(self):
         _check_shapes("RootTree", self.main, self.laterals, self.attach, self.mask, names=("main", "laterals"))
         _check_radius_shapes("RootTree", self.main, self.laterals, self.main_radius, self.lateral_radius)
+        _check_deeper(
+            "RootTree",
+            self.laterals,
+            self.mask,
+            self.deeper,
+            BranchLevel,
+            lambda lv: lv.curves,
+            radius=self.main_radius is not None,
+        )
+
+    @property
+    def depth(self) -> int:
+        """2 for main root + first-order laterals; 3 with second-order laterals; ..."""
+        return 2 + len(self.deeper)
+
+    @property
+    def capacities(self) -> tuple[int, ...]:
+        """``(K1, …, K(D−1))``: child slots per parent slot at each level."""
+        return (self.capacity,) + tuple(lv.capacity for lv in self.deeper)
 
     @property
     def n_points(self) -> int:
@@ -92,6 +244,9 @@ class SRVFTree(eqx.Module):
       channels, the last being the SRVF channel of ``c·r`` with ``c = thickness_scale``
       (``√λr``), and `base_radius` ``[K + 1]`` holds the starting radius of the main root
       (slot 0) and of each lateral, which the SRVF forgets. Otherwise both are None.
+    - `deeper`: ``()`` at depth 2; otherwise one `SRVFLevel` per deeper level ℓ = 2 … D−1,
+      shaped ``[K1, …, Kℓ, T, C]`` (with their own `SRVFLevel.base_radius` under a thickness
+      channel).
     """
 
     q0: Float[Array, "*B T C"]
@@ -101,9 +256,19 @@ class SRVFTree(eqx.Module):
     origin: Float[Array, "*B d"]
     base_radius: Float[Array, "*B K1"] | None = None
     thickness_scale: Float[Array, "*B"] | None = None
+    deeper: tuple[SRVFLevel, ...] = ()
 
     def __check_init__(self):
         _check_shapes("SRVFTree", self.q0, self.q, self.s, self.mask, names=("q0", "q"))
+        _check_deeper(
+            "SRVFTree",
+            self.q,
+            self.mask,
+            self.deeper,
+            SRVFLevel,
+            lambda lv: lv.q,
+            radius=self.thickness_scale is not None,
+        )
         if (self.base_radius is None) != (self.thickness_scale is None):
             raise ValueError("SRVFTree: give both base_radius and thickness_scale, or neither.")
         if _is_array(self.origin) and _is_array(self.q0):
@@ -130,6 +295,16 @@ class SRVFTree(eqx.Module):
     @property
     def has_thickness(self) -> bool:
         return self.thickness_scale is not None
+
+    @property
+    def depth(self) -> int:
+        """2 for main root + first-order laterals; 3 with second-order laterals; ..."""
+        return 2 + len(self.deeper)
+
+    @property
+    def capacities(self) -> tuple[int, ...]:
+        """``(K1, …, K(D−1))``: child slots per parent slot at each level."""
+        return (self.capacity,) + tuple(lv.capacity for lv in self.deeper)
 
     @property
     def batch_shape(self) -> tuple[int, ...]:
@@ -238,6 +413,18 @@ def root_to_arrays_with_radius(
     Radii are resampled at the same arc-length positions as the coordinates and scaled with
     them; unknown radii (and null slots) are 0. Raises `CoordinateRangeError` when the arrays
     exceed what ``dtype`` can compute with (`coordinate_limit`)."""
+    return root_to_level_arrays(
+        root, n_points=n_points, capacities=(capacity,), normalise_scale=normalise_scale, dtype=dtype
+    )[:6]
+
+
+def root_to_level_arrays(
+    root: Root, *, n_points: int, capacities: tuple[int, ...], normalise_scale: bool = False, dtype=np.float64
+) -> tuple:
+    """`root_to_arrays_with_radius` plus the deeper levels: (main, laterals, attach, mask,
+    main_radius, lateral_radius, levels) where `levels` holds one (curves, attach, mask, radius)
+    tuple per level ℓ = 2 … len(capacities), built from `Root.children` (docs/design.md §11)."""
+    capacity = capacities[0]
     if not isinstance(root, Root):
         raise TypeError(f"expected a rootshape_jax.Root, got {type(root).__name__}.")
     if root.n_laterals > capacity:
@@ -250,6 +437,10 @@ def root_to_arrays_with_radius(
     if normalise_scale:
         # The length of the resampled main root, so that the padded tree's main root has length 1.
         length = polyline_length(resample_polyline(main, n_points))
+        if length <= 0 and root.n_laterals:
+            # A plant's virtual main root (several axes, docs/design.md §11) has zero length:
+            # its longest axis sets the scale, as the one axis of a taproot system would.
+            length = max(polyline_length(resample_polyline(lat.astype(np.float64), n_points)) for lat in root.laterals)
         if length <= 0:
             raise InvalidRootError(f"root {root.name!r}: main root has zero length; cannot normalise scale.")
         scale = 1.0 / length
@@ -264,6 +455,7 @@ def root_to_arrays_with_radius(
     lat_radius = np.zeros((capacity, n_points))
     attach = np.zeros((capacity,))
     mask = np.zeros((capacity,), dtype=bool)
+    placed = []  # each lateral's polyline joined to the main root, before the resampling shift
     for k, (lat, s) in enumerate(zip(root.laterals, root.attach)):
         lat = o + (lat.astype(np.float64) - o) * scale
         radius = None
@@ -277,6 +469,7 @@ def root_to_arrays_with_radius(
                 radius = np.concatenate([radius[:1], radius])
         # Resampling the main root moves its points slightly (chords); move the lateral with it
         # so that it starts exactly at the resampled main root's point at `attach`.
+        placed.append(lat)
         lat = lat + (_point_at_fraction(main_resampled, float(s)) - base)
         lats[k] = resample_polyline(lat, n_points)
         if radius is not None:
@@ -285,14 +478,19 @@ def root_to_arrays_with_radius(
         mask[k] = True
     for k in range(root.n_laterals, capacity):
         lats[k] = np.repeat(main_resampled[:1], n_points, axis=0)
+    levels = _deeper_levels(root, placed, lats, capacities, n_points=n_points, origin=o, scale=scale)
     # Checked in float64, before the cast (which would overflow to inf with a warning).
     limit = coordinate_limit(dtype, n_points)
     label = f"root {root.name!r}" if root.name else "root"
+    deeper_checks = []
+    for i, (curves, _, _, radius) in enumerate(levels):
+        deeper_checks += [(curves, f"level-{i + 2} laterals"), (radius, f"level-{i + 2} radii")]
     for x, what in (
         (main_resampled, "main root"),
         (lats, "laterals"),
         (main_radius, "main radius"),
         (lat_radius, "lateral radii"),
+        *deeper_checks,
     ):
         check_range(
             x,
@@ -309,7 +507,89 @@ def root_to_arrays_with_radius(
         mask,
         main_radius.astype(dtype),
         lat_radius.astype(dtype),
+        [(c.astype(dtype), a.astype(dtype), m, r.astype(dtype)) for c, a, m, r in levels],
     )
+
+
+def _deeper_levels(root, placed, lats, capacities, *, n_points, origin, scale):
+    """numpy (curves, attach, mask, radius) of levels 2 … len(capacities) for one root.
+
+    Each child is placed as `root_to_arrays_with_radius` places a lateral on the main root: its
+    first point is joined to its parent's point at its attachment fraction, then it moves with
+    the parent's resampling. Joining lengthens the parent, so a grandchild's fraction (given
+    along the parent's own polyline) is converted to a fraction along the joined polyline, so
+    that it attaches at the same physical point."""
+    d = lats.shape[-1]
+    levels = []
+    for ell in range(2, len(capacities) + 1):
+        shape = tuple(capacities[:ell])
+        levels.append(
+            (
+                np.zeros(shape + (n_points, d)),
+                np.zeros(shape),
+                np.zeros(shape, dtype=bool),
+                np.zeros(shape + (n_points,)),
+            )
+        )
+    if not levels:
+        return levels
+
+    def fill(node: Root | None, slot: tuple, parent_poly, parent_res, ell: int):
+        """Children (level ell) of the branch at `slot` (level ell − 1): joined to `parent_poly`
+        (the parent in the input's frame), then moved with it onto `parent_res` (resampled)."""
+        curves, attach, mask, radius = levels[ell - 2]
+        if node is None or node.n_laterals == 0:
+            return
+        if node.n_laterals > capacities[ell - 1]:
+            raise CapacityError(
+                f"root {root.name!r}: a level-{ell - 1} branch has {node.n_laterals} laterals but the "
+                f"capacity at level {ell} is K{ell} = {capacities[ell - 1]}; pass max_children with "
+                f"K{ell} >= {node.n_laterals} (registration needs twice the largest count)."
+            )
+        L0 = polyline_length(node.main) * scale
+        L = polyline_length(parent_poly)
+        for k, (child, s) in enumerate(zip(node.laterals, node.attach)):
+            # The fraction along the node's own polyline, moved to the joined parent polyline.
+            frac = float(np.clip((L - L0 + float(s) * L0) / L, 0.0, 1.0)) if L > 0 else 0.0
+            poly = origin + (child.astype(np.float64) - origin) * scale
+            rad = None if node.lateral_radii is None else node.lateral_radii[k].astype(np.float64) * scale
+            base = _point_at_fraction(parent_poly, frac)
+            if np.linalg.norm(poly[0] - base) > 1e-9 * max(1.0, np.abs(parent_poly).max()):
+                poly = np.concatenate([base[None], poly], axis=0)
+                if rad is not None:
+                    rad = np.concatenate([rad[:1], rad])
+            # Children are placed on this polyline before it moves with its parent's resampling
+            # (their coordinates are in the frame of the input, as the parent's are).
+            joined = poly
+            poly = poly + (_point_at_fraction(parent_res, frac) - base)
+            here = slot + (k,)
+            curves[here] = resample_polyline(poly, n_points)
+            if rad is not None:
+                radius[here] = resample_values(poly, rad, n_points)
+            attach[here] = frac
+            mask[here] = True
+            if ell < len(capacities):
+                grand = node.children[k] if node.children else None
+                fill(grand, here, joined, curves[here], ell + 1)
+
+    def fill_nulls(slot: tuple, ell: int):
+        # Every descendant slot of a null or childless branch collapses to its first point.
+        if ell > len(capacities):
+            return
+        curves, mask = levels[ell - 2][0], levels[ell - 2][2]
+        parent = lats if ell == 2 else levels[ell - 3][0]
+        for k in range(capacities[ell - 1]):
+            here = slot + (k,)
+            if not mask[here]:
+                curves[here] = parent[slot][:1]
+            fill_nulls(here, ell + 1)
+
+    for k, poly in enumerate(placed):
+        node = root.children[k] if root.children else None
+        fill(node, (k,), poly, lats[k], 2)
+    for k in range(capacities[0]):
+        fill_nulls((k,), 2)
+    return levels
 
 
 def batch(
@@ -319,6 +599,8 @@ def batch(
     max_laterals: int | None = None,
     normalise_scale: bool = False,
     dtype=None,
+    depth: int | None = None,
+    max_children: Sequence[int] | None = None,
 ) -> RootTree:
     """Resample and pad roots into one batched `RootTree` (leading axis = roots).
 
@@ -328,6 +610,14 @@ def batch(
     - `normalise_scale`: divide each root by its main-root length (the paper's scale invariance;
       leave off for growth studies).
     - `dtype`: float dtype of the arrays; default JAX's default float (float32 unless x64 is on).
+    - `depth`: ``D``, levels kept (docs/design.md §11): 2 = main root + first-order laterals (the
+      paper's trees), 3 adds second-order laterals (from `Root.children`), and so on. Default
+      (None) is 2, ignoring deeper orders silently as before; an explicit `depth` warns once
+      when roots have deeper branches than it keeps, saying how many were left out.
+    - `max_children`: ``(K1, …, K(D−1))``, child slots per parent slot at each level (``K1`` is
+      `max_laterals`; give one or the other, or equal values). Default, level by level,
+      ``2 × (most children of any branch at that level)`` (at least 2). A capacity below the
+      largest count raises `CapacityError` naming the level and the capacity needed.
 
     Radii (`Root.main_radius`, `Root.lateral_radii`) are resampled like the coordinates (and
     scaled with them by `normalise_scale`) into `RootTree.main_radius` / `lateral_radius`. If
@@ -353,24 +643,119 @@ def batch(
         raise InvalidRootError(f"batch(): roots mix dimensions {sorted(dims)}; convert 2D roots to 3D (z = 0) first.")
     if not isinstance(n_points, int) or n_points < 2:
         raise ValueError(f"n_points must be an integer >= 2, got {n_points!r}.")
+    explicit_depth = depth is not None
+    depth = 2 if depth is None else depth
+    if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)) or depth < 2:
+        raise ValueError(f"batch(): depth must be an integer >= 2 (2 = main root + laterals), got {depth!r}.")
+    depth = int(depth)
+    counts = [max(levels) for levels in zip(*(_children_counts(r, depth) for r in roots_list))]
+    capacities = _capacities(counts, depth, max_laterals, max_children)
     if max_laterals is None:
-        max_laterals = max(2, 2 * max(r.n_laterals for r in roots_list))
+        max_laterals = capacities[0]
+    if explicit_depth:
+        _warn_truncated(roots_list, depth)
     if dtype is None:
         dtype = jnp.zeros(()).dtype  # JAX's default float: respects jax_enable_x64
     dtype = _working_dtype(dtype)
     arrays = [
-        root_to_arrays_with_radius(
-            r, n_points=n_points, capacity=max_laterals, normalise_scale=normalise_scale, dtype=dtype
-        )
+        root_to_level_arrays(r, n_points=n_points, capacities=capacities, normalise_scale=normalise_scale, dtype=dtype)
         for r in roots_list
     ]
-    main, lats, attach, mask, main_r, lat_r = (np.stack(a) for a in zip(*arrays))
+    main, lats, attach, mask, main_r, lat_r = (np.stack(a) for a in list(zip(*arrays))[:6])
+    has_radius = any(_has_radius(r, depth) for r in roots_list)
     radii = {}
-    if any(r.has_radius for r in roots_list):
+    if has_radius:
         _warn_missing_radius(roots_list)
         radii = dict(main_radius=jnp.asarray(main_r), lateral_radius=jnp.asarray(lat_r))
-    tree = RootTree(jnp.asarray(main), jnp.asarray(lats), jnp.asarray(attach), jnp.asarray(mask), **radii)
+    deeper = []
+    for i in range(depth - 2):
+        curves, s_, m, r = (np.stack(x) for x in zip(*(a[6][i] for a in arrays)))
+        deeper.append(
+            BranchLevel(
+                curves=jnp.asarray(curves),
+                attach=jnp.asarray(s_),
+                mask=jnp.asarray(m),
+                radius=jnp.asarray(r) if has_radius else None,
+            )
+        )
+    tree = RootTree(
+        jnp.asarray(main), jnp.asarray(lats), jnp.asarray(attach), jnp.asarray(mask), **radii, deeper=tuple(deeper)
+    )
     return unstack(tree)[0] if single else tree
+
+
+def _children_counts(root: Root, depth: int) -> list[int]:
+    """Most children of any branch at each level 1 … depth − 1 of one root."""
+    counts = [0] * (depth - 1)
+
+    def walk(node: Root, ell: int):
+        counts[ell - 1] = max(counts[ell - 1], node.n_laterals)
+        if ell < depth - 1:
+            for child in node.children:
+                walk(child, ell + 1)
+
+    walk(root, 1)
+    return counts
+
+
+def _capacities(counts, depth, max_laterals, max_children) -> tuple[int, ...]:
+    """(K1, …, K(D−1)) from the user's capacities or today's rule, level by level."""
+    if max_children is None:
+        caps = [max(2, 2 * n) for n in counts]
+        if max_laterals is not None:
+            caps[0] = max_laterals
+    else:
+        caps = list(max_children)
+        if len(caps) != depth - 1 or not all(
+            isinstance(k, (int, np.integer)) and not isinstance(k, bool) and k >= 0 for k in caps
+        ):
+            raise ValueError(
+                f"batch(): max_children must hold {depth - 1} whole numbers (K1, ..., K{depth - 1}), one "
+                f"per level for depth={depth}; got {max_children!r}."
+            )
+        caps = [int(k) for k in caps]
+        if max_laterals is not None and max_laterals != caps[0]:
+            raise ValueError(
+                f"batch(): max_laterals={max_laterals} disagrees with max_children[0]={caps[0]} (both are "
+                "K1); give only one of them."
+            )
+    for ell in range(2, depth):  # level 1 keeps its own (older) CapacityError, raised per root
+        if counts[ell - 1] > caps[ell - 1]:
+            raise CapacityError(
+                f"batch(): a branch at level {ell - 1} has {counts[ell - 1]} children but the capacity "
+                f"at level {ell} is K{ell} = {caps[ell - 1]}; level {ell} needs K{ell} >= {counts[ell - 1]} "
+                f"(and 2 × {counts[ell - 1]} = {2 * counts[ell - 1]} to register any pair). Pass a larger "
+                "max_children, or leave it to its default."
+            )
+    return tuple(caps)
+
+
+def _count_beyond(node: Root, ell: int, depth: int) -> int:
+    """Branches under `node` (whose `main` is a level-`ell` branch; the main root is level 0)
+    at level ``depth`` or deeper: what a depth-`depth` tree leaves out."""
+    here = node.n_laterals if ell + 1 >= depth else 0
+    return here + sum(_count_beyond(c, ell + 1, depth) for c in node.children)
+
+
+def _warn_truncated(roots: Sequence[Root], depth: int) -> None:
+    left_out = [(i, _count_beyond(r, 0, depth)) for i, r in enumerate(roots)]
+    left_out = [(i, n) for i, n in left_out if n]
+    if left_out:
+        total = sum(n for _, n in left_out)
+        names = ", ".join(_root_label(roots[i], i) for i, _ in left_out[:5])
+        more = f" and {len(left_out) - 5} more" if len(left_out) > 5 else ""
+        warnings.warn(
+            f"batch(depth={depth}): {total} laterals of order {depth} or higher (laterals of laterals ...) were left out "
+            f"({len(left_out)} roots: {names}{more}). Pass a larger depth to keep them.",
+            UserWarning,
+            stacklevel=3,
+        )
+
+
+def _has_radius(root: Root, depth: int) -> bool:
+    if root.has_radius:
+        return True
+    return depth > 2 and any(_has_radius(c, depth - 1) for c in root.children)
 
 
 def _working_dtype(dtype) -> np.dtype:
@@ -439,9 +824,43 @@ def to_roots(tree: RootTree, *, names: Sequence[str] | None = None, unit: str | 
         # Radii come from arithmetic on trees (means, geodesics): clip tiny negatives to 0.
         main_r = np.maximum(main_r.reshape(n, T), 0.0)
         lat_r = np.maximum(lat_r.reshape(n, K, T), 0.0)
+    levels = []
+    for lv in tree.deeper:
+        slots = lv.mask.shape[len(tree.batch_shape) :]
+        levels.append(
+            (
+                np.asarray(lv.curves).reshape((n,) + slots + (T, main.shape[-1])),
+                np.asarray(lv.attach).reshape((n,) + slots),
+                np.asarray(lv.mask).reshape((n,) + slots),
+                np.maximum(np.asarray(lv.radius).reshape((n,) + slots + (T,)), 0.0) if has_radius else None,
+            )
+        )
+
+    def branch(i: int, slot: tuple, curve, radius) -> Root:
+        """The level-len(slot) branch at `slot` of root i, with its own children."""
+        curves, s, m, r = levels[len(slot) - 1]
+        keep = np.flatnonzero(m[(i,) + slot])
+        deeper = len(slot) < len(levels)
+        return Root(
+            main=curve,
+            laterals=tuple(curves[(i,) + slot + (k,)] for k in keep),
+            attach=np.clip(s[(i,) + slot][keep], 0.0, 1.0),
+            children=tuple(
+                branch(i, slot + (k,), curves[(i,) + slot + (k,)], r[(i,) + slot + (k,)] if has_radius else None)
+                for k in keep
+            )
+            if deeper
+            else (),
+            main_radius=radius,
+            lateral_radii=tuple(r[(i,) + slot + (k,)] for k in keep) if has_radius else None,
+        )
+
     out = []
     for i in range(main.shape[0]):
         keep = np.flatnonzero(mask[i])
+        children = ()
+        if levels:
+            children = tuple(branch(i, (k,), lats[i, k], lat_r[i, k] if has_radius else None) for k in keep)
         out.append(
             Root(
                 main=main[i],
@@ -451,6 +870,7 @@ def to_roots(tree: RootTree, *, names: Sequence[str] | None = None, unit: str | 
                 main_radius=main_r[i] if has_radius else None,
                 lateral_radii=tuple(lat_r[i, k] for k in keep) if has_radius else None,
                 metadata={} if unit is None else {"unit": unit},
+                children=children,
             )
         )
     return out
@@ -513,10 +933,25 @@ def to_srvf(tree: RootTree | SRVFTree, *, weights=None) -> SRVFTree:
         q0, q, base, c = extended_srvf(
             tree.main, tree.laterals, tree.main_radius, tree.lateral_radius, tree.mask, weights.thickness
         )
-        return SRVFTree(q0=q0, q=q, s=tree.attach, mask=tree.mask, origin=origin, base_radius=base, thickness_scale=c)
+        deeper = tuple(_level_srvf(lv, c) for lv in tree.deeper)
+        return SRVFTree(
+            q0=q0, q=q, s=tree.attach, mask=tree.mask, origin=origin, base_radius=base, thickness_scale=c, deeper=deeper
+        )
     q0 = srvf(tree.main)
     q = srvf(tree.laterals) * tree.mask[..., None, None]
-    return SRVFTree(q0=q0, q=q, s=tree.attach, mask=tree.mask, origin=origin)
+    deeper = tuple(_level_srvf(lv, None) for lv in tree.deeper)
+    return SRVFTree(q0=q0, q=q, s=tree.attach, mask=tree.mask, origin=origin, deeper=deeper)
+
+
+def _level_srvf(level: BranchLevel, c) -> SRVFLevel:
+    """SRVFs of one deeper level; with a thickness scale `c` (one per tree) those of ``(x, c·r)``."""
+    if c is None:
+        q = srvf(level.curves) * level.mask[..., None, None]
+        return SRVFLevel(q=q, s=level.attach, mask=level.mask)
+    cc = c.reshape(c.shape + (1,) * (level.radius.ndim - c.ndim))
+    ext = jnp.concatenate([level.curves, (cc * level.radius)[..., None]], axis=-1)
+    q = srvf(ext) * level.mask[..., None, None]
+    return SRVFLevel(q=q, s=level.attach, mask=level.mask, base_radius=level.radius[..., 0])
 
 
 def check_thickness(tree: SRVFTree, weights) -> None:
@@ -541,14 +976,42 @@ def _to_curves_single(t: SRVFTree) -> RootTree:
         bases = interpolate_at_fraction(main, t.s)  # (K, d)
         q = t.q * t.mask[:, None, None]
         lats = jax.vmap(srvf_to_curve)(q, bases)
-        return RootTree(main=main, laterals=lats, attach=t.s, mask=t.mask)
+        deeper = _deeper_curves(t, lats)
+        return RootTree(main=main, laterals=lats, attach=t.s, mask=t.mask, deeper=deeper)
     c = t.thickness_scale
     main, r0 = integrate_branch(t.q0, t.origin, t.base_radius[0], c)
     bases = interpolate_at_fraction(main, t.s)
     q = t.q * t.mask[:, None, None]
     lats, r = jax.vmap(integrate_branch, in_axes=(0, 0, 0, None))(q, bases, t.base_radius[1:], c)
     r = r * t.mask[:, None]
-    return RootTree(main=main, laterals=lats, attach=t.s, mask=t.mask, main_radius=r0, lateral_radius=r)
+    deeper = _deeper_curves(t, lats)
+    return RootTree(main=main, laterals=lats, attach=t.s, mask=t.mask, main_radius=r0, lateral_radius=r, deeper=deeper)
+
+
+def _deeper_curves(t: SRVFTree, lats: Array) -> tuple[BranchLevel, ...]:
+    """Curves of the deeper levels of one tree: each child integrated from its parent's point
+    at arc-length fraction `s` (null children collapse to their parent's first point)."""
+    out = []
+    parents = lats
+    for lv in t.deeper:
+        slots, Tn, d = lv.mask.shape, parents.shape[-2], parents.shape[-1]
+        P, Kl = int(np.prod(slots[:-1])), slots[-1]
+        flat_parents = parents.reshape(P, Tn, d)
+        s = lv.s.reshape(P, Kl)
+        bases = jax.vmap(interpolate_at_fraction)(flat_parents, s)  # (P, Kl, d)
+        q = (lv.q * lv.mask[..., None, None]).reshape((P, Kl) + lv.q.shape[-2:])
+        if not t.has_thickness:
+            curves = jax.vmap(jax.vmap(srvf_to_curve))(q, bases)
+            radius = None
+        else:
+            base_r = lv.base_radius.reshape(P, Kl)
+            integrate = jax.vmap(jax.vmap(integrate_branch, in_axes=(0, 0, 0, None)), in_axes=(0, 0, 0, None))
+            curves, radius = integrate(q, bases, base_r, t.thickness_scale)
+            radius = radius.reshape(slots + (Tn,)) * lv.mask[..., None]
+        curves = curves.reshape(slots + (Tn, d))
+        out.append(BranchLevel(curves=curves, attach=lv.s, mask=lv.mask, radius=radius))
+        parents = curves
+    return tuple(out)
 
 
 def to_curves(tree: SRVFTree | RootTree) -> RootTree:
@@ -578,6 +1041,11 @@ def check_compatible(a: RootTree | SRVFTree, b: RootTree | SRVFTree, what: str =
             f"{(b.n_points, b.capacity, b.dim)}. Build them in one call to batch() or pass the same "
             "n_points and max_laterals."
         )
+    if a.capacities != b.capacities:
+        raise ValueError(
+            f"{what} have different depths or capacities per level: {a.capacities} vs {b.capacities} "
+            "(K1, ..., K(D-1)). Build them in one call to batch() or pass the same depth and max_children."
+        )
 
 
 def scale_tree(tree: RootTree, scales) -> RootTree:
@@ -606,4 +1074,14 @@ def scale_tree(tree: RootTree, scales) -> RootTree:
     if tree.main_radius is not None:  # radii are lengths: they scale with the coordinates
         radii = (tree.main_radius * s[..., None], tree.lateral_radius * s[..., None, None])
         out = eqx.tree_at(lambda t: (t.main_radius, t.lateral_radius), out, radii)
+    if tree.deeper:
+        deeper = []
+        for lv in tree.deeper:
+            extra = lv.curves.ndim - 2 - s.ndim  # slot axes K1 … Kℓ
+            o_l = o.reshape(o.shape[:-2] + (1,) * extra + (1, o.shape[-1]))
+            sl = s.reshape(s.shape + (1,) * extra)
+            curves = o_l + (lv.curves - o_l) * sl[..., None, None]
+            radius = None if lv.radius is None else lv.radius * sl[..., None]
+            deeper.append(BranchLevel(curves=curves, attach=lv.attach, mask=lv.mask, radius=radius))
+        out = eqx.tree_at(lambda t: t.deeper, out, tuple(deeper))
     return out

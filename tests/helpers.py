@@ -230,3 +230,202 @@ def all_grid_paths(T: int, neighbourhood: int):
                 yield from extend(path + [(k + a, l + b)])
 
     yield from extend([(0, 0)])
+
+
+# --------------------------------------------------------------------------------------------
+# A slow, obvious reference of the elastic distance between root systems of any depth
+# (docs/design.md §4 and §11), in numpy and plain Python recursion. Only the padded SRVFs come
+# from the library (`batch` + `to_srvf`: the data model); the warps (`reference_dp`), the
+# warp action, the assignment (scipy), the rotation (Kabsch) and the alternation are here.
+
+
+def _ref_trapezoid(T: int) -> np.ndarray:
+    w = np.full(T, 1.0 / (T - 1))
+    w[0] = w[-1] = 0.5 / (T - 1)
+    return w
+
+
+def _ref_norm2(q: np.ndarray) -> float:
+    return float(np.sum(np.sum(q * q, axis=-1) * _ref_trapezoid(len(q))))
+
+
+def _ref_warp_keep_norm(q: np.ndarray, gamma: np.ndarray) -> np.ndarray:
+    """(q∘γ)√γ' on the grid (linear interpolation; √γ' at a node = mean of the adjacent
+    √(finite differences)), rescaled to keep ||q|| (as the engine does: branch lengths exact)."""
+    T = len(q)
+    tiny = np.sqrt(np.finfo(float).tiny)
+    x = np.clip(gamma * (T - 1), 0, T - 1)
+    i0 = np.clip(np.floor(x).astype(int), 0, T - 2)
+    f = (x - i0)[:, None]
+    lerp = q[i0] * (1 - f) + q[i0 + 1] * f
+    dg = np.diff(gamma) * (T - 1)
+    rs_ = np.where(dg > tiny, np.sqrt(np.where(dg > tiny, dg, 1.0)), 0.0)
+    speed = 0.5 * (np.concatenate([rs_[:1], rs_]) + np.concatenate([rs_, rs_[-1:]]))
+    w = lerp * speed[:, None]
+    n2, w2 = _ref_norm2(q), _ref_norm2(w)
+    ratio = n2 / w2 if w2 > tiny else 0.0
+    return w * (np.sqrt(ratio) if ratio > tiny else 0.0)
+
+
+def _ref_kabsch(A: list, B: list, w: list) -> np.ndarray:
+    """Rotation O in SO(d) maximising Σ_k w_k <A_k, O B_k> (trapezoid L2)."""
+    d = A[0].shape[-1]
+    M = np.zeros((d, d))
+    for a, b, wk in zip(A, B, w):
+        M += wk * np.einsum("t,ti,tj->ij", _ref_trapezoid(len(a)), b, a)
+    if d == 2:
+        x, y = M[0, 0] + M[1, 1], M[0, 1] - M[1, 0]
+        if x == 0 and y == 0:
+            return np.eye(2)
+        r = np.hypot(x, y)
+        c, s = x / r, y / r
+        return np.array([[c, -s], [s, c]])
+    U, _, Vt = np.linalg.svd(M)
+    V = Vt.T
+    det = np.linalg.det(V @ U.T)
+    D = np.ones(d)
+    D[-1] = np.sign(det) + (det == 0)
+    return (V * D) @ U.T
+
+
+def _ref_branches(tree, i: int) -> dict:
+    """Tree i of a batched SRVFTree as nested dicts {q, s, children}, real branches only."""
+    levels = [(np.asarray(tree.q[i]), np.asarray(tree.s[i]), np.asarray(tree.mask[i]))]
+    levels += [(np.asarray(lv.q[i]), np.asarray(lv.s[i]), np.asarray(lv.mask[i])) for lv in tree.deeper]
+
+    def kids(slot: tuple) -> list:
+        if len(slot) >= len(levels):
+            return []
+        q, s, m = levels[len(slot)]
+        return [
+            {"q": q[slot + (k,)], "s": float(s[slot + (k,)]), "children": kids(slot + (k,))}
+            for k in range(m.shape[-1])
+            if m[slot + (k,)]
+        ]
+
+    return {"q": np.asarray(tree.q0[i]), "s": 0.0, "children": kids(())}
+
+
+def reference_tree_distance(
+    a_root,
+    b_root,
+    weights=None,
+    depth: int = 2,
+    *,
+    level_weights=None,
+    n_points: int = 12,
+    neighbourhood: int = 7,
+    max_iterations: int = 4,
+    rtol: float = 1e-4,
+    rotation: bool = True,
+    normalise_scale: bool = False,
+    max_children=None,
+) -> tuple[float, dict]:
+    """Register b onto a and return (minimised squared distance, details), slowly and plainly.
+
+    - `weights`: a `rootshape_jax.Weights` (thickness must be 0); λm weights the main roots.
+    - `level_weights`: ``[(λs, λp), …]`` for levels 1 … depth − 1; default ``(weights.lateral,
+      weights.position)`` at every level.
+
+    At a fixed rotation O (applied to b), bottom-up (docs/design.md §11): a branch pair at level
+    ℓ costs ``λs_ℓ ||qa − (O qb∘γ)√γ'||²`` with γ from `reference_dp` (the warped SRVF rescaled
+    to keep its norm, as the engine does) ``+ λp_ℓ (sa − sb)² +`` the exact assignment cost of
+    their children; a real branch left unmatched (matched to a null) costs its subtree's
+    λ-weighted norm ``Σ λs_m ||q||²`` over itself and every descendant; the main roots cost
+    ``λm ||q0a − (O q0b∘γ)√γ'||²`` plus the assignment of their children. Assignments are
+    solved exactly with `scipy.optimize.linear_sum_assignment` on the matrix augmented with one
+    null per branch. The rotation starts from the main roots' Kabsch rotation and is refitted by
+    weighted Kabsch over every matched branch (weight λm for the main roots, λs_ℓ for a matched
+    pair at level ℓ, using the warps found at the previous rotation); the two steps alternate
+    while the energy falls by at least `rtol` (relative), for at most `max_iterations` rounds.
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    import rootshape_jax as rs
+
+    weights = rs.Weights() if weights is None else weights
+    if float(weights.thickness) != 0.0:
+        raise ValueError("reference_tree_distance: thickness must be 0.")
+    lam_m = float(weights.main)
+    if level_weights is None:
+        level_weights = [(float(weights.lateral), float(weights.position))] * (depth - 1)
+    kw = {} if depth == 2 and max_children is None else {"depth": depth, "max_children": max_children}
+    tree = rs.to_srvf(
+        rs.batch([a_root, b_root], n_points=n_points, normalise_scale=normalise_scale, dtype=np.float64, **kw)
+    )
+    A, B = _ref_branches(tree, 0), _ref_branches(tree, 1)
+    n_dp = [0] * depth  # DPs run per level (0 = main)
+
+    def null_cost(br: dict, ell: int) -> float:
+        return level_weights[ell - 1][0] * _ref_norm2(br["q"]) + sum(null_cost(c, ell + 1) for c in br["children"])
+
+    def branch_energy(qa, qb, O, ell):
+        qbo = qb @ O.T
+        gamma, _ = reference_dp(qa, qbo, neighbourhood)
+        n_dp[ell] += 1
+        return _ref_norm2(qa - _ref_warp_keep_norm(qbo, gamma)), gamma
+
+    def assign(ca: list, cb: list, O, ell: int):
+        """(cost, matches) of the children lists at level ell; matches: (a, b, γ, ell) of every
+        matched pair in the subtrees."""
+        na, nb = len(ca), len(cb)
+        if na + nb == 0:
+            return 0.0, []
+        big = np.inf
+        C = np.full((na + nb, na + nb), big)
+        sub = {}
+        for i, x in enumerate(ca):
+            for j, y in enumerate(cb):
+                c, m = pair_cost(x, y, O, ell)
+                C[i, j] = c
+                sub[i, j] = m
+        for i, x in enumerate(ca):
+            C[i, nb + i] = null_cost(x, ell)
+        for j, y in enumerate(cb):
+            C[na + j, j] = null_cost(y, ell)
+        C[na:, nb:] = 0.0
+        rows, cols = linear_sum_assignment(np.where(np.isinf(C), 1e300, C))
+        total, matches = 0.0, []
+        for r, c in zip(rows, cols):
+            total += C[r, c]
+            if r < na and c < nb:
+                matches += sub[r, c]
+        return total, matches
+
+    def pair_cost(x, y, O, ell):
+        lam_s, lam_p = level_weights[ell - 1]
+        e, gamma = branch_energy(x["q"], y["q"], O, ell)
+        c = lam_s * e + lam_p * (x["s"] - y["s"]) ** 2
+        matches = [(x, y, gamma, ell)]
+        if ell < depth - 1:
+            cc, m = assign(x["children"], y["children"], O, ell + 1)
+            c += cc
+            matches += m
+        return c, matches
+
+    def evaluate(O):
+        e, gamma = branch_energy(A["q"], B["q"], O, 0)
+        c, matches = assign(A["children"], B["children"], O, 1)
+        return lam_m * e + c, [(A, B, gamma, 0)] + matches
+
+    def refit(matches):
+        qa = [x["q"] for x, _, _, _ in matches]
+        qb = [_ref_warp_keep_norm(y["q"], g) for _, y, g, _ in matches]
+        w = [lam_m if ell == 0 else level_weights[ell - 1][0] for *_, ell in matches]
+        return _ref_kabsch(qa, qb, w)
+
+    d = A["q"].shape[-1]
+    O = _ref_kabsch([A["q"]], [B["q"]], [1.0]) if rotation else np.eye(d)
+    best_E, best_matches, best_O = np.inf, None, O
+    rounds = max_iterations if rotation else 1
+    for it in range(rounds):
+        if it > 0:
+            O = refit(best_matches)
+        E, matches = evaluate(O)
+        if not E < best_E:
+            break
+        rel = np.inf if np.isinf(best_E) else (best_E - E) / max(best_E, np.sqrt(np.finfo(float).tiny))
+        best_E, best_matches, best_O = E, matches, O
+        if rel < rtol:
+            break
+    return float(best_E), {"rotation": best_O, "n_dp": n_dp, "matches": best_matches}

@@ -73,6 +73,14 @@ class RootParameters:
       random first side) or ``"random"``. In 3D the azimuth is uniform.
     - `lateral_tortuosity`, `lateral_gravitropism`: as for the main root.
 
+    **Higher orders** (used with ``synthetic_roots(..., depth=3)`` or more)
+
+    - `sub_lateral_density`: mean number of laterals per mm on a lateral (Poisson), between 10 %
+      and 80 % of its length.
+    - `sub_lateral_length_ratio`: mean length of a sub-lateral as a fraction of the parent's
+      length still ahead of its attachment point (older ones are longer), times the same
+      log-normal noise as the laterals.
+
     **Discretisation**
 
     - `segment_length`: target distance between polyline points.
@@ -97,6 +105,8 @@ class RootParameters:
     lateral_tortuosity: float = 0.012
     lateral_gravitropism: float = 0.01
     segment_length: float = 2.0
+    sub_lateral_density: float = 0.08
+    sub_lateral_length_ratio: float = 0.3
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -300,6 +310,42 @@ def _one_root(rng: np.random.Generator, p: RootParameters, dim: int) -> tuple[np
     return main, laterals, np.asarray(attach, dtype=float)
 
 
+def _sub_laterals(rng: np.random.Generator, parent: np.ndarray, p: RootParameters, levels: int) -> Root:
+    """`parent` as a `Root` with `levels` more orders of laterals grown on it (0: none)."""
+    if levels == 0:
+        return Root(main=parent)
+    cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(parent, axis=0), axis=1))])
+    total = cum[-1]
+    top, bottom = 0.1 * total, 0.8 * total
+    n_sub = min(int(rng.poisson(p.sub_lateral_density * (bottom - top))), int(p.max_laterals))
+    positions = np.sort(rng.uniform(top, bottom, size=n_sub))
+    sigma2 = math.log1p(p.lateral_length_cv**2)
+    laterals, attach, kids = [], [], []
+    for pos in positions:
+        noise = rng.lognormal(-sigma2 / 2, math.sqrt(sigma2))
+        length = max(p.sub_lateral_length_ratio * (total - pos) * noise, p.lateral_min_length)
+        angle = float(np.clip(rng.normal(p.insertion_angle_mean, p.insertion_angle_sd), 0.0, 180.0))
+        side = 1.0 if rng.random() < 0.5 else -1.0
+        azimuth = rng.uniform(0.0, 2 * math.pi)
+        seg = min(int(np.searchsorted(cum, pos, side="right")) - 1, len(parent) - 2)
+        tangent = parent[seg + 1] - parent[seg]
+        tangent /= np.linalg.norm(tangent)
+        base = parent[seg] + (pos - cum[seg]) * tangent
+        lat = _grow(
+            rng,
+            base,
+            _lateral_heading(tangent, angle, side, azimuth),
+            length,
+            step=min(p.segment_length, length / 2),
+            tortuosity=p.lateral_tortuosity,
+            gravitropism=p.lateral_gravitropism,
+        )
+        laterals.append(lat)
+        attach.append(pos / total)
+        kids.append(_sub_laterals(rng, lat, p, levels - 1))
+    return Root(main=parent, laterals=tuple(laterals), attach=np.asarray(attach, dtype=float), children=tuple(kids))
+
+
 def _stream(seed: int, condition: str, index: int) -> np.random.Generator:
     # One independent stream per (seed, condition, index): root i does not depend on n, and
     # the same seed gives unrelated noise in different conditions.
@@ -313,6 +359,7 @@ def synthetic_roots(
     condition: str | RootParameters = "control",
     seed: int = 0,
     dim: int = 2,
+    depth: int = 2,
     **overrides,
 ) -> list[Root]:
     """Generate ``n`` synthetic root systems (main root + first-order laterals), deterministically.
@@ -325,6 +372,10 @@ def synthetic_roots(
     - `seed`: seed of NumPy's generator. Root ``i`` depends only on (seed, condition, i), so
       ``synthetic_roots(5, seed=s)[:3] == synthetic_roots(3, seed=s)``.
     - `dim`: 2 for ``(x, y)`` with y down, 3 for ``(x, y, z)`` with z down.
+    - `depth`: 2 (default) for main root + first-order laterals; 3 also grows second-order
+      laterals on every lateral (kept in `Root.children`, see the "Higher orders" parameters),
+      4 third-order ones, and so on. Higher orders come from a random stream of their own, so
+      the main root and first-order laterals are those of ``depth=2``, bit for bit.
     - `**overrides`: any `RootParameters` field, replacing the condition's value, e.g.
       ``synthetic_roots(10, lateral_density=0.3)``.
 
@@ -335,15 +386,22 @@ def synthetic_roots(
         raise ValueError(f"`n` must be a non-negative integer number of roots, got {n!r}.")
     if dim not in (2, 3):
         raise ValueError(f"`dim` must be 2 or 3, got {dim!r}.")
+    if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)) or depth < 2:
+        raise ValueError(f"`depth` must be an integer >= 2 (2 = main root + laterals), got {depth!r}.")
     name, params = _resolve(condition, overrides)
     roots = []
     for i in range(int(n)):
         main, laterals, attach = _one_root(_stream(seed, name, i), params, dim)
+        children = ()
+        if depth > 2:
+            sub = np.random.default_rng(np.random.SeedSequence([int(seed), zlib.crc32(name.encode()), i, 2]))
+            children = tuple(_sub_laterals(sub, lat, params, int(depth) - 2) for lat in laterals)
         roots.append(
             Root(
                 main=main,
                 laterals=tuple(laterals),
                 attach=attach,
+                children=children,
                 name=f"{name}_s{seed}_{i:03d}",
                 metadata={
                     "condition": name,

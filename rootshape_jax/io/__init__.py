@@ -24,7 +24,12 @@ from ._metadata import (
     labels_of as labels_of,
     read_metadata as read_metadata,
 )
-from ._rsml import read_rsml as read_rsml, write_rsml as write_rsml
+from ._rsml import (
+    is_plant_system as is_plant_system,
+    plant_system as plant_system,
+    read_rsml as read_rsml,
+    write_rsml as write_rsml,
+)
 from ._units import (
     NORMALISED_UNIT as NORMALISED_UNIT,
     convert_units as convert_units,

@@ -29,7 +29,7 @@ import numpy as np
 from defusedxml import DefusedXmlException, ElementTree as DET
 
 from .._errors import InvalidRootError, RSMLError, RSMLWarning
-from .._root import ROOT_COORDINATE_LIMIT, Root, check_range
+from .._root import ROOT_COORDINATE_LIMIT, Root, check_range, polyline_length
 
 _PO_NS = "http://www.plantontology.org/xml-dtd/po.dtd"
 _PIXEL_UNITS = ("pixel", "pixels", "px")
@@ -433,7 +433,9 @@ def _file_metadata(meta_el: ET.Element | None, problems: _Problems, physical_uni
     return info, scale
 
 
-def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: bool = True) -> list[Root]:
+def read_rsml(
+    path: str | os.PathLike, *, strict: bool = False, physical_units: bool = True, by: str = "root"
+) -> list[Root]:
     """Read every root system of an RSML file.
 
     **Arguments**
@@ -444,6 +446,16 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
       lists them, and everything else is returned.
     - `physical_units`: convert coordinates to the file's unit (see below). If False, keep the
       stored pixel coordinates and report ``unit = "pixel"``.
+    - `by`: ``"root"`` (default): one `Root` per top-level root, as described below.
+      ``"plant"``: one `Root` per plant, the whole system (docs/design.md §11): a *virtual main
+      root* of zero length (two copies of the collar, the base of the plant's first axis), its
+      top-level roots (seminal, nodal axes, several seedlings' roots) as laterals at
+      ``attach = 0`` in file order, and each axis's `Root` (with its own laterals, recursively)
+      as the matching entry of `Root.children`. Its radius is 0 along the virtual main root
+      when any axis has radii. ``metadata`` holds the plant's fields plus ``virtual_main =
+      True`` and ``n_axes``; its name is the plant's label when set and unique, else
+      ``"{file stem}/{plant id}"``. Use ``batch(..., depth=3)`` (or more) to keep the axes'
+      laterals in the analysis.
 
     **Returns** a list of `Root`, one per top-level (order-1) root of every plant, in file
     order. A plant with several top-level roots (seminal / nodal axes, several seedlings) gives
@@ -494,6 +506,8 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
     Refused with `RSMLError` whatever `strict` says: a file declaring a DTD (``<!DOCTYPE``)
     or entities (billion laughs, quadratic blow-up, external entities); nothing is fetched.
     """
+    if by not in ("root", "plant"):
+        raise ValueError(f"read_rsml: by must be 'root' or 'plant', got {by!r}.")
     source, stem = _source_name(path)
     problems = _Problems(source, strict)
     if isinstance(path, (str, os.PathLike)) and not Path(path).is_file():
@@ -657,20 +671,25 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
         )
         raise RSMLError(f"{source}: nothing readable: {what}.")
     roots = []
+    per_plant: list[tuple[dict, list[Root]]] = []
     no_radius: list[str] = []  # laterals without radius beside siblings that have one
     n_top = 0
     for plant_info, nodes in plants:
+        axes: list[Root] = []
         for node in nodes:
             n_top += 1
             if node.problem is not None:
                 problems.report(node.where, _problem_text(node))
                 continue
             try:
-                roots.append(build(node, plant_info))
+                axes.append(build(node, plant_info))
             except InvalidRootError as e:  # e.g. coordinates out of range after unit scaling
                 k = node.n_descendants()
                 subs = f" (its {k} sub-root(s) are skipped with it)" if k else ""
                 problems.report(node.where, f"{e}{subs}")
+        roots.extend(axes)
+        if axes:
+            per_plant.append((plant_info, axes))
     if not roots:
         what = "no root" if n_top == 0 else f"none of its {n_top} top-level root(s) has usable geometry"
         if strict:
@@ -687,7 +706,66 @@ def read_rsml(path: str | os.PathLike, *, strict: bool = False, physical_units: 
             ),
             stacklevel=2,
         )
+    if by == "plant":
+        plant_labels = [pi.get("plant_label") for pi, _ in per_plant]
+        return [
+            plant_system(
+                axes,
+                name=(
+                    pi["plant_label"]
+                    if pi.get("plant_label") and plant_labels.count(pi["plant_label"]) == 1
+                    else f"{stem}/{pi['plant_id']}"
+                ),
+                metadata={**info, **pi},
+            )
+            for pi, axes in per_plant
+        ]
     return roots
+
+
+def plant_system(axes: Sequence[Root], *, name: str = "", metadata: dict | None = None) -> Root:
+    """One plant as one `Root` (docs/design.md §11): a virtual main root of zero length at the
+    collar (the base of the first axis), the axes as laterals at ``attach = 0``, and the axes
+    themselves (with their own laterals) as `Root.children`."""
+    axes = list(axes)
+    if not axes:
+        raise InvalidRootError("plant_system: a plant needs at least one axis.")
+    collar = axes[0].main[0]
+    has_radius = any(a.main_radius is not None for a in axes)
+    meta = dict(metadata or {})
+    meta.update(virtual_main=True, n_axes=len(axes))
+    return Root(
+        main=np.stack([collar, collar]),
+        laterals=tuple(a.main for a in axes),
+        attach=np.zeros(len(axes)),
+        name=name,
+        metadata=meta,
+        children=tuple(axes),
+        main_radius=np.zeros(2) if has_radius else None,
+        lateral_radii=(
+            tuple(a.main_radius if a.main_radius is not None else np.zeros(len(a.main)) for a in axes)
+            if has_radius
+            else None
+        ),
+    )
+
+
+def is_plant_system(root: Root) -> bool:
+    """True for a plant's system with a virtual main root (`plant_system`): a main root of
+    zero length with laterals (a real root read from a file never has zero length)."""
+    return root.n_laterals > 0 and polyline_length(root.main) == 0.0
+
+
+def _axes_of(r: Root) -> list[tuple]:
+    """(polyline, Root, radius) of each axis of a plant's system, to write as top-level roots."""
+    out = []
+    for k, lat in enumerate(r.laterals):
+        child = r.children[k] if r.children else Root(main=lat)
+        radius = child.main_radius
+        if radius is None and r.lateral_radii is not None:
+            radius = r.lateral_radii[k]
+        out.append((lat, child, radius))
+    return out
 
 
 def _problem_text(node: _Node) -> str:
@@ -843,14 +921,19 @@ def write_rsml(
         plant_meta.setdefault(pid, r)
 
     used_ids: set[str] = set()
+
     for pid, members in groups.items():
         first = plant_meta[pid]
         attrs = {"id": pid}
         if first.metadata.get("plant_label"):
             attrs["label"] = str(first.metadata["plant_label"])
         plant_el = ET.SubElement(scene, "plant", attrs)
-        for k, r in enumerate(members):
-            _write_root(plant_el, r.main, r, f"{pid}.{k + 1}", None, resolution, dim3, used_ids, r.main_radius)
+        tops = []
+        for r in members:
+            # A plant's system (virtual main root of zero length) is written as its axes.
+            tops.extend(_axes_of(r) if is_plant_system(r) else [(r.main, r, r.main_radius)])
+        for k, (poly, r, radius) in enumerate(tops):
+            _write_root(plant_el, poly, r, f"{pid}.{k + 1}", None, resolution, dim3, used_ids, radius)
 
     data = _serialise(top)
     if hasattr(path, "write"):
