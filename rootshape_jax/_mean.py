@@ -183,6 +183,13 @@ def _check_samples(samples: SRVFTree, what: str) -> int:
     n = batch_size(samples)
     if n < 1:
         raise ValueError(f"{what}: empty batch; give at least one root.")
+    if samples.deeper:
+        # Distances and geodesics work at any depth; the mean's update does not yet.
+        raise NotImplementedError(
+            f"{what}: the Karcher mean (and PCA, sampling and regression on it) works on trees of "
+            f"depth 2 only for now, got depth {samples.depth}; batch the roots with depth=2 "
+            "(the default) for these."
+        )
     return n
 
 
