@@ -561,6 +561,10 @@ def run_dp_slabs(need, pair_of, E, G=None, *, neighbourhood: int, dp_batch_size:
     return run_in_slabs(need, step, (E, G), slab=_slab_size(n_items, dp_batch_size))
 
 
+#: Children sets per slab of the nested assignments (depth D > 2).
+CHILD_SLAB = 32
+
+
 def lazy_assignment(
     p: Prepared,
     qb: Array,
@@ -619,7 +623,7 @@ def lazy_assignment(
             )
             return A.at[lanes].set(total, mode="drop"), counts.at[lanes].set(n_dp, mode="drop")
 
-        return run_in_slabs(need, step, (A, counts), slab=_slab_size(n_items, 32))
+        return run_in_slabs(need, step, (A, counts), slab=_slab_size(n_items, CHILD_SLAB))
 
     def exact(need, E, G, A, counts):
         E, G = slabs(need, lateral_pair, E, G)
@@ -729,7 +733,7 @@ def child_registrations(p: Prepared, O: Array, perm: Array, matched: Array, opti
         ]
         return regs, counts.at[lanes].set(n_dp, mode="drop")
 
-    regs, counts = run_in_slabs(matched.reshape(-1), step, (regs, counts), slab=_slab_size(n_items, 32))
+    regs, counts = run_in_slabs(matched.reshape(-1), step, (regs, counts), slab=_slab_size(n_items, CHILD_SLAB))
     regs = [(pm.reshape((B, K) + pm.shape[1:]), gm.reshape((B, K) + gm.shape[1:])) for pm, gm in regs]
     return regs, jnp.sum(counts.reshape(B, K, -1), axis=1, dtype=jnp.int32)
 
