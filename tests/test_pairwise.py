@@ -68,9 +68,9 @@ def test_bad_inputs(trees):
 def test_geodesic_endpoints_midpoint_and_colours(trees):
     a, b = rs.unstack(trees)[2], rs.unstack(trees)[3]
     reg = rs.register(a, b, weights=W)
-    path = rs.geodesic(a, b, n_steps=5, weights=W, registration=reg)
+    path = rs.geodesic(a, b, n_steps=5, weights=W, registration=reg, in_place=False)
     assert path.main.shape == (5, T, 2) and path.laterals.shape[:2] == (5, a.capacity)
-    # Endpoints: a itself (its curves rebuilt from its SRVFs) and registered b.
+    # Endpoints (in_place=False): a itself (its curves rebuilt from its SRVFs) and registered b.
     start = rs.to_curves(rs.to_srvf(a))
     np.testing.assert_allclose(np.asarray(path.main[0]), np.asarray(start.main), atol=1e-12)
     end = rs.to_curves(reg.registered)
