@@ -17,7 +17,7 @@ import sys
 import warnings
 from collections.abc import Sequence
 
-from ._common import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, PROG, CLIError
+from ._common import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, PROG, CLIError, heartbeat
 from ._parser import build_parser
 from ._report import remove_pending
 
@@ -108,7 +108,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         with contextlib.suppress(ValueError):  # not the main thread: keep KeyboardInterrupt
             signal.signal(signal.SIGINT, _on_sigint)
     try:
-        with _plain_warnings():
+        with _plain_warnings(), heartbeat():
             args.func(args)
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted; every file written so far is complete.", file=sys.stderr)
