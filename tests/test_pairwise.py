@@ -43,6 +43,35 @@ def test_cross_distances_and_stats(trees):
     assert stats["pairs"] == 10 and stats["lateral_dp"] > 0
 
 
+def test_cross_distances_bar_moves_after_every_chunk(trees, monkeypatch):
+    """Issue 17, item 6: a long matrix shows progress per chunk (each chunk is a block), so the
+    bar moves at least as often as a chunk finishes."""
+    import rootshape_jax._executor as executor
+
+    made = []
+
+    class Bar:
+        def __init__(self, *args, **kwargs):
+            self.kwargs, self.updates = kwargs, []
+            made.append(self)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def update(self, n=1):
+            self.updates.append(n)
+
+    monkeypatch.setattr(executor, "tqdm", Bar)
+    A = jax.tree.map(lambda x: x[:2], trees)
+    rs.cross_distances(A, trees, weights=W, chunk_size=4)  # 10 pairs: chunks of 4, 4, 2
+    (bar,) = made
+    assert bar.kwargs["total"] == 10 and not bar.kwargs["disable"]
+    assert sorted(bar.updates) == [2, 4, 4]
+
+
 def test_no_retrace_across_chunks(trees, monkeypatch):
     counted = eqx.filter_jit(eqx.debug.assert_max_traces(_pairwise.chunk_energies.__wrapped__, max_traces=1))
     monkeypatch.setattr(_pairwise, "chunk_energies", counted)
