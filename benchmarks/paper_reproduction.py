@@ -852,7 +852,8 @@ def main(argv=None):
     for k, lam in enumerate(PAPER_LAMBDAS):
         w = rs.Weights(*lam)
         reg = rs.register(ta, tb, weights=w)
-        path = rs.geodesic(ta, tb, n_steps=cfg.n_steps, weights=w, registration=reg)
+        # As the paper draws it: b registered onto a at the end (not turned back into its pose).
+        path = rs.geodesic(ta, tb, n_steps=cfg.n_steps, weights=w, registration=reg, in_place=False)
         real_a = np.asarray(ta.mask)
         real_b = np.asarray(reg.registered.mask)
         matched = int(np.sum(real_a & real_b))

@@ -1,15 +1,23 @@
-"""Split a leading batch axis across every available device (docs/design.md §8).
+"""Cores and devices (docs/design.md §8): how many cores, and splitting a batch over devices.
 
-XLA:CPU runs most of a loop on one core. Several host devices (set with
-``jax.config.update("jax_num_cpu_devices", n)`` *before* JAX initialises — the command line and
-the benchmarks do this; the library never changes global configuration) let a batch run on every
-core: `split_over_devices` pads the batch to a multiple of the device count, gives each device
-an equal slice with `jax.shard_map`, and drops the padding. With one device it calls the
-function as is. `device_vmap` is the same splitter around ``jax.vmap(fn)``.
+`usable_cores` is the one count of CPU cores: the local executor runs that many worker threads
+(divided by the devices), and `use_all_cores` asks for that many devices.
+
+XLA:CPU runs one compiled call on about one core. The default path uses every core without any
+global setting: blocks of work run on worker threads, one per core (`_executor.LocalExecutor`;
+XLA releases the GIL). Several host devices (``jax.config.update("jax_num_cpu_devices", n)``
+*before* JAX initialises: `use_all_cores`, or ``rootshape --devices N``; the library never
+changes global configuration by itself) split each call instead: `split_over_devices` pads the
+batch to a multiple of the device count, gives each device an equal slice with
+`jax.shard_map`, and drops the padding. With one device it calls the function as is.
+`device_vmap` is the same splitter around ``jax.vmap(fn)``. A call split over devices waits for
+its slowest share, so on a busy machine threads are faster (measured on the pea matrix:
+99.1 s on threads, 149.5 s on two devices; BENCHMARKS.md).
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -79,18 +87,29 @@ COLLECTIVE_TIMEOUT_FLAGS = {
 def relax_collective_timeouts() -> None:
     """Add `COLLECTIVE_TIMEOUT_FLAGS` to ``XLA_FLAGS``, keeping any value the user set. XLA reads
     the variable when its CPU backend starts, so this acts only before the first computation."""
-    import os
-
     flags = os.environ.get("XLA_FLAGS", "").split()
     given = {f.split("=", 1)[0] for f in flags}
     flags += [f"{k}={v}" for k, v in COLLECTIVE_TIMEOUT_FLAGS.items() if k not in given]
     os.environ["XLA_FLAGS"] = " ".join(flags)
 
 
+def usable_cores() -> int:
+    """CPU cores this process may run on (its CPU affinity; else the machine's count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
 def use_all_cores(n: int | None = None) -> int:
-    """Give JAX one CPU device per core (or `n`), so that distance matrices, registrations and
-    means run on every core. Call it right after ``import rootshape_jax``, before any JAX
-    computation: XLA fixes its devices when it starts.
+    """Give JAX one CPU device per usable core (`usable_cores`, or `n`), so that each batched
+    computation is split over the cores. Call it right after ``import rootshape_jax``, before
+    any JAX computation: XLA fixes its devices when it starts.
+
+    You do not need it to use every core: by default distance matrices, means and batched curve
+    distances already run their blocks on one worker thread per core, which is faster on a busy
+    machine (a call split over devices waits for its slowest share). Use it for your own
+    batched computations (`split_over_devices`).
 
     This is the one place where the library changes JAX's global configuration, and only when
     you call it. It also relaxes XLA's timeouts for devices waiting on each other
@@ -98,10 +117,9 @@ def use_all_cores(n: int | None = None) -> int:
     the number of devices in use; if JAX has already started, nothing changes and a warning
     says how many devices it has.
     """
-    import os
     import warnings
 
-    want = int(n) if n is not None else (os.cpu_count() or 1)
+    want = int(n) if n is not None else usable_cores()
     if want < 1:
         raise ValueError(f"use_all_cores: n must be >= 1, got {n!r}.")
     relax_collective_timeouts()

@@ -30,6 +30,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
+from ._devices import usable_cores
 from ._errors import StoreMismatchError
 
 _FORMAT = "rootshape_jax.pair_blocks/1"
@@ -185,14 +186,6 @@ class Executor:
     def _run(self, fn, blocks, todo, shared):
         """Yield ``(b, fn(*blocks[b], *shared))`` for every b in `todo`, in any order."""
         raise NotImplementedError
-
-
-def usable_cores() -> int:
-    """CPU cores this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
 
 
 # Signatures of block calls already run in this process: a block function called again with

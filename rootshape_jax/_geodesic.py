@@ -59,7 +59,7 @@ def geodesic(
     n_steps: int = 9,
     weights: Weights | None = None,
     registration: Registration | None = None,
-    in_place: bool = False,
+    in_place: bool = True,
     sizes: tuple[float, float] | None = None,
     **options,
 ) -> RootTree:
@@ -74,10 +74,11 @@ def geodesic(
     (the SRVFs forget translation; the trees' `origin` keeps it), so roots far from the
     coordinate origin stay where they are.
 
-    - `in_place`: False (default): the path ends at b as registered (rotated about its base
-      onto a). True: the registration's rotation is undone gradually (step τ is turned about
-      its base by the fraction τ of the inverse rotation), so the path ends at b as given.
-      Rotations are quotiented out of the shape space, so both are the same shape path.
+    - `in_place`: True (default): the registration's rotation is undone gradually (step τ is
+      turned about its base by the fraction τ of the inverse rotation), so the path starts at a
+      and ends at b as given, where they lie. False: the path ends at b as registered (rotated
+      about its base onto a), the usual picture of a shape-space geodesic. Rotations are
+      quotiented out of the shape space, so both are the same shape path.
     - `sizes`: ``(length_a, length_b)``, the main-root lengths of a and b before
       `batch(normalise_scale=True)` divided them out. That scaling keeps each root's base (the
       seed) fixed, so here step τ is scaled back about its base by

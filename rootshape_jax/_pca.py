@@ -37,6 +37,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from ._curves import l2_norm_squared
 from ._engine import RegistrationOptions, registration_options
+from ._executor import LocalExecutor
 from ._mean import KarcherMean, register_onto
 from ._metric import Weights
 from ._tangent import TreeParams, exp_map, flatten, log_map, whiten, whitening
@@ -263,17 +264,34 @@ def _project(pc: TangentPCA, x: SRVFTree, opts):
     return _scores(V, pc.components, pc.eigenvalues), energies
 
 
+# Roots per block of `project`: a block of large roots (pea, K = 54) registers in seconds, so
+# the progress bar moves at least every few seconds; blocks run on worker threads.
+PROJECT_BLOCK = 4
+
+
+def project_block(idx, n_valid: int, pc: TangentPCA, x: SRVFTree, opts) -> dict:
+    """Coefficients of the rows `idx` of `x` (padded to one block size, so one compilation
+    serves every block); the first `n_valid` rows are real."""
+    b, _ = _project(pc, jax.tree.map(lambda a: a[idx], x), opts)
+    return {"b": np.asarray(b)[:n_valid]}
+
+
 def project(
     pc: TangentPCA,
     trees: RootTree | SRVFTree,
     *,
     n_components: int | None = None,
     registration: RegistrationOptions | dict | None = None,
+    progress: bool = True,
+    block_size: int = PROJECT_BLOCK,
 ) -> Float[Array, "n m"]:
     """Standardised coefficients ``b`` of roots: each is registered onto the mean (options of
     `register` in `registration`) and its tangent vector projected on the first
     `n_components` (default `pc.n_components`) directions, divided by ``√σ_i``. A single tree
-    gives shape ``(m,)``. Registration options default to those the mean used."""
+    gives shape ``(m,)``. Registration options default to those the mean used.
+
+    More than `block_size` roots are registered in blocks of that many, on worker threads
+    (every core), with a progress bar (`progress`) that moves after every block."""
     x = to_srvf(trees, weights=pc.weights)
     single = x.batch_shape == ()
     if single:
@@ -282,7 +300,24 @@ def project(
         raise ValueError(f"project: expected one tree or a batch, got batch shape {x.batch_shape}.")
     check_compatible(pc.mean, x, "project: the PCA's mean and trees")
     opts = registration_options(registration, base=pc.registration)
-    b, _ = _project(pc, x, opts)
+    if isinstance(block_size, bool) or not isinstance(block_size, int) or block_size < 1:
+        raise ValueError(f"project: block_size must be an integer >= 1, got {block_size!r}.")
+    n = x.batch_shape[0]
+    if n <= block_size or isinstance(x.q0, jax.core.Tracer):
+        b, _ = _project(pc, x, opts)
+    else:
+        starts = range(0, n, block_size)
+        blocks = [(np.minimum(np.arange(a, a + block_size), n - 1), min(block_size, n - a)) for a in starts]
+        results, _ = LocalExecutor().map_blocks(
+            project_block,
+            blocks,
+            shared=(pc, x, opts),
+            sizes=[v for _, v in blocks],
+            progress=progress,
+            desc="projecting onto the modes",
+            unit="root",
+        )
+        b = jnp.asarray(np.concatenate([r["b"] for r in results]))
     m = pc.n_components if n_components is None else int(n_components)
     b = b[:, :m]
     return b[0] if single else b

@@ -10,10 +10,12 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ._curves import safe_sqrt
 from ._engine import Registration, RegistrationOptions, pair_distances_squared, register_pairs_jit, registration_options
+from ._executor import LocalExecutor
 from ._metric import Weights
 from ._tree import RootTree, SRVFTree, check_compatible, to_srvf
 
@@ -46,12 +48,28 @@ def as_pair_batch(a, b, weights: Weights, what: str = "register") -> tuple[SRVFT
     return a, b, single
 
 
+# Pairs per block when `register` gets long batches: a block of large roots (pea, K = 54)
+# registers in seconds, so the progress bar moves at least every few seconds.
+REGISTER_BLOCK = 8
+
+
+def register_block(idx, n_valid: int, a: SRVFTree, b: SRVFTree, weights: Weights, opts) -> dict:
+    """The registrations of pairs `idx` (padded to one block size, so one compilation serves
+    every block; padded pairs are inactive), as a dict of their leaves, real rows only."""
+    take = lambda t: jax.tree.map(lambda x: x[idx], t)  # noqa: E731
+    active = jnp.asarray(np.arange(len(idx)) < n_valid)
+    reg = register_pairs_jit(take(a), take(b), weights, opts, active)
+    return {str(i): np.asarray(leaf)[:n_valid] for i, leaf in enumerate(jax.tree.leaves(reg))}
+
+
 def register(
     a: RootTree | SRVFTree,
     b: RootTree | SRVFTree,
     *,
     weights: Weights | None = None,
     registration: RegistrationOptions | None = None,
+    progress: bool = True,
+    block_size: int = REGISTER_BLOCK,
     **options,
 ) -> Registration:
     """Register root `b` onto root `a` (docs/design.md §4).
@@ -66,14 +84,45 @@ def register(
     - `registration`: a `RegistrationOptions`; or its fields as keywords (shorthand):
       `rotation`, `max_iterations`, `rtol`, `neighbourhood`, `prune`, `dp_batch_size`,
       `assignment` — see `RegistrationOptions`.
+    - `progress`, `block_size`: batches longer than `block_size` pairs are registered in
+      blocks of that many on worker threads (every core), with a progress bar that moves
+      after every block. Under `jax.jit`/`jax.grad` the batch is one call.
     """
     weights = Weights() if weights is None else weights
     opts = registration_options(registration, **options)
+    if isinstance(block_size, bool) or not isinstance(block_size, int) or block_size < 1:
+        raise ValueError(f"register: block_size must be an integer >= 1, got {block_size!r}.")
     a, b, single = as_pair_batch(a, b, weights)
-    reg = register_pairs_jit(a, b, weights, opts, jnp.ones(a.batch_shape, bool))
+    n = a.batch_shape[0]
+    traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((a, b, weights)))
+    if n <= block_size or traced:
+        reg = register_pairs_jit(a, b, weights, opts, jnp.ones(a.batch_shape, bool))
+    else:
+        reg = _register_in_blocks(a, b, weights, opts, block_size, progress)
     if single:
         reg = jax.tree.map(lambda x: x[0], reg)
     return reg
+
+
+def _register_in_blocks(a, b, weights, opts, block_size: int, progress: bool) -> Registration:
+    n = a.batch_shape[0]
+    blocks = [
+        (np.minimum(np.arange(s, s + block_size), n - 1), min(block_size, n - s)) for s in range(0, n, block_size)
+    ]
+    # The result's structure, without compiling (the call below reuses this trace).
+    first = jax.tree.map(lambda x: x[:block_size], (a, b))
+    shape = eqx.filter_eval_shape(register_pairs_jit, *first, weights, opts, jnp.ones(block_size, bool))
+    results, _ = LocalExecutor().map_blocks(
+        register_block,
+        blocks,
+        shared=(a, b, weights, opts),
+        sizes=[v for _, v in blocks],
+        progress=progress,
+        desc="registering",
+        unit="pair",
+    )
+    leaves = [jnp.asarray(np.concatenate([r[str(i)] for r in results])) for i in range(len(results[0]))]
+    return jax.tree.unflatten(jax.tree.structure(shape), leaves)
 
 
 def distance(

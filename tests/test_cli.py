@@ -782,3 +782,37 @@ def test_thickness_weight_from_the_command_line(tmp_path):
     ref = np.asarray(rs.pairwise_distances(tree, weights=rs.Weights(0.02, 1, 1, 0.5), progress=False))
     np.testing.assert_allclose(mats["0.02,1,1,0.5"], ref, rtol=1e-6, atol=1e-9)
     assert not np.allclose(mats["0.02,1,1,0.5"], mats["0.02,1,1"])
+
+
+# --------------------------------------------------------------------------------------------
+# Progress (issue 17, item 6): bars redrawn at least every few seconds
+
+
+def test_heartbeat_redraws_a_bar_that_gets_no_update():
+    """A bar waiting for a long block (or a compilation) is still redrawn, so its elapsed time
+    moves; a step without a bar of its own gets one (`ticking`), silent with --quiet."""
+    import io
+    import time
+    from types import SimpleNamespace
+
+    from tqdm import tqdm
+
+    from rootshape_jax._cli._common import heartbeat, ticking
+
+    def redraws(text: str) -> int:
+        return text.count("\r")
+
+    sink = io.StringIO()
+    with heartbeat(0.05):
+        bar = tqdm(total=3, desc="blocks", file=sink, mininterval=0)
+        time.sleep(0.2)
+        quiet_redraws = redraws(sink.getvalue())
+        time.sleep(0.6)
+        bar.close()
+    # Drawn once when made; then about every 0.05 s although update() was never called.
+    assert redraws(sink.getvalue()) - quiet_redraws >= 4, sink.getvalue()
+    with heartbeat(0.05):
+        with ticking(SimpleNamespace(quiet=True), "silent") as bar:
+            assert bar.disable
+        with ticking(SimpleNamespace(quiet=False), "working") as bar:
+            assert not bar.disable and bar.total is None

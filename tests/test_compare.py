@@ -57,10 +57,8 @@ def test_heat_map_strips_show_the_labels_in_the_matrix_order():
         ax = axes["strips"][key]
         bars = [p for p in ax.patches]
         assert [b.get_gid() for b in bars] == [values[i] for i in order]
-        legend = {
-            t.get_text(): mcolors.to_hex(h.get_facecolor())
-            for t, h in zip(ax.get_legend().texts, ax.get_legend().legend_handles)
-        }
+        leg = axes["legends"][key].get_legend()
+        legend = {t.get_text(): mcolors.to_hex(h.get_facecolor()) for t, h in zip(leg.texts, leg.legend_handles)}
         assert hexes(b.get_facecolor() for b in bars) == [legend[values[i]] for i in order]
         assert set(legend) == set(values) and len(set(legend.values())) == len(legend)
         assert ax.get_ylabel() == key
@@ -288,3 +286,39 @@ def test_regress_by_reads_numeric_covariates_and_names_bad_values(tmp_path):
         read_requested(
             str(req), ["main_length", "mean_lateral_length", "std_lateral_length", "dose", "g"][:3] + ["dose2"]
         )
+
+
+@pytest.mark.parametrize("kind", ["matrix", "dendrogram", "dendrogram with roots"])
+def test_strip_legends_lie_inside_the_figure_and_its_tight_box(kind, tmp_path):
+    """Issue 17: the legends were outside the layout, so a figure saved with
+    bbox_inches="tight" (notebooks' default) cut them off. Now the layout holds them."""
+    import matplotlib.pyplot as plt
+    from matplotlib.transforms import Bbox
+
+    from rootshape_jax.datasets import synthetic_roots
+
+    D = grouped_distances()
+    strips = {"condition": ["control"] * 4 + ["drought"] * 4 + ["high_nitrate"] * 4, "genotype": ["wt", "mutant"] * 6}
+    if kind == "matrix":
+        fig, axes = rplot.plot_distance_matrix(D, labels=[f"r{i}" for i in range(12)], strips=strips)
+    elif kind == "dendrogram":
+        fig, axes = rplot.plot_dendrogram(D, labels=[f"r{i}" for i in range(12)], strips=strips)
+    else:
+        fig, axes = rplot.plot_dendrogram(D, roots=synthetic_roots(12, seed=3), n_clusters=3, strips=strips)
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    whole = fig.bbox
+    tight = fig.get_tightbbox(renderer)  # inches: what bbox_inches="tight" saves
+    for name in strips:
+        leg = axes["legends"][name].get_legend()
+        box = leg.get_window_extent(renderer)
+        assert Bbox.intersection(box, whole).width == pytest.approx(box.width), (name, box, whole)
+        assert box.x1 <= whole.x1 + 0.5 and box.y0 >= whole.y0 - 0.5 and box.y1 <= whole.y1 + 0.5
+        inches = box.transformed(fig.dpi_scale_trans.inverted())
+        assert tight.x0 - 1e-6 <= inches.x0 and inches.x1 <= tight.x1 + 1e-6, (name, inches, tight)
+        # The legend does not cover the strip or the heat map it explains.
+        strip = axes["strips"][name].get_window_extent(renderer)
+        assert box.x0 >= strip.x1 - 0.5
+    if kind == "matrix":
+        assert box.x0 >= axes["colorbar"].get_window_extent(renderer).x1 - 0.5
+    plt.close(fig)

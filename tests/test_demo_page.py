@@ -83,7 +83,7 @@ def test_demo_heat_map_strip_agrees_with_the_csv(tmp_path, monkeypatch):
     assert sorted(rows) == sorted(csv_names)
     values, colors = _strip(drawn["axes"]["strips"]["condition"])
     assert values == [conditions[n] for n in rows]  # one cell per root, in the matrix's order
-    legend = drawn["axes"]["strips"]["condition"].get_legend()
+    legend = drawn["axes"]["legends"]["condition"].get_legend()
     named = {t.get_text(): mcolors.to_hex(h.get_facecolor()) for t, h in zip(legend.get_texts(), legend.legend_handles)}
     assert colors == [named[v] for v in values] and len(set(named.values())) == 3
 

@@ -68,10 +68,11 @@ def test_notebook_is_stored_executed_with_small_figures(path):
         raw = base64.b64decode(png)
         assert raw[:8] == b"\x89PNG\r\n\x1a\n" and len(raw) <= MAX_PNG_BYTES, (path.name, len(raw))
     assert path.stat().st_size <= MAX_NOTEBOOK_BYTES
-    # Every core, first: the first code cell calls use_all_cores before anything computes.
-    first = cells[0].source
-    assert "rs.use_all_cores()" in first
-    assert not re.search(r"\brs\.(?!use_all_cores)\w+\(", first.split("rs.use_all_cores()")[0])
+    # Every core by default (blocks on worker threads): no notebook splits calls over XLA
+    # devices, which was 1.5 times slower on the pea matrix, nor crops figures by hand.
+    source = "\n".join(c.source for c in cells)
+    assert "use_all_cores" not in source and "jax_num_cpu_devices" not in source
+    assert "bbox_inches" not in source  # strip legends lie inside the layout
 
 
 def test_quick_tour_claim_matches_its_output():

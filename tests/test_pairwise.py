@@ -45,6 +45,35 @@ def test_cross_distances_and_stats(trees):
     assert stats["pairs"] == 10 and stats["lateral_dp"] > 0
 
 
+def test_cross_distances_bar_moves_after_every_chunk(trees, monkeypatch):
+    """Issue 17, item 6: a long matrix shows progress per chunk (each chunk is a block), so the
+    bar moves at least as often as a chunk finishes."""
+    import rootshape_jax._executor as executor
+
+    made = []
+
+    class Bar:
+        def __init__(self, *args, **kwargs):
+            self.kwargs, self.updates = kwargs, []
+            made.append(self)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def update(self, n=1):
+            self.updates.append(n)
+
+    monkeypatch.setattr(executor, "tqdm", Bar)
+    A = jax.tree.map(lambda x: x[:2], trees)
+    rs.cross_distances(A, trees, weights=W, chunk_size=4)  # 10 pairs: chunks of 4, 4, 2
+    (bar,) = made
+    assert bar.kwargs["total"] == 10 and not bar.kwargs["disable"]
+    assert sorted(bar.updates) == [2, 4, 4]
+
+
 def test_no_retrace_across_chunks(trees, monkeypatch):
     counted = eqx.filter_jit(eqx.debug.assert_max_traces(_pairwise.chunk_energies.__wrapped__, max_traces=1))
     monkeypatch.setattr(_pairwise, "chunk_energies", counted)
@@ -70,9 +99,9 @@ def test_bad_inputs(trees):
 def test_geodesic_endpoints_midpoint_and_colours(trees):
     a, b = rs.unstack(trees)[2], rs.unstack(trees)[3]
     reg = rs.register(a, b, weights=W)
-    path = rs.geodesic(a, b, n_steps=5, weights=W, registration=reg)
+    path = rs.geodesic(a, b, n_steps=5, weights=W, registration=reg, in_place=False)
     assert path.main.shape == (5, T, 2) and path.laterals.shape[:2] == (5, a.capacity)
-    # Endpoints: a itself (its curves rebuilt from its SRVFs) and registered b.
+    # Endpoints (in_place=False): a itself (its curves rebuilt from its SRVFs) and registered b.
     start = rs.to_curves(rs.to_srvf(a))
     np.testing.assert_allclose(np.asarray(path.main[0]), np.asarray(start.main), atol=1e-12)
     end = rs.to_curves(reg.registered)

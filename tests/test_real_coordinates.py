@@ -1,9 +1,13 @@
-"""Roots far from the coordinate origin stay in place: geodesics start at a and end at b,
-with and without scale normalisation (`geodesic(in_place=True, sizes=...)`)."""
+"""Roots far from the coordinate origin stay in place (issue 17, item 5): geodesics start at a
+and end at b, with and without scale normalisation (`geodesic` is in place by default; `sizes=`
+after normalisation); Karcher means (Python and `rootshape mean`) and plots stay where the data
+are."""
 
 from __future__ import annotations
 
 import dataclasses
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +39,7 @@ def check_in_place(a: rs.Root, b: rs.Root, *, normalise: bool, n_points: int = T
     tree = rs.batch([a, b], n_points=n_points)
     ta, tb = rs.unstack(rs.batch([a, b], n_points=n_points, normalise_scale=normalise, max_laterals=tree.capacity))
     sizes = tuple(float(x) for x in np.asarray(rs.curve_length(tree.main))) if normalise else None
-    path = rs.geodesic(ta, tb, n_steps=4, in_place=True, sizes=sizes)
+    path = rs.geodesic(ta, tb, n_steps=4, sizes=sizes)  # in place is the default
     ra, rb = rs.unstack(tree)
     m = np.asarray(path.main)
     # Bases: exactly a's and b's, and on the straight line between them.
@@ -67,9 +71,9 @@ def test_without_in_place_the_end_is_b_registered_and_sizes_are_checked():
     a, b = moved(a0, np.array([100.0, 50.0]), 0.0), moved(b0, np.array([100.0, 50.0]), 0.6)
     ta, tb = rs.unstack(rs.batch([a, b], n_points=T))
     reg = rs.register(ta, tb)
-    path = rs.geodesic(ta, tb, n_steps=3, registration=reg)
+    path = rs.geodesic(ta, tb, n_steps=3, registration=reg, in_place=False)
     np.testing.assert_allclose(np.asarray(path.main[-1]), np.asarray(rs.to_curves(reg.registered).main), atol=1e-9)
-    placed = rs.geodesic(ta, tb, n_steps=3, registration=reg, in_place=True)
+    placed = rs.geodesic(ta, tb, n_steps=3, registration=reg)  # in place: the default
     np.testing.assert_allclose(np.asarray(placed.main[0]), np.asarray(path.main[0]), atol=1e-9)
     assert hausdorff(placed.main[-1], tb.main) < hausdorff(path.main[-1], tb.main)
     with pytest.raises(ValueError, match="sizes must be two positive"):
@@ -97,3 +101,110 @@ def test_real_rootnav_pair_stays_in_place(normalise):
     b = rs.limit_laterals(io.read_rsml(SHARED / "rootnav_osr" / "B_osr_0107.rsml")[0], 4)
     assert np.linalg.norm(a.main[0]) > 500  # seeds far from the origin (pixels)
     check_in_place(a, b, normalise=normalise, n_points=40, tol=0.05)
+
+
+# ------------------------------------------------------------------------------------------
+# Means and plots stay where the data are
+
+SHIFT = np.array([5000.0, -3000.0])
+
+
+def far_roots(n: int = 4, seed: int = 21) -> list[rs.Root]:
+    """Synthetic roots (mm) moved far from the coordinate origin, each by a slightly different shift."""
+    rng = np.random.default_rng(seed)
+    return [moved(rs.limit_laterals(r, 3), SHIFT + rng.uniform(-20, 20, 2), 0.0) for r in synthetic_roots(n, seed=seed)]
+
+
+def check_mean_in_place(roots: list[rs.Root], main: np.ndarray, *, real_size: bool) -> None:
+    """`main`: the mean's main root ([T, d]) in the data's frame."""
+    seeds = np.array([r.main[0] for r in roots])
+    lengths = np.array([r.main_length for r in roots])
+    # Its base is the mean of the seeds (inside their range).
+    np.testing.assert_allclose(main[0], seeds.mean(0), atol=1e-6 * np.abs(seeds).max())
+    assert np.all(main[0] >= seeds.min(0) - 1e-9) and np.all(main[0] <= seeds.max(0) + 1e-9)
+    pts = np.concatenate([r.main for r in roots])
+    lo, hi = pts.min(0), pts.max(0)
+    margin = 0.5 * lengths.max()
+    assert np.all(main >= lo - margin) and np.all(main <= hi + margin), (main.min(0), main.max(0), lo, hi)
+    length = float(np.sum(np.linalg.norm(np.diff(main, axis=0), axis=-1)))
+    if real_size:  # at the data's size, not in main-root lengths
+        assert lengths.min() * 0.8 < length < lengths.max() * 1.2, (length, lengths)
+
+
+@pytest.mark.slow  # a Karcher mean compiles (a minute or two on a loaded 2-core machine)
+@pytest.mark.parametrize("normalise", [False, True])
+def test_python_karcher_mean_of_far_roots_stays_in_place(normalise):
+    roots = far_roots()
+    tree = rs.batch(roots, n_points=T, normalise_scale=normalise)
+    km = rs.karcher_mean(tree, max_steps=3, throw=False, progress=False)
+    main = np.asarray(km.mean.main)
+    if normalise:
+        # Normalisation scales each root about its seed: the mean is at main-root length 1,
+        # at the mean seed; scaled about its base by the mean length it is at the data's size.
+        assert float(rs.curve_length(km.mean.main)) == pytest.approx(1.0, rel=0.1)
+        main = np.asarray(rs.scale_tree(km.mean, float(np.mean([r.main_length for r in roots]))).main)
+    check_mean_in_place(roots, main, real_size=True)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (SHARED / "rootnav_osr").is_dir(), reason="shared data absent")
+def test_python_karcher_mean_of_rootnav_files_stays_in_place():
+    files = sorted((SHARED / "rootnav_osr").glob("*.rsml"))[:4]
+    roots = [rs.limit_laterals(io.read_rsml(f)[0], 3) for f in files]
+    assert min(np.linalg.norm(r.main[0]) for r in roots) > 500  # pixels, far from (0, 0)
+    km = rs.karcher_mean(rs.batch(roots, n_points=30), max_steps=3, throw=False, progress=False)
+    check_mean_in_place(roots, np.asarray(km.mean.main), real_size=True)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("normalise", ["--normalise-scale", "--no-normalise-scale"])
+def test_cli_mean_rsml_is_in_the_data_frame_and_unit(tmp_path, normalise):
+    roots = far_roots()
+    folder = tmp_path / "in"
+    folder.mkdir()
+    io.write_rsml(roots, folder / "far.rsml")
+    back = io.read_rsml(folder / "far.rsml")
+    assert back[0].metadata["unit"] == "mm"
+    out = tmp_path / "out"
+    proc = run_cli("mean", folder, "--points", T, "--laterals", 3, "--max-steps", 3, normalise, "--quiet", "--out", out)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (mean,) = io.read_rsml(out / "mean.rsml")
+    assert mean.metadata["unit"] == "mm"
+    check_mean_in_place(back, mean.main, real_size=True)
+
+
+def run_cli(*args) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "rootshape_jax", *map(str, args)], capture_output=True, text=True, timeout=1800
+    )
+
+
+def test_plots_draw_far_roots_where_they_are():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from rootshape_jax import plot as rplot
+
+    roots = far_roots(2)
+    tree = rs.batch(roots, n_points=T)
+    for fig, ax, root in [
+        (*rplot.plot_root(roots[0]), roots[0]),
+        (*rplot.plot_root(rs.unstack(tree)[1]), roots[1]),
+    ]:
+        xy = np.concatenate([np.asarray(seg) for c in ax.collections for seg in c.get_segments()])
+        # The drawn lines are the root's own coordinates, and the view holds them.
+        assert hausdorff(xy, np.concatenate([root.main, *root.laterals])) < 0.03 * root.main_length
+        (x0, x1), (y0, y1) = ax.get_xlim(), sorted(ax.get_ylim())
+        assert x0 <= xy[:, 0].min() and xy[:, 0].max() <= x1 and y0 <= xy[:, 1].min() and xy[:, 1].max() <= y1
+        assert x0 > 4000 and y1 < -2000
+        plt.close(fig)
+    # A geodesic strip: every panel shows the same region, holding every step where it is.
+    fig, axes = rplot.plot_geodesic(tree, title=None)
+    main = np.asarray(tree.main)
+    for ax in np.ravel(axes):
+        (x0, x1), (y0, y1) = ax.get_xlim(), sorted(ax.get_ylim())
+        assert x0 <= main[..., 0].min() and main[..., 0].max() <= x1
+        assert y0 <= main[..., 1].min() and main[..., 1].max() <= y1
+    plt.close(fig)

@@ -186,7 +186,8 @@ def _add_common(p: argparse.ArgumentParser, *, inputs: bool = True, default_out:
         "--devices",
         type=_positive_int,
         metavar="N",
-        help="number of CPU devices to split the work over (default: one per core)",
+        help="split each computation over N XLA CPU devices (default: one device, with the work's "
+        "blocks on one worker thread per core, which is faster on a busy machine)",
     )
     r.add_argument("--quiet", action="store_true", help="no progress messages or bars")
     r.add_argument("--debug", action="store_true", help="show the full Python traceback on errors")

@@ -329,5 +329,6 @@ def settings(args, pop) -> list[tuple[str, str]]:
         ("weights " + ", ".join(t.name for t in rs.TERMS), ", ".join(f"{v:g}" for v in w)),
         ("precision", jax.numpy.zeros(()).dtype.name),
         ("devices", f"{len(jax.devices())} × {jax.devices()[0].platform.upper()}"),
+        ("worker threads", str(rs.LocalExecutor().n_workers())),
         ("rootshape_jax / jax", f"{version()} / {jax.__version__}"),
     ]

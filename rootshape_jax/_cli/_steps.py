@@ -14,7 +14,7 @@ import numpy as np
 import rootshape_jax as rs
 from rootshape_jax.io import NORMALISED_UNIT, unit_label
 
-from ._common import PAPER_TRAITS, CLIError, fmt, make_weights, say, warn
+from ._common import PAPER_TRAITS, CLIError, fmt, make_weights, say, ticking, warn
 from ._inputs import (
     Population,
     common_unit,
@@ -162,7 +162,7 @@ def run_mean(ctx: Context, out: Output, args) -> None:
 def run_pca(ctx: Context, out: Output, args) -> None:
     from rootshape_jax.plot import plot_explained_variance, plot_modes
 
-    with out.step("Modes of variation (tangent PCA)") as sec:
+    with out.step("Modes of variation (tangent PCA)") as sec, ticking(args, "tangent PCA and modes"):
         pc = rs.tangent_pca(ctx.mean)
         ctx.pca = pc
         eig = np.asarray(pc.eigenvalues, dtype=np.float64)
@@ -208,7 +208,7 @@ def run_sample(ctx: Context, out: Output, args) -> None:
     from rootshape_jax.plot import plot_samples_by_distance
 
     pop, pc = ctx.pop, ctx.pca
-    with out.step("Random roots from the fitted model") as sec:
+    with out.step("Random roots from the fitted model") as sec, ticking(args, "random roots"):
         n, m = args.n, pc.n_components
         # Random coefficients b ~ N(0, I) (as `rootshape_jax.sample`), kept so that each root's
         # distance to the mean in the model, sqrt(sum_i sigma_i b_i^2), needs no registration.
@@ -253,7 +253,7 @@ def run_regress(ctx: Context, out: Output, args) -> None:
     from rootshape_jax.plot import plot_regression_sweep
 
     pop = ctx.pop
-    with out.step("Roots predicted from traits (regression)") as sec:
+    with out.step("Roots predicted from traits (regression)") as sec, ticking(args, "regression"):
         # Traits in the input's units, measured on the roots as read. With scale normalisation
         # the model predicts the shape, and each predicted root is scaled to its requested
         # main-root length (so that trait is matched exactly by construction).
@@ -345,7 +345,7 @@ def run_cluster(ctx: Context, out: Output, args) -> None:
     from rootshape_jax.plot import plot_dendrogram
 
     pop = ctx.pop
-    with out.step("Clusters and classification") as sec:
+    with out.step("Clusters and classification") as sec, ticking(args, "clusters"):
         D = ctx.distances
         known = sorted(set(pop.conditions)) if pop.conditions else []
         k = args.clusters or (len(known) if len(known) >= 2 else 2)
@@ -443,7 +443,7 @@ def run_geodesic(a_root, b_root, out: Output, args) -> None:
 
     pop = prepare([a_root, b_root], args, min_roots=2)
     pair = pop.roots
-    with out.step("Geodesic (optimal deformation)") as sec:
+    with out.step("Geodesic (optimal deformation)") as sec, ticking(args, "registering the pair and drawing the path"):
         a, b = rs.unstack(pop.tree)
         reg = rs.register(a, b, weights=make_weights(args))
         sizes = None
@@ -513,7 +513,7 @@ def run_compare(ctx: Context, out: Output, args) -> None:
     pop = ctx.pop
     labels = group_labels(pop)
     D = ctx.distances
-    with out.step(f"Group comparison by {pop.label_name}") as sec:
+    with out.step(f"Group comparison by {pop.label_name}") as sec, ticking(args, "PERMANOVA and MDS"):
         say(args, f"PERMANOVA with {args.permutations} permutations, overall and for every pair of groups...")
         overall = rs.permanova(D, labels, permutations=args.permutations, seed=args.seed)
         pairs = rs.pairwise_permanova(D, labels, permutations=args.permutations, seed=args.seed + 1)

@@ -26,7 +26,7 @@ from ._draw import (
     slot_color,
     subplot_kw,
 )
-from ._labels import check_strips, draw_strip, reserve_legend_space
+from ._labels import check_strips, draw_strip
 
 # Beyond these sizes tick labels overlap; they are left out.
 _MAX_TICK_LABELS = 50
@@ -113,7 +113,8 @@ def plot_distance_matrix(
       ``ax=None``).
 
     **Returns** ``(fig, axes)`` with ``axes = {"matrix": ax, "colorbar": cax,
-    "dendrogram": dax or None, "strips": {name: Axes}}``. The order used is
+    "dendrogram": dax or None, "strips": {name: Axes}, "legends": {name: Axes}}`` (a strip's
+    legend is ``axes["legends"][name].get_legend()``). The order used is
     ``scipy.cluster.hierarchy.leaves_list``.
     """
     D = check_distance_matrix(D, what="plot_distance_matrix")
@@ -128,17 +129,21 @@ def plot_distance_matrix(
 
     dax = None
     sax: dict = {}
+    lax: dict = {}
     if ax is None:
         ns = len(strips)
         fig = new_figure((7.0 + (2.0 if ns else 0.0), (7.4 if show_dendrogram else 6.2) + 0.3 * ns))
         heights = ([1.0] if show_dendrogram else []) + [0.18] * ns + [5.0]
-        gs = fig.add_gridspec(len(heights), 2, height_ratios=heights, width_ratios=[25, 1])
+        # A third column holds the strips' legends (the layout widens it to fit them).
+        widths = [25, 1] + ([1] if ns else [])
+        gs = fig.add_gridspec(len(heights), len(widths), height_ratios=heights, width_ratios=widths)
         row = 0
         if show_dendrogram:
             dax = fig.add_subplot(gs[0, 0])
             row = 1
         for name in strips:
             sax[name] = fig.add_subplot(gs[row, 0])
+            lax[name] = fig.add_subplot(gs[row, 2])
             row += 1
         ax = fig.add_subplot(gs[row, 0])
         cax = fig.add_subplot(gs[row, 1])
@@ -172,13 +177,12 @@ def plot_distance_matrix(
         dax.set_xlim(0, 10 * n)  # scipy puts leaf i at 10 i + 5: aligned with the cells below
         dax.set_axis_off()
     for name, sx in sax.items():
-        draw_strip(sx, [strips[name][i] for i in order], name)
+        draw_strip(sx, lax[name], [strips[name][i] for i in order], name)
         sx.set_xlim(-0.5, n - 0.5)
-    reserve_legend_space(fig, strips)
     if title:
         top = dax if dax is not None else (next(iter(sax.values())) if sax else ax)
         top.set_title(title, fontsize=11)
-    return fig, {"matrix": ax, "colorbar": cbar.ax, "dendrogram": dax, "strips": sax}
+    return fig, {"matrix": ax, "colorbar": cbar.ax, "dendrogram": dax, "strips": sax, "legends": lax}
 
 
 def _as_linkage(D_or_linkage: Any, method: str, what: str) -> np.ndarray:
@@ -255,7 +259,8 @@ def plot_dendrogram(
       leaves, with a legend (needs ``ax=None``); the leaf names then label the last strip.
 
     **Returns** ``(fig, axes)`` with ``axes = {"dendrogram": ax, "roots": rows of Axes,
-    "strips": {name: Axes}}``.
+    "strips": {name: Axes}, "legends": {name: Axes}}`` (a strip's legend is
+    ``axes["legends"][name].get_legend()``).
     """
     Z = _as_linkage(D_or_linkage, method, "plot_dendrogram")
     n = Z.shape[0] + 1
@@ -265,6 +270,7 @@ def plot_dendrogram(
         raise ValueError("plot_dendrogram: colour strips need their own figure; pass ax=None.")
     ns = len(strips)
     sax: dict = {}
+    lax: dict = {}
     ids, cut = _clusters(Z, n_clusters)
     k = int(ids.max()) + 1
     drawings = None
@@ -292,10 +298,14 @@ def plot_dendrogram(
     if drawings is None:
         if ax is None:
             fig = new_figure((max(6.0, min(14.0, 0.18 * n + 3)) + (2.0 if ns else 0.0), 4.2 + 0.3 * ns))
-            gs = fig.add_gridspec(1 + ns, 1, height_ratios=[4.0] + [0.22] * ns)
+            # A second column holds the strips' legends (the layout widens it to fit them).
+            gs = fig.add_gridspec(
+                1 + ns, 2 if ns else 1, height_ratios=[4.0] + [0.22] * ns, width_ratios=[25, 1][: 1 + (ns > 0)]
+            )
             ax = fig.add_subplot(gs[0, 0])
             for j, name in enumerate(strips):
                 sax[name] = fig.add_subplot(gs[1 + j, 0])
+                lax[name] = fig.add_subplot(gs[1 + j, 1])
         else:
             fig = ax.figure
     else:
@@ -306,10 +316,17 @@ def plot_dendrogram(
         w, h = panel_size(frame, 1.5)
         fig_w = max(7.0, ncols * w + 1.6)
         fig = new_figure((fig_w + (2.0 if ns else 0.0), 3.8 + 0.3 * ns + k * (h + 0.15)))
-        gs = fig.add_gridspec(1 + ns + k, ncols, height_ratios=[3.2] + [0.22] * ns + [h] * k)
-        ax = fig.add_subplot(gs[0, :])
+        # With strips, a last narrow column holds their legends (widened by the layout to fit).
+        gs = fig.add_gridspec(
+            1 + ns + k,
+            ncols + (ns > 0),
+            height_ratios=[3.2] + [0.22] * ns + [h] * k,
+            width_ratios=[1.0] * ncols + ([0.05] if ns else []),
+        )
+        ax = fig.add_subplot(gs[0, :ncols])
         for j, name in enumerate(strips):
-            sax[name] = fig.add_subplot(gs[1 + j, :])
+            sax[name] = fig.add_subplot(gs[1 + j, :ncols])
+            lax[name] = fig.add_subplot(gs[1 + j, ncols])
         unit = unit if unit is not None else common_unit(drawings)
         for c, idx in enumerate(per):
             row = []
@@ -357,9 +374,8 @@ def plot_dendrogram(
     )
     centers = 10.0 * np.arange(n) + 5.0  # scipy puts leaf i at 10 i + 5
     for name, sx in sax.items():
-        draw_strip(sx, [strips[name][i] for i in order], name, centers=centers, width=10.0)
+        draw_strip(sx, lax[name], [strips[name][i] for i in order], name, centers=centers, width=10.0)
         sx.set_xlim(ax.get_xlim())
-    reserve_legend_space(fig, strips)
     if sax and show_labels:
         last = list(sax.values())[-1]
         names = [labels[i] if labels else str(i) for i in order]
@@ -372,4 +388,4 @@ def plot_dendrogram(
     ax.tick_params(axis="x", length=0)
     if title:
         ax.set_title(f"{title} ({k} clusters)" if k > 1 else title, fontsize=11)
-    return fig, {"dendrogram": ax, "roots": rows, "strips": sax}
+    return fig, {"dendrogram": ax, "roots": rows, "strips": sax, "legends": lax}

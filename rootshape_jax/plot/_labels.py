@@ -58,12 +58,15 @@ def check_strips(strips: Mapping[str, Sequence[Any]] | None, n: int, what: str) 
     return out
 
 
-def draw_strip(ax, values_in_order: Sequence[str], name: str, *, centers=None, width: float = 1.0) -> dict[str, str]:
+def draw_strip(
+    ax, legend_ax, values_in_order: Sequence[str], name: str, *, centers=None, width: float = 1.0
+) -> dict[str, str]:
     """One row of coloured cells (a bar per root, in the order given) with the label's name on
-    the left and a legend on the right. Returns the colours used ``{value: colour}``.
+    the left, and its legend in `legend_ax` (an Axes of the layout to the strip's right, drawn
+    without axes). Returns the colours used ``{value: colour}``.
 
     Each cell is a bar whose ``gid`` is its value, so tests and tools can read the strip back
-    from ``ax.patches``."""
+    from ``ax.patches``; the legend is ``legend_ax.get_legend()``."""
     colors = label_colors(values_in_order)
     n = len(values_in_order)
     x = np.arange(n, dtype=float) if centers is None else np.asarray(centers, dtype=float)
@@ -79,10 +82,14 @@ def draw_strip(ax, values_in_order: Sequence[str], name: str, *, centers=None, w
     from matplotlib.patches import Patch
 
     handles = [Patch(facecolor=c, label=g) for g, c in colors.items()]
-    legend = ax.legend(
+    # The legend belongs to its own Axes in the layout (a column right of the colour bar): the
+    # layout makes room for it, so a saved figure holds it whole (bbox_inches="tight" too), and
+    # the panels keep their widths.
+    legend_ax.set_axis_off()
+    legend_ax.legend(
         handles=handles,
         loc="center left",
-        bbox_to_anchor=(1.01, 0.5),
+        bbox_to_anchor=(0.0, 0.5),
         fontsize=7,
         frameon=False,
         ncol=max(1, min(len(handles), 6)),
@@ -90,26 +97,7 @@ def draw_strip(ax, values_in_order: Sequence[str], name: str, *, centers=None, w
         columnspacing=0.8,
         borderaxespad=0.0,
     )
-    # Outside the layout: `reserve_legend_space` keeps a right margin for it instead, so the
-    # panels keep their widths (a legend in the layout pushes the heat map's colour bar away).
-    legend.set_in_layout(False)
     return colors
-
-
-def reserve_legend_space(fig, strips: Mapping[str, Sequence[str]]) -> None:
-    """Leave a right margin wide enough for the strips' legends (drawn to the panels' right)."""
-    if not strips:
-        return
-    widest = 0.0
-    for values in strips.values():
-        groups = sorted(set(values))
-        shown = groups[:6]  # legends wrap into rows of 6 entries
-        widest = max(widest, sum(0.22 + 0.065 * len(g) for g in shown))
-    width = fig.get_figwidth()
-    frac = min(0.45, (widest + 0.2) / width)
-    engine = fig.get_layout_engine()
-    if engine is not None and hasattr(engine, "set"):
-        engine.set(rect=(0.0, 0.0, 1.0 - frac, 1.0))
 
 
 def plot_mds(
