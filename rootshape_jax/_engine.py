@@ -19,6 +19,11 @@ energy stops falling. The parts, each a top-level function:
 
 `register`, `distance`, `pairwise_distances`, `cross_distances`, the Karcher mean, PCA
 projection and the Dask blocks all call `register_pairs`.
+
+Trees of depth D > 2 (docs/design.md §11): a lateral pair's cost also holds the exact
+assignment cost of the two laterals' children (`child_assignment`, the same procedure one
+level down), bounded until computed by `child_lower_bounds`; `child_registrations` gives the
+matched children's permutations and warps, and every level enters the rotation's refit.
 """
 
 from __future__ import annotations
