@@ -81,8 +81,8 @@ def main(argv=None):
     )
     p.add_argument("--n-folds", type=int, default=5)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--max-reregistrations", type=int, default=1, help="per fold of the nested CV")
-    p.add_argument("--learn-reregistrations", type=int, default=2, help="for the 53-root timing")
+    p.add_argument("--max-reregistrations", type=int, default=3, help="per fold of the nested CV")
+    p.add_argument("--learn-reregistrations", type=int, default=4, help="for the 53-root timing")
     p.add_argument("--quick", action="store_true", help="5 roots per class, no 53-root timing")
     p.add_argument("--out", default=str(RESULTS))
     p.add_argument("--markdown-only", action="store_true", help="rewrite the markdown from the JSON")
@@ -172,6 +172,8 @@ def time_learning(rs, roots, labels, T, max_reregistrations):
         "status": res.status,
         "steps": res.steps,
         "n_reregistrations": res.n_reregistrations,
+        "changed_pairs": res.changed_pairs.tolist(),
+        "registration_gain": res.registration_gain.tolist(),
         "max_reregistrations": max_reregistrations,
         "load_after": os.getloadavg()[0],
     }
