@@ -693,6 +693,8 @@ class CVAccuracy(eqx.Module):
     - `weights`: per fold, the learned λ as a dict; `folds`: the test indices of each fold.
     - `n_reregistrations`, `status`: per fold, from `learn_weights`.
     - `seconds_learning`: wall time of each fold's learning (registrations included).
+    - `regularisation`: per fold, the penalty used (chosen on the training roots when several
+      were given).
     """
 
     learned_nn: np.ndarray
@@ -704,6 +706,7 @@ class CVAccuracy(eqx.Module):
     n_reregistrations: np.ndarray
     status: tuple = eqx.field(static=True)
     seconds_learning: np.ndarray
+    regularisation: np.ndarray
 
     def summary(self) -> dict:
         """Mean and standard deviation over folds of each accuracy."""
@@ -794,7 +797,7 @@ def nested_cv_accuracy(
     # The paper's λ is scored at the given weights (λr = 0 means no thickness, as given).
     D_paper = D0 if fitter.start is weights else _matrix_at(fitter, weights, I, J, n)
 
-    out = {k: [] for k in ("lnn", "lmean", "pnn", "pmean", "w", "folds", "rereg", "status", "sec")}
+    out = {k: [] for k in ("lnn", "lmean", "pnn", "pmean", "w", "folds", "rereg", "status", "sec", "reg")}
     for f, test in enumerate(stratified_folds(y, n_folds, seed=seed)):
         train = np.setdiff1d(np.arange(n), test)
         p_nn, p_mean = fold_predictions(D_paper[np.ix_(test, train)], D_paper[np.ix_(train, train)], y[train])
@@ -820,6 +823,7 @@ def nested_cv_accuracy(
         out["folds"].append(test)
         out["rereg"].append(res.n_reregistrations)
         out["status"].append(res.status)
+        out["reg"].append(res.regularisation)
     return CVAccuracy(
         learned_nn=np.asarray(out["lnn"]),
         learned_mean=np.asarray(out["lmean"]),
@@ -830,6 +834,7 @@ def nested_cv_accuracy(
         n_reregistrations=np.asarray(out["rereg"]),
         status=tuple(out["status"]),
         seconds_learning=np.asarray(out["sec"]),
+        regularisation=np.asarray(out["reg"]),
     )
 
 
