@@ -105,9 +105,13 @@ def main(argv=None):
             if not merged:
                 merged = part
             else:
-                if merged.get("learn_53") is None:
-                    merged["learn_53"] = part.get("learn_53")
+                if merged.get("learn_53") is None and part.get("learn_53"):
+                    merged["learn_53"] = {
+                        **part["learn_53"],
+                        "load_before": part["machine"].get("load_average_1min_at_start"),
+                    }
                 for tag, row in part["sets"].items():
+                    row["max_reregistrations_run"] = part["args"]["max_reregistrations"]
                     if part["args"] != merged["args"]:
                         keys = ("T", "n_folds", "seed", "max_reregistrations")
                         row["note"] = "from an earlier run of this script (its older stopping rule), with " + ", ".join(
@@ -115,6 +119,8 @@ def main(argv=None):
                         )
                     if tag in merged["sets"]:  # a later folder adds its extra rows to a set
                         merged["sets"][tag]["accuracy"].update(row["accuracy"])
+                        seconds = merged["sets"][tag]["seconds"]
+                        seconds.update({k: v for k, v in row["seconds"].items() if k not in seconds})
                         merged["sets"][tag].update({k: v for k, v in row.items() if k.endswith("_cv")})
                     else:
                         merged["sets"][tag] = row
@@ -343,7 +349,7 @@ def markdown(results) -> str:
             )
         lines.append(
             f"- {tag}: {ws}. Re-registrations per fold {row['fold_reregistrations']} (at most "
-            f"{a['max_reregistrations']}), status {', '.join(row['fold_status'])}; nested CV {s['nested_cv']:.0f} s wall "
+            f"{row.get('max_reregistrations_run', a['max_reregistrations'])}), status {', '.join(row['fold_status'])}; nested CV {s['nested_cv']:.0f} s wall "
             f"({s['nested_cv_cpu']:.0f} s CPU); baseline matrices "
             + ", ".join(f"{m} {s[m]:.2g} s" for m in ("ted", "qed", "fc_srvf", "tmd"))
             + "."
@@ -359,10 +365,11 @@ def markdown(results) -> str:
             f"**{r['wall_s']:.0f} s wall**, {r['cpu_s']:.0f} s process CPU time; "
             f"{r['n_reregistrations']} re-registrations (at most {r['max_reregistrations']}) of all 1,378 pairs, "
             f"pairs whose lateral correspondence changed per re-registration {r.get('changed_pairs')}, "
-            f"{r['steps']} BFGS steps, 1-min load after {r.get('load_after', float('nan')):.1f}, "
+            f"{r['steps']} BFGS steps, 1-min load {r.get('load_before') or float('nan'):.1f} before and "
+            f"{r.get('load_after', float('nan')):.1f} after, "
             f"status {r['status']}; λ = main {w['main']:.3g}, lateral {w['lateral']:.3g}, position "
             f"{w['position']:.3g}; loss at registered distances "
-            + " → ".join(f"{x:.3f}" for x in r["loss_trace"])
+            + " → ".join(f"{x:.4f}" for x in r["loss_trace"])
             + ".",
         ]
     return "\n".join(lines) + "\n"
