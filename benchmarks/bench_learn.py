@@ -89,7 +89,11 @@ def main(argv=None):
         default="",
         help="also score λ learned with the penalty chosen by inner CV among these values (e.g. 1e-3,1e-2,0.1,1)",
     )
-    p.add_argument("--merge", default="", help="comma-separated result folders whose sets are merged into --out")
+    p.add_argument(
+        "--merge",
+        default="",
+        help="comma-separated result folders (FOLDER[:set+set[:earlier]]) whose sets are merged into --out",
+    )
     p.add_argument("--generated-by", default="", help="with --merge: the commands that made the parts (report text)")
     p.add_argument("--quick", action="store_true", help="5 roots per class, no 53-root timing")
     p.add_argument("--out", default=str(RESULTS))
@@ -98,7 +102,9 @@ def main(argv=None):
     if args.merge:
         merged: dict = {}
         for item in args.merge.split(","):
-            folder, _, only = item.partition(":")  # FOLDER or FOLDER:set+set
+            # FOLDER, FOLDER:set+set, or FOLDER:set+set:earlier (rows of an earlier version's run)
+            folder, _, rest = item.partition(":")
+            only, _, earlier = rest.partition(":")
             part = json.loads((Path(folder) / "learn_weights.json").read_text())
             if only:
                 part["sets"] = {k: v for k, v in part["sets"].items() if k in only.split("+")}
@@ -112,7 +118,7 @@ def main(argv=None):
                     }
                 for tag, row in part["sets"].items():
                     row["max_reregistrations_run"] = part["args"]["max_reregistrations"]
-                    if part["args"] != merged["args"]:
+                    if earlier:
                         keys = ("T", "n_folds", "seed", "max_reregistrations")
                         row["note"] = "from an earlier run of this script (its older stopping rule), with " + ", ".join(
                             f"{k} {part['args'].get(k)}" for k in keys
