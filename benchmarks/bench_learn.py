@@ -29,9 +29,10 @@ sys.path.insert(0, str(Path(__file__).parent))
 from _common import RESULTS, machine, setup_jax  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-METHODS = ("learned", "paper", "ted", "qed", "fc_srvf", "tmd")
+METHODS = ("learned", "learned_cv", "paper", "ted", "qed", "fc_srvf", "tmd")
 LABEL = {
     "learned": "ours, learned λ (nested CV)",
+    "learned_cv": "ours, learned λ, penalty chosen by inner CV (nested CV)",
     "paper": "ours, paper λ (0.02, 1, 1)",
     "ted": "tree edit distance",
     "qed": "QED (Feragen et al.)",
@@ -81,12 +82,60 @@ def main(argv=None):
     )
     p.add_argument("--n-folds", type=int, default=5)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--max-reregistrations", type=int, default=1, help="per fold of the nested CV")
-    p.add_argument("--learn-reregistrations", type=int, default=2, help="for the 53-root timing")
+    p.add_argument("--max-reregistrations", type=int, default=3, help="per fold of the nested CV")
+    p.add_argument("--learn-reregistrations", type=int, default=4, help="for the 53-root timing")
+    p.add_argument(
+        "--grid",
+        default="",
+        help="also score λ learned with the penalty chosen by inner CV among these values (e.g. 1e-3,1e-2,0.1,1)",
+    )
+    p.add_argument(
+        "--merge",
+        default="",
+        help="comma-separated result folders (FOLDER[:set+set[:earlier]]) whose sets are merged into --out",
+    )
+    p.add_argument("--generated-by", default="", help="with --merge: the commands that made the parts (report text)")
     p.add_argument("--quick", action="store_true", help="5 roots per class, no 53-root timing")
     p.add_argument("--out", default=str(RESULTS))
     p.add_argument("--markdown-only", action="store_true", help="rewrite the markdown from the JSON")
     args = p.parse_args(argv)
+    if args.merge:
+        merged: dict = {}
+        for item in args.merge.split(","):
+            # FOLDER, FOLDER:set+set, or FOLDER:set+set:earlier (rows of an earlier version's run)
+            folder, _, rest = item.partition(":")
+            only, _, earlier = rest.partition(":")
+            part = json.loads((Path(folder) / "learn_weights.json").read_text())
+            if only:
+                part["sets"] = {k: v for k, v in part["sets"].items() if k in only.split("+")}
+            if not merged:
+                merged = part
+            else:
+                if merged.get("learn_53") is None and part.get("learn_53"):
+                    merged["learn_53"] = {
+                        **part["learn_53"],
+                        "load_before": part["machine"].get("load_average_1min_at_start"),
+                    }
+                for tag, row in part["sets"].items():
+                    row["max_reregistrations_run"] = part["args"]["max_reregistrations"]
+                    if earlier:
+                        keys = ("T", "n_folds", "seed", "max_reregistrations")
+                        row["note"] = "from an earlier run of this script (its older stopping rule), with " + ", ".join(
+                            f"{k} {part['args'].get(k)}" for k in keys
+                        )
+                    if tag in merged["sets"]:  # a later folder adds its extra rows to a set
+                        merged["sets"][tag]["accuracy"].update(row["accuracy"])
+                        seconds = merged["sets"][tag]["seconds"]
+                        seconds.update({k: v for k, v in row["seconds"].items() if k not in seconds})
+                        merged["sets"][tag].update({k: v for k, v in row.items() if k.endswith("_cv")})
+                    else:
+                        merged["sets"][tag] = row
+        if merged.get("learn_53") is None:
+            merged.pop("learn_53", None)
+        merged["generated_by"] = args.generated_by
+        (Path(args.out) / "learn_weights.json").write_text(json.dumps(merged, indent=1))
+        (Path(args.out) / "learn_weights.md").write_text(markdown(merged))
+        return
     if args.markdown_only:
         results = json.loads((Path(args.out) / "learn_weights.json").read_text())
         (Path(args.out) / "learn_weights.md").write_text(markdown(results))
@@ -146,6 +195,24 @@ def main(argv=None):
         row["fold_status"] = list(cv.status)
         row["fold_reregistrations"] = cv.n_reregistrations.tolist()
         row["fold_learning_s"] = cv.seconds_learning.tolist()
+        if args.grid:
+            grid = [float(x) for x in args.grid.split(",")]
+            t0 = time.perf_counter()
+            cvg = rs.nested_cv_accuracy(
+                trees,
+                y,
+                n_folds=args.n_folds,
+                seed=args.seed,
+                max_reregistrations=args.max_reregistrations,
+                regularisation=grid,
+            )
+            secs["nested_cv_grid"] = time.perf_counter() - t0
+            row["accuracy"]["learned_cv"] = {"nn": cvg.learned_nn.tolist(), "mean": cvg.learned_mean.tolist()}
+            row["fold_weights_cv"] = cvg.weights
+            row["fold_status_cv"] = list(cvg.status)
+            row["fold_reregistrations_cv"] = cvg.n_reregistrations.tolist()
+            row["fold_regularisation_cv"] = cvg.regularisation.tolist()
+            row["grid_cv"] = grid
         row["seconds"] = secs
         row["chance"] = float(max(np.sum(y == c) for c in np.unique(y)) / len(y))
         results["sets"][tag] = row
@@ -172,6 +239,8 @@ def time_learning(rs, roots, labels, T, max_reregistrations):
         "status": res.status,
         "steps": res.steps,
         "n_reregistrations": res.n_reregistrations,
+        "changed_pairs": res.changed_pairs.tolist(),
+        "registration_gain": res.registration_gain.tolist(),
         "max_reregistrations": max_reregistrations,
         "load_after": os.getloadavg()[0],
     }
@@ -187,10 +256,12 @@ def markdown(results) -> str:
     import numpy as np
 
     a = results["args"]
+    default_command = f"`python benchmarks/bench_learn.py --T {a['T']}`"
     lines = [
         "## (i) Learned metric weights (nested cross-validation)",
         "",
-        f"Generated by `python benchmarks/bench_learn.py --T {a['T']}` (results/learn_weights.json). "
+        f"Generated by {results.get('generated_by') or default_command} "
+        "(results/learn_weights.json). "
         f"Roots resampled to T = {a['T']} points per branch and scale-normalised; "
         f"{a['n_folds']} stratified folds (seed {a['seed']}), the same folds for every method. "
         "Accuracy is on the held-out fold only, mean ± standard deviation over folds; nothing "
@@ -202,6 +273,18 @@ def markdown(results) -> str:
         "nearest training root; class mean: nearest class centroid computed from distances "
         "(``mean_j d²(x, x_j) − mean_jk d²(x_j, x_k)/2``, no Karcher mean).",
         "",
+        *(
+            [
+                "*Learned λ, penalty by inner CV*: the same, but the penalty toward the paper's λ, "
+                "``r Σ (log λ − log λ_paper)²``, is chosen per outer fold among "
+                f"{next(row['grid_cv'] for row in results['sets'].values() if 'grid_cv' in row)} by a 3-fold "
+                "inner CV of that fold's training roots (held-out NCA log-loss, registrations at the "
+                "paper's λ; ties to the stronger penalty); the plain row uses r = 0.001.",
+                "",
+            ]
+            if any("grid_cv" in row for row in results["sets"].values())
+            else []
+        ),
         f"Machine: {results['machine'].get('cpu')}, {results['machine'].get('cores')} cores, shared "
         f"(1-min load at start {results['machine'].get('load_average_1min_at_start')}).",
         "",
@@ -210,6 +293,8 @@ def markdown(results) -> str:
     ]
     for _tag, row in results["sets"].items():
         what = f"{row['what']} (n = {row['n']}, K = {row['K']}; chance {100 * row['chance']:.1f} %)"
+        if "note" in row:
+            what += f" [{row['note']}]"
         for m in METHODS:
             if m in row["accuracy"]:
                 acc = row["accuracy"][m]
@@ -219,25 +304,30 @@ def markdown(results) -> str:
         acc = row["accuracy"]
         mean = {m: (100 * float(np.mean(acc[m]["nn"])), 100 * float(np.mean(acc[m]["mean"]))) for m in acc}
         base = [m for m in ("ted", "qed", "fc_srvf", "tmd") if m in mean]
-        verdict = []
-        for rule, k in (("1-NN", 0), ("class mean", 1)):
-            d_paper = mean["learned"][k] - mean["paper"][k]
-            b = max(base, key=lambda m, k=k: mean[m][k])
-            d_base = mean["learned"][k] - mean[b][k]
-            verdict.append(
-                f"{rule}: learned {'beats' if d_paper > 0 else 'ties' if d_paper == 0 else 'trails'} the paper's λ "
-                f"({d_paper:+.1f}) and {'beats' if d_base > 0 else 'ties' if d_base == 0 else 'trails'} the best "
-                f"baseline, {LABEL[b]} ({d_base:+.1f})"
-            )
-        lines.append(f"- {tag}: " + "; ".join(verdict) + ".")
+        for ours in ("learned", "learned_cv"):
+            if ours not in mean:
+                continue
+            verdict = []
+            for rule, k in (("1-NN", 0), ("class mean", 1)):
+                d_paper = mean[ours][k] - mean["paper"][k]
+                b = max(base, key=lambda m, k=k: mean[m][k])
+                d_base = mean[ours][k] - mean[b][k]
+                verdict.append(
+                    f"{rule}: {'beats' if d_paper > 0 else 'ties' if d_paper == 0 else 'trails'} the paper's λ "
+                    f"({d_paper:+.1f}) and {'beats' if d_base > 0 else 'ties' if d_base == 0 else 'trails'} the "
+                    f"best baseline, {LABEL[b]} ({d_base:+.1f})"
+                )
+            who = "learned λ" if ours == "learned" else "learned λ, penalty by inner CV"
+            lines.append(f"- {tag}, {who}: " + "; ".join(verdict) + ".")
     lines += [
         "",
         "One held-out root is worth "
         + ", ".join(f"{100 * a['n_folds'] / row['n']:.0f} points ({tag})" for tag, row in results["sets"].items())
         + " of a fold's accuracy, and the fold spread is of that size: differences smaller than "
-        "that are within the noise. Status `max_reregistrations` means some lateral correspondence "
-        "still changed at the last re-registration (the criterion is exact equality over every pair); "
-        "the loss trace below shows how far the alternation had settled.",
+        "that are within the noise. Status of a fit: `converged` (no pair's real-lateral "
+        "correspondence changed at the last re-registration), `loss` (the loss at the fresh "
+        "registrations improved by less than 0.1 %; the best entry is kept), or "
+        "`max_reregistrations`.",
     ]
     lines += ["", "Learned λ per fold (λ_lateral = 1) and time:", ""]
     if any("thickness" in w and w["thickness"] > 0 for row in results["sets"].values() for w in row["fold_weights"]):
@@ -255,8 +345,17 @@ def markdown(results) -> str:
             for w in row["fold_weights"]
         )
         s = row["seconds"]
+        if "fold_regularisation_cv" in row:
+            lines.append(
+                f"- {tag}, penalty by inner CV among {row['grid_cv']}: chosen per fold "
+                f"{row['fold_regularisation_cv']}; λ "
+                + "; ".join(f"main {w['main']:.3g}, position {w['position']:.3g}" for w in row["fold_weights_cv"])
+                + f"; re-registrations {row['fold_reregistrations_cv']}, status {', '.join(row['fold_status_cv'])}; "
+                f"{s.get('nested_cv_grid', float('nan')):.0f} s wall."
+            )
         lines.append(
-            f"- {tag}: {ws}. Status {', '.join(row['fold_status'])}; nested CV {s['nested_cv']:.0f} s wall "
+            f"- {tag}: {ws}. Re-registrations per fold {row['fold_reregistrations']} (at most "
+            f"{row.get('max_reregistrations_run', a['max_reregistrations'])}), status {', '.join(row['fold_status'])}; nested CV {s['nested_cv']:.0f} s wall "
             f"({s['nested_cv_cpu']:.0f} s CPU); baseline matrices "
             + ", ".join(f"{m} {s[m]:.2g} s" for m in ("ted", "qed", "fc_srvf", "tmd"))
             + "."
@@ -267,13 +366,16 @@ def markdown(results) -> str:
         lines += [
             "",
             f"**Time to learn λ on the bundled 53 roots** (T = {a['T']}, `learn_weights` with its "
-            "first registration at the paper's λ; run in the same process after the nested CV, so the "
-            "registration programs were already compiled): "
+            "first registration at the paper's λ; first in its process, so compilation is included; "
+            "under load, see the machine line): "
             f"**{r['wall_s']:.0f} s wall**, {r['cpu_s']:.0f} s process CPU time; "
-            f"{r['n_reregistrations']} re-registrations (at most {r['max_reregistrations']}) of all 1,378 pairs, {r['steps']} BFGS steps, "
+            f"{r['n_reregistrations']} re-registrations (at most {r['max_reregistrations']}) of all 1,378 pairs, "
+            f"pairs whose lateral correspondence changed per re-registration {r.get('changed_pairs')}, "
+            f"{r['steps']} BFGS steps, 1-min load {r.get('load_before') or float('nan'):.1f} before and "
+            f"{r.get('load_after', float('nan')):.1f} after, "
             f"status {r['status']}; λ = main {w['main']:.3g}, lateral {w['lateral']:.3g}, position "
             f"{w['position']:.3g}; loss at registered distances "
-            + " → ".join(f"{x:.3f}" for x in r["loss_trace"])
+            + " → ".join(f"{x:.4f}" for x in r["loss_trace"])
             + ".",
         ]
     return "\n".join(lines) + "\n"

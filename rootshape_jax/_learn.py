@@ -18,8 +18,18 @@ labelled set gives an exact, cheap objective in λ:
   ``regularisation · Σ (log λ_t − log λ_t⁰)²`` keeps a term that the data do not constrain
   at its starting value.
 - **Solve**: BFGS (optimistix) with the registrations fixed, then every pair is registered
-  again at the new λ (the chunked engine, progress shown), until no lateral correspondence
-  changes, or the matrix moves by less than `tol` (relative), or `max_reregistrations`.
+  again at the new λ (blocks of pairs mapped by the package's executor: worker threads here,
+  Dask with `client=`; progress shown). The alternation stops when
+  - no pair's lateral correspondence changed (which real lateral is matched to which; the
+    null slot that a deleted lateral sits in is arbitrary and not counted; the rotation and
+    warps are continuous and move a little with λ, so they are not compared), or
+  - the loss at the fresh registrations improved by less than `tol` (relative): the
+    registrations minimise each d², not the loss, so the alternation is no descent method and
+    a re-registration can make the loss worse; the best entry is returned, or
+  - the inner solve left λ where it was, or after `max_reregistrations`.
+  (Before these rules the stop was exact equality of the whole permutation, null slots
+  included: null slots are shuffled among themselves at almost every re-registration, so
+  every fit ran to `max_reregistrations`.)
 
 `nested_cv_accuracy` is the honest evaluation: λ is learned on the training folds only and
 the test roots are classified by 1-NN and by the nearest class mean.
@@ -40,6 +50,7 @@ from tqdm.auto import tqdm
 
 from ._engine import RegistrationOptions, apply_registration, canonical_pairs, register_pairs, registration_options
 from ._errors import LabelError
+from ._executor import LocalExecutor, executor_for
 from ._metric import Weights, preshape_terms
 from ._tree import RootTree, SRVFTree, batch_size, to_srvf
 
@@ -147,39 +158,80 @@ def _register_chunk(a: SRVFTree, b: SRVFTree, active, weights: Weights, options:
     return swap, reg.permutation, reg.rotation, reg.main_warp, reg.lateral_warps, reg.energy, E
 
 
-def register_pair_list(
-    s: SRVFTree, I, J, weights: Weights, options: RegistrationOptions, *, chunk_size: int, progress: bool, desc: str
-) -> PairRegistrations:
-    """Register the pairs (s[I[k]], s[J[k]]), `chunk_size` per compiled call (one program
-    for every chunk), keeping the registrations (not only the energies)."""
+def register_block(I, J, s: SRVFTree, weights: Weights, options: RegistrationOptions, chunk_size: int) -> dict:
+    """The block function: register the pairs (s[I[k]], s[J[k]]) of one block, `chunk_size`
+    per compiled call (one program for every chunk), keeping the registrations (not only the
+    energies). Module-level and pure, so an executor can run it on a thread or a Dask worker."""
     I = np.asarray(I, np.int64)
     J = np.asarray(J, np.int64)
     n = len(I)
     parts = []
-    with tqdm(total=n, desc=desc, unit="pair", disable=not progress, leave=False) as bar:
-        for start in range(0, n, chunk_size):
-            m = min(start + chunk_size, n) - start
-            ii = np.zeros(chunk_size, np.int64)
-            jj = np.zeros(chunk_size, np.int64)
-            ii[:m] = I[start : start + m]
-            jj[:m] = J[start : start + m]
-            a = jax.tree.map(lambda x: x[ii], s)
-            b = jax.tree.map(lambda x: x[jj], s)
-            out = _register_chunk(a, b, jnp.asarray(np.arange(chunk_size) < m), weights, options)
-            parts.append([np.asarray(x)[:m] for x in out])
-            bar.update(m)
-    if not parts:
+    for start in range(0, n, chunk_size):
+        m = min(start + chunk_size, n) - start
+        ii = np.zeros(chunk_size, np.int64)
+        jj = np.zeros(chunk_size, np.int64)
+        ii[:m] = I[start : start + m]
+        jj[:m] = J[start : start + m]
+        a = jax.tree.map(lambda x: x[ii], s)
+        b = jax.tree.map(lambda x: x[jj], s)
+        out = _register_chunk(a, b, jnp.asarray(np.arange(chunk_size) < m), weights, options)
+        parts.append([np.asarray(x)[:m] for x in out])
+    keys = ("swap", "permutation", "rotation", "main_warp", "lateral_warps", "energy", "unit_energies")
+    return {k: np.concatenate(v) for k, v in zip(keys, zip(*parts))}
+
+
+def register_pair_list(
+    s: SRVFTree,
+    I,
+    J,
+    weights: Weights,
+    options: RegistrationOptions,
+    *,
+    chunk_size: int,
+    progress: bool,
+    desc: str,
+    client=None,
+    block_size: int | None = None,
+) -> PairRegistrations:
+    """Register the pairs (s[I[k]], s[J[k]]) through the package's executor: blocks of
+    `block_size` pairs (default one chunk here, ``8 × chunk_size`` on a cluster) mapped by
+    `register_block`, on worker threads here or on Dask with `client=`, with a progress bar.
+    Every block starts on a chunk boundary, so the registrations do not depend on where the
+    blocks run."""
+    I = np.asarray(I, np.int64)
+    J = np.asarray(J, np.int64)
+    n = len(I)
+    if n == 0:
         raise ValueError("no pairs to register.")
-    swap, perm, rot, g0, gam, energy, E = (np.concatenate(x) for x in zip(*parts))
+    executor = executor_for(client)
+    if block_size is None:
+        block_size = chunk_size if isinstance(executor, LocalExecutor) else 8 * chunk_size
+    if block_size % chunk_size:
+        raise ValueError(
+            f"block_size ({block_size}) must be a multiple of chunk_size ({chunk_size}), so that every "
+            "chunk holds the same pairs wherever it runs."
+        )
+    spans = [(a, min(a + block_size, n)) for a in range(0, n, block_size)]
+    results, _ = executor.map_blocks(
+        register_block,
+        [(I[a:z], J[a:z]) for a, z in spans],
+        shared=(s, weights, options, chunk_size),
+        sizes=[z - a for a, z in spans],
+        progress=progress,
+        desc=desc,
+        unit="pair",
+    )
+    r = {k: np.concatenate([b[k] for b in results]) for k in results[0]}
+    swap = r["swap"].astype(bool)
     return PairRegistrations(
         first=np.where(swap, J, I),
         second=np.where(swap, I, J),
-        permutation=perm,
-        rotation=rot,
-        main_warp=g0,
-        lateral_warps=gam,
-        energy=energy,
-        unit_energies=E,
+        permutation=r["permutation"],
+        rotation=r["rotation"],
+        main_warp=r["main_warp"],
+        lateral_warps=r["lateral_warps"],
+        energy=r["energy"],
+        unit_energies=r["unit_energies"],
     )
 
 
@@ -196,11 +248,21 @@ class LearnedWeights(eqx.Module):
       at the starting λ and τ, entry k after the k-th re-registration (at the λ and τ that
       the k-th inner solve found).
     - `inner_loss_trace`: the loss reached by each inner solve (registrations fixed).
-    - `status`: "converged" (no lateral correspondence changed at the last re-registration),
-      "tolerance" (distances moved by less than `tol`), or "max_reregistrations".
+    - `status`: "converged" (no lateral correspondence changed at the last re-registration,
+      or the inner solve left λ where it was), "loss" (the loss at the fresh registrations
+      improved by less than `tol`, relative), or "max_reregistrations".
     - `steps`: inner optimiser steps, summed over the solves.
     - `n_reregistrations`: registrations of every pair after the first.
-    - `distances`: (n, n) matrix at the learned weights (from the last registration).
+    - `distances`: (n, n) matrix at the learned weights (from their registration).
+    - `regularisation`: the penalty used; `regularisation_scores`: when several were given,
+      each one's inner-CV held-out NCA log-loss (else None).
+    - `changed_pairs`: per re-registration, the number of pairs whose lateral correspondence
+      (real lateral to real lateral) changed.
+    - `registration_gain`: per re-registration, the relative decrease of Σ d² that registering
+      again at the new λ found over the previous registrations evaluated at that λ.
+
+    `weights` and `distances` are those of the registered loss's best entry (the alternation
+    is not a descent method: the registrations minimise each d², not the loss).
     """
 
     weights: Weights
@@ -211,6 +273,25 @@ class LearnedWeights(eqx.Module):
     steps: int = eqx.field(static=True)
     n_reregistrations: int = eqx.field(static=True)
     distances: np.ndarray
+    changed_pairs: np.ndarray
+    registration_gain: np.ndarray
+    regularisation: float
+    regularisation_scores: np.ndarray | None
+
+
+def _regularisation_candidates(regularisation) -> tuple[float, ...]:
+    values = regularisation if isinstance(regularisation, (list, tuple, np.ndarray)) else [regularisation]
+    out = []
+    for v in values:
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not v >= 0:
+            raise ValueError(
+                f"regularisation must be a number >= 0 or a sequence of them (chosen by inner "
+                f"cross-validation), got {regularisation!r}."
+            )
+        out.append(float(v))
+    if not out:
+        raise ValueError("regularisation: give at least one value.")
+    return tuple(out)
 
 
 class _Problem(eqx.Module):
@@ -223,7 +304,7 @@ class _Problem(eqx.Module):
     local_j: Array
     same: Array
     n: int = eqx.field(static=True)
-    regularisation: float = eqx.field(static=True)
+    regularisation: Array  # a traced scalar: one compiled solve serves every candidate value
     softness: float = eqx.field(static=True)
 
 
@@ -253,16 +334,19 @@ def _matrix(d2_pairs, li, lj, n):
     return D2.at[li, lj].set(d2_pairs).at[lj, li].set(d2_pairs)
 
 
+def _pair_d2(theta, problem, tree, regs):
+    """Squared distances of the registered pairs at ``log λ = theta``, registrations fixed."""
+    W = _weights_of(problem.names, theta[: len(problem.names)], problem.fixed)
+    if tree is None:
+        lam = jnp.stack([jnp.asarray(W[n], theta.dtype) for n in LINEAR_TERMS])
+        return pair_d2_linear(lam, jnp.asarray(regs.unit_energies))
+    return _d2_thickness(W, tree, regs)
+
+
 def _objective(theta, args):
     problem, tree, regs = args
     k = len(problem.names)
-    W = _weights_of(problem.names, theta[:k], problem.fixed)
-    if tree is None:
-        lam = jnp.stack([jnp.asarray(W[n], theta.dtype) for n in LINEAR_TERMS])
-        d2 = pair_d2_linear(lam, jnp.asarray(regs.unit_energies))
-    else:
-        d2 = _d2_thickness(W, tree, regs)
-    d2 = jnp.maximum(d2, 0.0)
+    d2 = jnp.maximum(_pair_d2(theta, problem, tree, regs), 0.0)
     D2 = _matrix(d2, problem.local_i, problem.local_j, problem.n)
     loss = nca_loss(D2, problem.same, problem.softness * jnp.mean(d2))
     return loss + problem.regularisation * jnp.sum((theta[:k] - problem.log0) ** 2)
@@ -271,6 +355,27 @@ def _objective(theta, args):
 def learn_loss(theta, problem, tree, regs):
     """The inner objective (for tests): NCA loss + penalty at ``theta = log λ_learned``."""
     return _objective(theta, (problem, tree, regs))
+
+
+def correspondence_changed(old: PairRegistrations, new: PairRegistrations, mask) -> np.ndarray:
+    """Per pair, whether the lateral correspondence differs: which real lateral of the first
+    root is matched to which real lateral of the second. Which null slot a deleted or inserted
+    lateral sits in is not a correspondence (a real-vs-null slot costs ``λ_lateral ||q||²``
+    wherever it sits, docs/design.md §4), so it is ignored. `mask`: (n, K) real-lateral flags
+    of the batch. A pair whose canonical order flipped counts as changed."""
+
+    def matched(r):
+        perm = np.asarray(r.permutation)
+        ma = mask[r.first]
+        mb = np.take_along_axis(mask[r.second], perm, axis=1)
+        return np.where(ma & mb, perm, -1)
+
+    flipped = np.asarray(old.first) != np.asarray(new.first)
+    return flipped | np.any(matched(old) != matched(new), axis=1)
+
+
+# The inner solve's λ is the same as the last one (log scale): re-registering would repeat it.
+_THETA_ATOL = 1e-8
 
 
 def _learned_names(learn_thickness: bool) -> tuple[str, ...]:
@@ -303,7 +408,19 @@ class _Fitter:
     """Alternation of inner solves and re-registrations on the roots `idx` of a batch."""
 
     def __init__(
-        self, trees, weights, opts, radii, *, chunk_size, progress, regularisation, max_steps, rtol, softness=0.1
+        self,
+        trees,
+        weights,
+        opts,
+        radii,
+        *,
+        chunk_size,
+        progress,
+        regularisation,
+        max_steps,
+        rtol,
+        softness=0.1,
+        client=None,
     ):
         if not (isinstance(softness, (int, float)) and softness > 0):
             raise ValueError(f"softness must be a positive number, got {softness!r}.")
@@ -313,17 +430,27 @@ class _Fitter:
         self.radii = radii
         self.chunk_size = chunk_size
         self.progress = progress
-        self.regularisation = float(regularisation)
+        self.candidates = _regularisation_candidates(regularisation)
         self.max_steps = int(max_steps)
         self.rtol = float(rtol)
         self.start = _start_weights(weights, radii)
+        self.client = client
+        self.mask = None if trees is None else np.asarray(trees.mask)  # (n, K) real laterals
 
     def srvf(self, weights):
         return to_srvf(self.trees, weights=weights)
 
     def register(self, weights, I, J, desc):
         return register_pair_list(
-            self.srvf(weights), I, J, weights, self.opts, chunk_size=self.chunk_size, progress=self.progress, desc=desc
+            self.srvf(weights),
+            I,
+            J,
+            weights,
+            self.opts,
+            chunk_size=self.chunk_size,
+            progress=self.progress,
+            desc=desc,
+            client=self.client,
         )
 
     def solve(self, problem, regs, theta0):
@@ -334,59 +461,118 @@ class _Fitter:
         )
         return sol.value, float(_objective(sol.value, (problem, tree, regs))), int(sol.stats["num_steps"])
 
+    def dtype(self):
+        return np.asarray(self.trees.main if isinstance(self.trees, RootTree) else self.trees.q0).dtype
+
+    def problem(self, y, regularisation) -> _Problem:
+        n = len(y)
+        li, lj = np.triu_indices(n, 1)
+        names = _learned_names(self.radii)
+        dtype = self.dtype()
+        return _Problem(
+            names=names,
+            fixed={k: v for k, v in self.start.items() if k not in names},
+            log0=jnp.log(jnp.asarray([float(self.start[k]) for k in names], dtype)),
+            local_i=jnp.asarray(li),
+            local_j=jnp.asarray(lj),
+            same=jnp.asarray((y[:, None] == y[None, :]) & ~np.eye(n, dtype=bool)),
+            n=n,
+            regularisation=jnp.asarray(regularisation, dtype),
+            softness=self.softness,
+        )
+
+    def choose_regularisation(self, y, regs, *, n_inner: int = 3) -> tuple[float, np.ndarray]:
+        """The candidate regularisation with the lowest held-out NCA log-loss under an inner
+        stratified CV of the training roots, the registrations held at the start λ (so no
+        registration is done here: every inner solve and score reuses `regs`). Ties go to
+        the stronger penalty (nearer the starting λ). Returns it and the score per candidate."""
+        n = len(y)
+        li, lj = np.triu_indices(n, 1)
+        pos = np.full((n, n), -1, np.int64)
+        pos[li, lj] = np.arange(len(li))
+        pos[lj, li] = pos[li, lj]
+        n_inner = min(n_inner, int(np.unique(y, return_counts=True)[1].min()))
+        tree = self.trees if self.radii else None
+        folds = stratified_folds(y, n_inner, seed=0)
+        scores = np.zeros(len(self.candidates))
+        for c, r in enumerate(self.candidates):
+            for test in folds:
+                train = np.setdiff1d(np.arange(n), test)
+                a, b = np.triu_indices(len(train), 1)
+                sub = regs.take(pos[train[a], train[b]])
+                problem = self.problem(y[train], r)
+                theta, _, _ = self.solve(problem, sub, problem.log0)
+                tau = self.softness * float(jnp.mean(jnp.maximum(_pair_d2(theta, problem, tree, sub), 0.0)))
+                TI, TJ = (x.ravel() for x in np.meshgrid(test, train, indexing="ij"))
+                d2 = np.asarray(_pair_d2(theta, problem, tree, regs.take(pos[TI, TJ]))).reshape(len(test), len(train))
+                logits = -np.maximum(d2, 0.0) / tau
+                same = y[test][:, None] == y[train][None, :]
+                top = logits.max(axis=1, keepdims=True)
+                log_all = np.log(np.exp(logits - top).sum(axis=1))
+                log_same = np.log(np.where(same, np.exp(logits - top), 0.0).sum(axis=1))
+                scores[c] += float(np.sum(log_all - log_same)) / n
+        low = scores.min() + 1e-12 * max(1.0, abs(scores.min()))
+        strongest_first = np.argsort(-np.asarray(self.candidates), kind="stable")
+        best = next(c for c in strongest_first if scores[c] <= low)
+        return self.candidates[best], scores
+
     def fit(self, idx, y, *, regs=None, max_reregistrations: int, tol: float):
         idx = np.asarray(idx, np.int64)
         n = len(idx)
         li, lj = np.triu_indices(n, 1)
         I, J = idx[li], idx[lj]
         names = _learned_names(self.radii)
-        dtype = np.asarray(self.trees.main if isinstance(self.trees, RootTree) else self.trees.q0).dtype
-        fixed = {k: v for k, v in self.start.items() if k not in names}
-        log0 = jnp.log(jnp.asarray([float(self.start[k]) for k in names], dtype))
-        same = jnp.asarray((y[:, None] == y[None, :]) & ~np.eye(n, dtype=bool))
-        problem = _Problem(
-            names=names,
-            fixed=fixed,
-            log0=log0,
-            local_i=jnp.asarray(li),
-            local_j=jnp.asarray(lj),
-            same=same,
-            n=n,
-            regularisation=self.regularisation,
-            softness=self.softness,
-        )
+        dtype = self.dtype()
         weights = self.start
         if regs is None:
             regs = self.register(weights, I, J, "registering (start λ)")
+        scores = None
+        regularisation = self.candidates[0]
+        if len(self.candidates) > 1:
+            regularisation, scores = self.choose_regularisation(y, regs)
+        problem = self.problem(y, regularisation)
+        fixed, log0 = problem.fixed, problem.log0
         theta = log0
         tree = self.trees if self.radii else None
         loss_trace = [float(_objective(theta, (problem, tree, regs)))]
         inner, steps, n_rereg, status = [], 0, 0, "max_reregistrations"
+        changed_trace, gain_trace = [], []
+        best = (loss_trace[0], weights, regs)
+        mask = np.asarray(self.mask)
         bar = tqdm(total=max_reregistrations, desc="learning λ", unit="re-registration", disable=not self.progress)
         try:
-            while True:
+            while n_rereg < max_reregistrations:
+                theta_old = theta
                 theta, loss, k = self.solve(problem, regs, theta)
                 inner.append(loss)
                 steps += k
+                if float(jnp.max(jnp.abs(theta - theta_old))) <= _THETA_ATOL:
+                    # λ did not move, so registering again would give the same registrations.
+                    status = "converged"
+                    break
                 weights = _weights_of(names, theta[: len(names)], fixed)
                 weights = Weights(**{name: float(v) for name, v in weights.items()})
                 new = self.register(weights, I, J, f"re-registering ({n_rereg + 1})")
                 n_rereg += 1
                 bar.update(1)
+                # d² of the old registrations at the new λ: what re-registering improves on.
+                old_d2 = np.asarray(_pair_d2(theta, problem, tree, regs))
+                gain_trace.append(float((old_d2.sum() - new.energy.sum()) / max(old_d2.sum(), 1e-300)))
+                changed_trace.append(int(np.sum(correspondence_changed(regs, new, mask))))
                 loss_trace.append(float(_objective(theta, (problem, tree, new))))
-                same_perm = np.array_equal(new.permutation, regs.permutation)
-                moved = np.linalg.norm(new.energy - regs.energy) / max(np.linalg.norm(new.energy), 1e-300)
                 regs = new
-                if same_perm:
+                if loss_trace[-1] < best[0]:
+                    best = (loss_trace[-1], weights, regs)
+                bar.set_postfix_str(f"loss {loss_trace[-1]:.4g}, {changed_trace[-1]} pairs re-matched")
+                if changed_trace[-1] == 0:
                     status = "converged"
                     break
-                if moved < tol:
-                    status = "tolerance"
-                    break
-                if n_rereg >= max_reregistrations:
+                if loss_trace[-1] > loss_trace[-2] - tol * abs(loss_trace[-2]):
+                    status = "loss"
                     break
         finally:
             bar.close()
+        _, weights, regs = best
         D = np.zeros((n, n), dtype)
         D[li, lj] = np.sqrt(np.maximum(regs.energy, 0.0))
         D[lj, li] = D[li, lj]
@@ -399,6 +585,10 @@ class _Fitter:
             steps=steps,
             n_reregistrations=n_rereg,
             distances=D,
+            changed_pairs=np.asarray(changed_trace, np.int64),
+            registration_gain=np.asarray(gain_trace),
+            regularisation=float(regularisation),
+            regularisation_scores=scores,
         )
         return result, regs
 
@@ -410,13 +600,14 @@ def learn_weights(
     weights: Weights | None = None,
     max_reregistrations: int = 3,
     tol: float = 1e-3,
-    regularisation: float = 1e-3,
+    regularisation: float | Sequence[float] = 1e-3,
     softness: float = 0.1,
     max_steps: int = 200,
     rtol: float = 1e-6,
     registration: RegistrationOptions | None = None,
     chunk_size: int = 32,
     progress: bool = True,
+    client=None,
     **options,
 ) -> LearnedWeights:
     """Learn the metric weights λ that best separate labelled roots (docs/design.md §12).
@@ -426,15 +617,22 @@ def learn_weights(
     with radii), with ``λ_lateral`` held at its starting value (the overall scale of λ is
     fixed; see the module docstring) and the temperature ``τ = softness · mean d²``. The registrations are held fixed
     during each BFGS solve (then d² is linear in λ), and every pair is registered again at the
-    new λ, until no lateral correspondence changes, the distances move by less than `tol`
-    (relative), or after `max_reregistrations`.
+    new λ, until no lateral correspondence (real lateral to real lateral) changes, the loss at
+    the fresh registrations improves by less than `tol` (relative), or after
+    `max_reregistrations`; the λ with the lowest loss at its own registrations is returned.
 
     - `labels`: one label per root (any hashable values); at least two classes, each with
       at least two members. Bad labels raise `LabelError` before anything is registered.
     - `weights`: the starting λ (default the paper's (0.02, 1, 1)); the penalty
-      ``regularisation · Σ (log λ − log λ_start)²`` keeps unconstrained terms there.
+      ``regularisation · Σ (log λ − log λ_start)²`` keeps unconstrained terms there. Give
+      several values (a sequence) to choose among them by a 3-fold inner cross-validation
+      of the roots given, scored by held-out NCA log-loss with the registrations held at the
+      start λ (cheap: no extra registration); ties go to the stronger penalty. Small
+      training sets overfit λ, and a penalty chosen this way does not look at any test root.
     - `max_steps`, `rtol`: of each inner BFGS solve.
-    - `registration`, `chunk_size`, `progress`, `**options`: as in `pairwise_distances`.
+    - `registration`, `chunk_size`, `progress`, `client`, `**options`: as in
+      `pairwise_distances` (with `client`, a ``dask.distributed.Client``, the registrations run
+      on the cluster).
 
     Returns a `LearnedWeights`. Its accuracy on the training roots is not a result: use
     `nested_cv_accuracy`.
@@ -454,6 +652,7 @@ def learn_weights(
         max_steps=max_steps,
         rtol=rtol,
         softness=softness,
+        client=client,
     )
     result, _ = fitter.fit(np.arange(n), y, max_reregistrations=max_reregistrations, tol=tol)
     return result
@@ -494,6 +693,8 @@ class CVAccuracy(eqx.Module):
     - `weights`: per fold, the learned λ as a dict; `folds`: the test indices of each fold.
     - `n_reregistrations`, `status`: per fold, from `learn_weights`.
     - `seconds_learning`: wall time of each fold's learning (registrations included).
+    - `regularisation`: per fold, the penalty used (chosen on the training roots when several
+      were given).
     """
 
     learned_nn: np.ndarray
@@ -505,6 +706,7 @@ class CVAccuracy(eqx.Module):
     n_reregistrations: np.ndarray
     status: tuple = eqx.field(static=True)
     seconds_learning: np.ndarray
+    regularisation: np.ndarray
 
     def summary(self) -> dict:
         """Mean and standard deviation over folds of each accuracy."""
@@ -543,12 +745,13 @@ def nested_cv_accuracy(
     weights: Weights | None = None,
     max_reregistrations: int = 2,
     tol: float = 1e-3,
-    regularisation: float = 1e-3,
+    regularisation: float | Sequence[float] = 1e-3,
     softness: float = 0.1,
     max_steps: int = 200,
     registration: RegistrationOptions | None = None,
     chunk_size: int = 32,
     progress: bool = True,
+    client=None,
     **options,
 ) -> CVAccuracy:
     """Held-out accuracy of learned λ against the starting (paper's) λ, by cross-validation.
@@ -581,6 +784,7 @@ def nested_cv_accuracy(
         max_steps=max_steps,
         rtol=1e-6,
         softness=softness,
+        client=client,
     )
     I, J = np.triu_indices(n, 1)
     position = np.full((n, n), -1, np.int64)
@@ -593,7 +797,7 @@ def nested_cv_accuracy(
     # The paper's λ is scored at the given weights (λr = 0 means no thickness, as given).
     D_paper = D0 if fitter.start is weights else _matrix_at(fitter, weights, I, J, n)
 
-    out = {k: [] for k in ("lnn", "lmean", "pnn", "pmean", "w", "folds", "rereg", "status", "sec")}
+    out = {k: [] for k in ("lnn", "lmean", "pnn", "pmean", "w", "folds", "rereg", "status", "sec", "reg")}
     for f, test in enumerate(stratified_folds(y, n_folds, seed=seed)):
         train = np.setdiff1d(np.arange(n), test)
         p_nn, p_mean = fold_predictions(D_paper[np.ix_(test, train)], D_paper[np.ix_(train, train)], y[train])
@@ -619,6 +823,7 @@ def nested_cv_accuracy(
         out["folds"].append(test)
         out["rereg"].append(res.n_reregistrations)
         out["status"].append(res.status)
+        out["reg"].append(res.regularisation)
     return CVAccuracy(
         learned_nn=np.asarray(out["lnn"]),
         learned_mean=np.asarray(out["lmean"]),
@@ -629,6 +834,7 @@ def nested_cv_accuracy(
         n_reregistrations=np.asarray(out["rereg"]),
         status=tuple(out["status"]),
         seconds_learning=np.asarray(out["sec"]),
+        regularisation=np.asarray(out["reg"]),
     )
 
 
