@@ -617,7 +617,20 @@ def lazy_assignment(
 
         return run_in_slabs(need, step, bound, slab=_slab_size(n_items, 128))
 
+    if n_below:
+        # Pairs where one lateral has no children need no nested assignment: every child of
+        # the other is unmatched, at its subtree's exact cost (0 when neither has children).
+        has_a = jnp.any(p.a.deeper[0].mask, axis=-1)
+        has_b = jnp.any(p.b.deeper[0].mask, axis=-1)
+        nested = (has_a[:, :, None] & has_b[:, None, :]).reshape(-1)
+        lam = p.lam_lateral
+        alone = (descendant_norms(p.a.deeper, lam)[:, :, None] + descendant_norms(p.b.deeper, lam)[:, None, :]).reshape(
+            -1
+        )
+
     def children(need, A, counts):
+        A = jnp.where(need & ~nested, alone, A)
+
         def step(lanes, carry):
             A, counts = carry
             safe = jnp.clip(lanes, 0, n_items - 1)
@@ -628,7 +641,7 @@ def lazy_assignment(
             )
             return A.at[lanes].set(total, mode="drop"), counts.at[lanes].set(n_dp, mode="drop")
 
-        return run_in_slabs(need, step, (A, counts), slab=_slab_size(n_items, CHILD_SLAB))
+        return run_in_slabs(need & nested, step, (A, counts), slab=_slab_size(n_items, CHILD_SLAB))
 
     def exact(need, E, G, A, counts):
         E, G = slabs(need, lateral_pair, E, G)
@@ -738,7 +751,11 @@ def child_registrations(p: Prepared, O: Array, perm: Array, matched: Array, opti
         ]
         return regs, counts.at[lanes].set(n_dp, mode="drop")
 
-    regs, counts = run_in_slabs(matched.reshape(-1), step, (regs, counts), slab=_slab_size(n_items, CHILD_SLAB))
+    # Only pairs whose laterals both have children have anything to register below.
+    has_a = jnp.any(p.a.deeper[0].mask, axis=-1)
+    has_b = jnp.take_along_axis(jnp.any(p.b.deeper[0].mask, axis=-1), perm, axis=1)
+    need = (matched & has_a & has_b).reshape(-1)
+    regs, counts = run_in_slabs(need, step, (regs, counts), slab=_slab_size(n_items, CHILD_SLAB))
     regs = [(pm.reshape((B, K) + pm.shape[1:]), gm.reshape((B, K) + gm.shape[1:])) for pm, gm in regs]
     return regs, jnp.sum(counts.reshape(B, K, -1), axis=1, dtype=jnp.int32)
 
