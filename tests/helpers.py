@@ -429,3 +429,34 @@ def reference_tree_distance(
         if rel < rtol:
             break
     return float(best_E), {"rotation": best_O, "n_dp": n_dp, "matches": best_matches}
+
+
+class RecordingBar:
+    """Stands in for tqdm: records the bar's settings and every update."""
+
+    def __init__(self, *args, **kwargs):
+        self.kwargs, self.updates = kwargs, []
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def update(self, n=1):
+        self.updates.append(n)
+
+
+def record_bars(monkeypatch) -> list:
+    """Make the executor's progress bars `RecordingBar`s; returns the list they are added to."""
+    import rootshape_jax._executor as executor
+
+    made = []
+
+    class Bar(RecordingBar):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            made.append(self)
+
+    monkeypatch.setattr(executor, "tqdm", Bar)
+    return made

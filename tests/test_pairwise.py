@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import random_root
+from helpers import random_root, record_bars
 
 import rootshape_jax as rs
 from rootshape_jax import _pairwise
@@ -48,25 +48,7 @@ def test_cross_distances_and_stats(trees):
 def test_cross_distances_bar_moves_after_every_chunk(trees, monkeypatch):
     """Issue 17, item 6: a long matrix shows progress per chunk (each chunk is a block), so the
     bar moves at least as often as a chunk finishes."""
-    import rootshape_jax._executor as executor
-
-    made = []
-
-    class Bar:
-        def __init__(self, *args, **kwargs):
-            self.kwargs, self.updates = kwargs, []
-            made.append(self)
-
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return False
-
-        def update(self, n=1):
-            self.updates.append(n)
-
-    monkeypatch.setattr(executor, "tqdm", Bar)
+    made = record_bars(monkeypatch)
     A = jax.tree.map(lambda x: x[:2], trees)
     rs.cross_distances(A, trees, weights=W, chunk_size=4)  # 10 pairs: chunks of 4, 4, 2
     (bar,) = made

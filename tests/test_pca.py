@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import linear_srvf_population, random_root, transformed_copies
+from helpers import linear_srvf_population, random_root, record_bars, transformed_copies
 
 import rootshape_jax as rs
 from rootshape_jax._mean import karcher_mean
@@ -108,35 +108,13 @@ def test_project_recovers_coefficients(two_mode):
     np.testing.assert_allclose(one, b[3], atol=1e-10)
 
 
-class RecordingBar:
-    """Stands in for tqdm: records the bar's settings and every update."""
-
-    made: list = []
-
-    def __init__(self, *args, **kwargs):
-        self.kwargs, self.updates = kwargs, []
-        RecordingBar.made.append(self)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-    def update(self, n=1):
-        self.updates.append(n)
-
-
 def test_project_in_blocks_moves_the_bar_per_block(two_mode, monkeypatch):
-    import rootshape_jax._executor as executor
-
     _, _, x, _, pc = two_mode
     whole = project(pc, x, block_size=8)  # one call, no bar
-    RecordingBar.made = []
-    monkeypatch.setattr(executor, "tqdm", RecordingBar)
+    made = record_bars(monkeypatch)
     blocks = project(pc, x, block_size=3)  # 8 roots: blocks of 3, 3, 2
     np.testing.assert_allclose(blocks, whole, atol=1e-10)
-    (bar,) = RecordingBar.made
+    (bar,) = made
     assert bar.kwargs["total"] == 8 and sorted(bar.updates) == [2, 3, 3]
     with pytest.raises(ValueError, match="block_size"):
         project(pc, x, block_size=0)

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.optimize
-from helpers import random_root, rotation_matrix
+from helpers import random_root, record_bars, rotation_matrix
 
 import rootshape_jax as rs
 from rootshape_jax._engine import warp_preserving_norm
@@ -298,41 +298,19 @@ def test_clear_errors():
         rs.register(a, b, max_iterations=0)
 
 
-class _RecordingBar:
-    """Stands in for tqdm: records the bar's settings and every update."""
-
-    made: list = []
-
-    def __init__(self, *args, **kwargs):
-        self.kwargs, self.updates = kwargs, []
-        _RecordingBar.made.append(self)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-    def update(self, n=1):
-        self.updates.append(n)
-
-
 @pytest.mark.slow  # compiles two registration programs (a minute or more under load)
 def test_long_batches_register_in_blocks_with_a_moving_bar(monkeypatch):
     """Issue 17, item 6: a batch longer than `block_size` goes in blocks (the bar moves per
     block), with the same result as one call."""
-    import rootshape_jax._executor as executor
-
     rng = np.random.default_rng(40)
     roots = [random_root(rng, n_laterals=int(rng.integers(1, 4))) for _ in range(10)]
     t = rs.batch(roots, n_points=T, max_laterals=K)
     a = jax.tree.map(lambda x: x[:5], t)
     b = jax.tree.map(lambda x: x[5:], t)
     whole = rs.register(a, b, weights=W, block_size=5)  # one call
-    _RecordingBar.made = []
-    monkeypatch.setattr(executor, "tqdm", _RecordingBar)
+    made = record_bars(monkeypatch)
     blocks = rs.register(a, b, weights=W, block_size=2)  # 2 + 2 + 1
-    (bar,) = _RecordingBar.made
+    (bar,) = made
     assert bar.kwargs["total"] == 5 and sorted(bar.updates) == [1, 2, 2]
     assert jax.tree.structure(blocks) == jax.tree.structure(whole)
     for x, y in zip(jax.tree.leaves(blocks), jax.tree.leaves(whole)):
