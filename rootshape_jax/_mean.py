@@ -795,8 +795,10 @@ def karcher_mean(
             )
         # Locally one block per worker thread (every core), at most _LOCAL_BLOCK samples so that
         # progress moves every few seconds; on a cluster blocks of `block_size`.
-        local_size = min(-(-n // executor.n_workers()), _LOCAL_BLOCK)
-        size = local_size if isinstance(executor, LocalExecutor) else block_size
+        if isinstance(executor, LocalExecutor):
+            size = min(-(-n // executor.n_workers()), _LOCAL_BLOCK)
+        else:
+            size = block_size
         blocks = _SampleBlocks(executor, samples, size, progress=progress)
         mu0s = [params_of(jax.tree.map(lambda x, i=i: x[i], samples)) for i in starts]
         mu, trace, steps, result, registered, energies, chosen = _fixed_point(
