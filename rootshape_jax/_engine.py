@@ -325,9 +325,12 @@ class Prepared(eqx.Module):
     dir_a: Array  # [B, K, T, C] unit direction of each node of a (0 where q = 0)
     mass_a: Array  # [B, K, T] trapezoid weight times |q|² of each node of a
     blocks_b: tuple  # block cones of b (`block_cones`): axes [B, K, N_BLOCKS, C], half-angles
-    # Depth D > 2 only (None otherwise): direction cones of the children of every lateral.
+    # Depth D > 2 only (None otherwise): direction cones of the children of every lateral,
+    # and the λ-weighted norms below every lateral (`descendant_norms`).
     child_cone_a: tuple | None = None  # axes [B, K, K2, C], half-angles [B, K, K2]
     child_cone_b: tuple | None = None
+    sub_a: Array | None = None  # [B, K]
+    sub_b: Array | None = None
 
 
 def descendant_norms(levels: tuple, lam) -> Array | None:
@@ -366,13 +369,14 @@ def prepare(a: SRVFTree, b: SRVFTree, weights: Weights) -> Prepared:
     Lb = l2_norm_squared(b.q) * b.mask
     both = a.mask[:, :, None] & b.mask[:, None, :]
     others = null_costs(weights, a, b, La, Lb)
-    child_cones = (None, None)
+    below = (None,) * 4
     if a.deeper:
         # A real lateral left unmatched costs its whole subtree (docs/design.md §11).
         sub_a, sub_b = descendant_norms(a.deeper, lam_s), descendant_norms(b.deeper, lam_s)
-        below = jnp.where(a.mask[:, :, None], sub_a[:, :, None], jnp.where(b.mask[:, None, :], sub_b[:, None, :], 0.0))
-        others = others + below
-        child_cones = (direction_cone(a.deeper[0].q), direction_cone(b.deeper[0].q))
+        others = others + jnp.where(
+            a.mask[:, :, None], sub_a[:, :, None], jnp.where(b.mask[:, None, :], sub_b[:, None, :], 0.0)
+        )
+        below = (direction_cone(a.deeper[0].q), direction_cone(b.deeper[0].q), sub_a, sub_b)
     fixed = pair_costs(weights, a, b).astype(dtype)
     T = a.q.shape[-2]
     mass_a = jnp.sum(a.q**2, axis=-1) * trapezoid_weights(T, dtype)
@@ -392,7 +396,7 @@ def prepare(a: SRVFTree, b: SRVFTree, weights: Weights) -> Prepared:
         safe_normalise(a.q),
         mass_a,
         block_cones(b.q, min(N_BLOCKS, T - 1)),
-        *child_cones,
+        *below,
     )
 
 
@@ -623,10 +627,7 @@ def lazy_assignment(
         has_a = jnp.any(p.a.deeper[0].mask, axis=-1)
         has_b = jnp.any(p.b.deeper[0].mask, axis=-1)
         nested = (has_a[:, :, None] & has_b[:, None, :]).reshape(-1)
-        lam = p.lam_lateral
-        alone = (descendant_norms(p.a.deeper, lam)[:, :, None] + descendant_norms(p.b.deeper, lam)[:, None, :]).reshape(
-            -1
-        )
+        alone = (p.sub_a[:, :, None] + p.sub_b[:, None, :]).reshape(-1)
 
     def children(need, A, counts):
         A = jnp.where(need & ~nested, alone, A)
@@ -689,13 +690,18 @@ def lazy_assignment(
     return costs(E, A, computed, bound), perm, computed.reshape(B, K, K), G.reshape(B, K, K, T), below
 
 
+def assign_at(p: Prepared, O: Array, rows: Array, options):
+    """`lazy_assignment` of the prepared pairs at rotations O (b's branches and bounds turned)."""
+    qb = rotate_batch(p.b.q, O)
+    axes_b = rotate_batch(p.blocks_b[0], O)
+    child_bound = child_lower_bounds(p, O) if p.a.deeper else None
+    return lazy_assignment(p, qb, axes_b, lower_bounds(p, O), rows, options, O, child_bound)
+
+
 def _assign_children(a: SRVFTree, b: SRVFTree, weights: Weights, O: Array, active: Array, options):
     """The lazy assignment of a batch of children sets (b's rotated by O)."""
     p = prepare(a, b, weights)
-    qb = rotate_batch(b.q, O)
-    axes_b = rotate_batch(p.blocks_b[0], O)
-    child_bound = child_lower_bounds(p, O) if a.deeper else None
-    return p, lazy_assignment(p, qb, axes_b, lower_bounds(p, O), active, options, O, child_bound)
+    return p, assign_at(p, O, active, options)
 
 
 def child_assignment(a: SRVFTree, b: SRVFTree, weights: Weights, O: Array, active: Array, options):
@@ -718,14 +724,11 @@ def child_registrations(p: Prepared, O: Array, perm: Array, matched: Array, opti
     T = p.a.q.shape[-2]
     dtype = p.La.dtype
 
-    def identity_like(lv):
-        shape = lv.mask.shape
-        return (
-            jnp.broadcast_to(jnp.arange(shape[-1]), shape).reshape((n_items,) + shape[2:]),
-            jnp.broadcast_to(_identity_grid(T, dtype), shape + (T,)).reshape((n_items,) + shape[2:] + (T,)),
-        )
-
-    regs = [identity_like(lv) for lv in p.a.deeper]
+    # One row per lateral slot of a (the slab's lanes).
+    regs = [
+        (pm.reshape((n_items,) + pm.shape[2:]), gm.reshape((n_items,) + gm.shape[2:]))
+        for pm, gm in _initial_children(p)
+    ]
     counts = jnp.zeros((n_items, len(p.a.deeper)), jnp.int32)
 
     def step(lanes, carry):
@@ -772,10 +775,7 @@ def evaluate(p: Prepared, O: Array, rows: Array, options: RegistrationOptions):
     B, K, T, _ = b.q.shape
     dtype = a.q0.dtype
     qb0 = rotate_batch(b.q0, O)
-    qb = rotate_batch(b.q, O)
-    axes_b = rotate_batch(p.blocks_b[0], O)
-    child_bound = child_lower_bounds(p, O) if a.deeper else None
-    C, perm, computed, G, below_dp = lazy_assignment(p, qb, axes_b, lower_bounds(p, O), rows, options, O, child_bound)
+    C, perm, computed, G, below_dp = assign_at(p, O, rows, options)
     lap = jnp.sum(jnp.take_along_axis(C, perm[:, :, None], axis=2)[:, :, 0], axis=1)
 
     # Matched real-real slots take their DP's warp; every other slot the identity.
