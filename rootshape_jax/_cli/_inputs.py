@@ -42,9 +42,11 @@ def load_roots(args, *, paths: Sequence[str] | None = None, reading: Reading | N
             raise CLIError("--metadata labels files read from disk; synthetic roots already carry their condition.")
 
         conditions = args.condition or ["control"]
+        # Synthetic roots grow second-order laterals when the analysis keeps them.
+        depth = min(getattr(args, "depth", None) or 2, 3)
         roots = []
         for c in conditions:
-            roots.extend(synthetic_roots(synthetic, condition=c, seed=args.seed))
+            roots.extend(synthetic_roots(synthetic, condition=c, seed=args.seed, depth=depth))
         return roots
     if not paths:
         raise CLIError("no input: give RSML files, folders or images, or --synthetic N for example roots.")
@@ -66,6 +68,7 @@ def load_roots(args, *, paths: Sequence[str] | None = None, reading: Reading | N
         unit=unit,
         report=reading,
         notice=notice,
+        by=getattr(args, "per", "root"),
     )
     if unit:
         roots = io.convert_units(roots, unit)
@@ -167,7 +170,8 @@ def prepare(roots: list, args, *, min_roots: int = 1, samples: int | None = None
     normalised = args.normalise_scale
     by = group_column(args)
     conditions = io.labels_of(roots, by) if by else [r.metadata.get("condition") for r in roots]
-    tree = rs.batch(roots, n_points=args.points, normalise_scale=normalised)
+    # depth None (no --depth) is batch's default: depth 2, deeper orders ignored silently.
+    tree = rs.batch(roots, n_points=args.points, normalise_scale=normalised, depth=getattr(args, "depth", None))
     return Population(
         roots=roots,
         tree=tree,

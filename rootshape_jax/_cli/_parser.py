@@ -69,12 +69,35 @@ def _weights(text: str):
     return tuple(values) + tuple(t.default_weight for t in rs.TERMS[len(values) :])
 
 
+def _add_system_options(p: argparse.ArgumentParser) -> None:
+    """What one root system is and how many orders of laterals the analysis keeps."""
+    g = p.add_argument_group("whole root systems")
+    g.add_argument(
+        "--depth",
+        type=int,
+        choices=(2, 3, 4),
+        default=None,
+        help="levels of the root system compared: 2 = main root + laterals (default, the "
+        "paper's), 3 adds the laterals' own laterals (second order), 4 the third order; deeper "
+        "branches than that are left out with a warning",
+    )
+    g.add_argument(
+        "--per",
+        choices=("root", "plant"),
+        default="root",
+        help="one root system per top-level root of an RSML file (root, default) or per plant "
+        "(plant: all its axes, seminal and nodal roots or several seedlings, as one system "
+        "around a zero-length main root at the collar; use with --depth 3 to keep the axes' "
+        "laterals)",
+    )
+
+
 _DESCRIPTION = """\
 Compare the shapes of plant root systems: distances between roots, the optimal deformation of
 one root into another, the mean root and its main modes of variation, random and trait-driven
 new roots, and clusters. Roots are read from RSML files (SmartRoot, RootNav, RhizoVision,
 CPlantBox, ...), folders of RSML files, or scanned images; each root is a main root with its
-first-order laterals.
+first-order laterals (--depth 3 adds second-order laterals, --per plant joins a plant's axes).
 
 Results (CSV tables, PNG figures, RSML files) go into the folder given by --out.
 Try:  rootshape demo          (everything on a bundled set of 53 roots)
@@ -133,6 +156,7 @@ def _add_common(p: argparse.ArgumentParser, *, inputs: bool = True, default_out:
             action="store_true",
             help="stop at the first unreadable file of a folder (default: skip it, name it, and go on with the others)",
         )
+        _add_system_options(p)
     g = p.add_argument_group("analysis")
     g.add_argument(
         "--out",
@@ -335,6 +359,7 @@ def build_parser() -> argparse.ArgumentParser:
     img = p.add_argument_group("images")
     img.add_argument("--pixel-size", type=_positive_float, metavar="SIZE", help="length of one image pixel")
     img.add_argument("--unit", metavar="UNIT", help="unit of --pixel-size (default mm)")
+    _add_system_options(p)
 
     p = add(
         "mean",

@@ -324,6 +324,8 @@ def settings(args, pop) -> list[tuple[str, str]]:
         ("roots", str(len(pop.names))),
         ("points per root (T)", str(args.points)),
         ("lateral slots (K)", str(int(pop.tree.capacity))),
+        ("depth (levels; child slots per level)", f"{pop.tree.depth}; {', '.join(map(str, pop.tree.capacities))}"),
+        ("one system per", getattr(args, "per", "root")),
         ("most laterals of a root", str(max(r.n_laterals for r in pop.roots))),
         ("scale normalised", "yes (every main root scaled to length 1)" if pop.normalised else "no"),
         ("weights " + ", ".join(t.name for t in rs.TERMS), ", ".join(f"{v:g}" for v in w)),

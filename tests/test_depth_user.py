@@ -1,0 +1,288 @@
+"""Whole root systems for the user (issue 15): plots, command line, simulated plants and RSML
+writing at depth 3.
+
+The plots are checked against a plain walk over `Root.children` (how many branches of each
+order there are) and against the registration: along a geodesic from a root to a copy with
+its branches shuffled at every level, one colour is one branch from start to end.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+import matplotlib.colors as mcolors
+import numpy as np
+import pytest
+
+import rootshape_jax as rs
+from rootshape_jax import plot as P
+from rootshape_jax.datasets import synthetic_roots
+from rootshape_jax.io import read_rsml, write_rsml
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+@pytest.fixture(autouse=True)
+def _close_pyplot_figures():
+    yield
+    if "matplotlib.pyplot" in sys.modules:
+        sys.modules["matplotlib.pyplot"].close("all")
+
+
+def _line(p0, p1, n=9):
+    return np.linspace(np.asarray(p0, float), np.asarray(p1, float), n)
+
+
+def small_system(flip: bool = False) -> rs.Root:
+    """A main root with three laterals holding 2, 0 and 1 second-order laterals (distinct
+    shapes, so the matching is unique). `flip` lists laterals and sub-laterals in reverse."""
+    main = _line([0, 0], [0, 10], 11)
+    spec = [  # (attach, tip of the lateral, [(fraction along it, tip of its child)])
+        (0.2, [4.0, 3.5], [(0.4, [2.6, 1.0]), (0.75, [4.5, 5.2])]),
+        (0.5, [-5.0, 7.0], []),
+        (0.8, [3.0, 9.5], [(0.5, [0.8, 9.9])]),
+    ]
+    lats, kids = [], []
+    for s, tip, subs in spec:
+        start = main[0] + s * (main[-1] - main[0])
+        lat = _line(start, tip)
+        sub_lats = [_line(lat[0] + f * (lat[-1] - lat[0]), t, 7) for f, t in subs]
+        order = slice(None, None, -1) if flip else slice(None)
+        kids.append(rs.Root(main=lat, laterals=tuple(sub_lats[order]), attach=np.array([f for f, _ in subs])[order]))
+        lats.append(lat)
+    order = slice(None, None, -1) if flip else slice(None)
+    return rs.Root(
+        main=main,
+        laterals=tuple(lats[order]),
+        attach=np.array([s for s, _, _ in spec])[order],
+        children=tuple(kids[order]),
+    )
+
+
+def count_by_order(root: rs.Root) -> dict[int, int]:
+    """Reference: branches of each order, by walking `Root.children`."""
+    counts = {0: 1}
+
+    def walk(node, order):
+        counts[order] = counts.get(order, 0) + len(node.laterals)
+        for c in node.children:
+            walk(c, order + 1)
+
+    walk(root, 1)
+    return {k: v for k, v in counts.items() if v}
+
+
+def drawn(ax) -> dict[int, list[tuple[str, np.ndarray]]]:
+    """{order: [(colour, vertices)]} of the line collections `draw` put on ``ax``."""
+    out: dict[int, list] = {}
+    for c in ax.collections:
+        gid = c.get_gid() or ""
+        if not gid.startswith("order "):
+            continue
+        colors = [mcolors.to_hex(x) for x in c.get_colors()]
+        if len(colors) == 1:
+            colors = colors * len(c.get_paths())
+        out[int(gid.split()[1])] = [(col, p.vertices) for col, p in zip(colors, c.get_paths())]
+    return out
+
+
+def test_plot_root_draws_every_order():
+    root = synthetic_roots(1, depth=3, seed=3)[0]
+    expected = count_by_order(root)
+    assert expected.get(2, 0) > 0, "the synthetic root should have second-order laterals"
+    _, ax = P.plot_root(root)
+    got = {k: len(v) for k, v in drawn(ax).items()}
+    assert got == expected
+    # The same root as a padded depth-3 tree draws the same branches.
+    tree = rs.batch([root], depth=3, n_points=20)
+    _, ax = P.plot_root(rs.unstack(tree)[0])
+    assert {k: len(v) for k, v in drawn(ax).items()} == expected
+    # At depth 2 the second-order laterals are gone.
+    _, ax = P.plot_root(rs.unstack(rs.batch([root], n_points=20))[0])
+    assert {k: len(v) for k, v in drawn(ax).items()} == {0: 1, 1: expected[1]}
+
+
+def test_deeper_branches_are_thinner_and_shades_of_their_parent():
+    root = small_system()
+    _, ax = P.plot_root(root, linewidth=2.0)
+    widths = {int(c.get_gid().split()[1]): float(np.max(c.get_linewidths())) for c in ax.collections}
+    assert widths[2] < widths[1] < widths[0]
+    d = drawn(ax)
+    parent_of = {0: 0, 1: 0, 2: 2}  # second-order branch i -> its lateral's slot
+    for i, (col, _) in enumerate(d[2]):
+        k = parent_of[i]
+        assert col == P.branch_color((k, i if k == 0 else 0))
+        # Lighter than its parent in every channel, and not the parent's colour.
+        assert all(c >= p - 1e-9 for c, p in zip(mcolors.to_rgb(col), mcolors.to_rgb(P.slot_color(k))))
+        assert col != P.slot_color(k)
+    assert [c for c, _ in d[1]] == [P.slot_color(k) for k in range(3)]
+    # One colour for the whole root is one colour at every order.
+    _, ax = P.plot_root(root, colors="#123456")
+    assert {c for v in drawn(ax).values() for c, _ in v} == {"#123456"}
+
+
+def test_branch_color_is_a_shade_of_the_parents():
+    for slot in [(0,), (3, 1), (5, 2, 4)]:
+        parent = P.branch_color(slot[:-1]) if len(slot) > 1 else None
+        child = np.array(mcolors.to_rgb(P.branch_color(slot)))
+        if parent is None:
+            assert P.branch_color(slot) == P.slot_color(slot[0])
+            continue
+        t = 0.3 + 0.1 * (slot[-1] % 3)
+        # Reference: mixing with white, by hand.
+        np.testing.assert_allclose(child, (1 - t) * np.array(mcolors.to_rgb(parent)) + t, atol=1 / 255)
+
+
+def test_geodesic_colours_follow_matched_branches_at_every_level():
+    """b is a with laterals and second-order laterals listed in reverse: the registration must
+    undo both, so along the geodesic (a to b, in place) each colour keeps its branch."""
+    a, b = small_system(), small_system(flip=True)
+    ta, tb = rs.unstack(rs.batch([a, b], depth=3, n_points=16, normalise_scale=False))
+    reg = rs.register(ta, tb)
+    assert float(reg.distance) < 1e-6
+    perm1 = np.asarray(reg.permutation)
+    assert list(perm1[:3]) == [2, 1, 0]  # slots of a matched to b's (reversed) laterals
+    perm2 = np.asarray(reg.child_permutations[0])
+    assert list(perm2[0, :2]) == [1, 0]  # a's first lateral's children, reversed in b
+    path = rs.geodesic(ta, tb, n_steps=3, registration=reg)
+    fig, axes = P.plot_geodesic(path)
+    first, last = drawn(axes[0]), drawn(axes[-1])
+    assert {k: len(v) for k, v in first.items()} == {0: 1, 1: 3, 2: 3}
+    for order in (1, 2):
+        by_colour = {c: v for c, v in first[order]}
+        assert len(by_colour) == len(first[order])  # matched branches: one colour each
+        for c, v in last[order]:
+            np.testing.assert_allclose(v, by_colour[c], atol=1e-6)
+    # Drawn as given (not registered), b's colours sit on other branches: the test can fail.
+    _, ax = P.plot_root(rs.to_roots(rs.stack([tb]))[0])
+    moved = {c: v for c, v in drawn(ax)[2]}
+    assert any(not np.allclose(moved[c], v, atol=1e-3) for c, v in first[2] if c in moved)
+
+
+# --------------------------------------------------------------------------------------------
+# Command line: --depth and --per
+
+
+def run_cli(*args, timeout=1800) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "rootshape_jax", *map(str, args)], capture_output=True, text=True, timeout=timeout
+    )
+
+
+def read_csv(path: Path) -> list[dict]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def read_matrix(path: Path) -> np.ndarray:
+    with open(path, newline="") as f:
+        rows = list(csv.reader(f))
+    return np.array([[float(x) for x in r[1:]] for r in rows[1:]])
+
+
+READING = ["distances", "geodesic", "mean", "pca", "sample", "regress", "cluster", "compare", "learn-weights", "traits"]
+
+
+@pytest.mark.parametrize("cmd", READING)
+def test_every_reading_command_takes_depth_and_per(cmd, capsys):
+    from rootshape_jax._cli import main
+
+    assert main([cmd, "--help"]) == 0
+    text = capsys.readouterr().out
+    assert "--depth {2,3,4}" in text and "--per {root,plant}" in text
+
+
+def test_bad_depth_is_a_usage_error(capsys):
+    from rootshape_jax._cli import main
+
+    assert main(["distances", "--synthetic", "2", "--depth", "5"]) == 2
+    assert "--depth" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def plant_file(tmp_path_factory) -> Path:
+    """One RSML file with two plants: plant A has two axes (each with second-order laterals),
+    plant B one axis."""
+    roots = synthetic_roots(3, depth=3, seed=4)
+    a = rs.io.plant_system(roots[:2], name="A", metadata={"plant_id": "A"})
+    b = dataclasses.replace(roots[2], name="B", metadata={"plant_id": "B"})
+    path = tmp_path_factory.mktemp("plants") / "plants.rsml"
+    write_rsml([a, b], path, unit="mm")
+    return path
+
+
+def test_traits_per_plant_and_per_root(plant_file, tmp_path):
+    by_root = read_rsml(plant_file)
+    by_plant = read_rsml(plant_file, by="plant")
+    assert (len(by_root), len(by_plant)) == (3, 2)
+    proc = run_cli("traits", plant_file, "--per", "plant", "--depth", "3", "--out", tmp_path / "p")
+    assert proc.returncode == 0, proc.stderr
+    rows = read_csv(tmp_path / "p" / "traits.csv")
+    assert len(rows) == 2
+    # Reference: count by walking Root.children (axes are order 1 of a plant's system).
+    for row, plant in zip(rows, by_plant):
+        counts = count_by_order(plant)
+        assert int(row["n_laterals_order1"]) == counts[1]
+        assert int(row["n_laterals_order2"]) == counts.get(2, 0)
+    assert int(rows[0]["n_laterals_order1"]) == 2
+    proc = run_cli("traits", plant_file, "--depth", "4", "--out", tmp_path / "r")
+    assert proc.returncode == 0, proc.stderr
+    rows = read_csv(tmp_path / "r" / "traits.csv")
+    assert len(rows) == 3 and "n_laterals_order3" in rows[0]  # --depth 4: orders 1 … 3
+    for row, root in zip(rows, by_root):
+        assert int(row["n_laterals_order2"]) == count_by_order(root).get(2, 0)
+
+
+def test_mean_refused_at_depth_gives_one_clear_line(monkeypatch, capsys, tmp_path):
+    """Whatever analysis refuses a deep tree (NotImplementedError) ends in one line naming
+    --depth 2; at depth 2 the same exception is a bug and is reported as one."""
+    from rootshape_jax._cli import main
+
+    def refuse(*a, **k):
+        raise NotImplementedError("depth 2 only")
+
+    monkeypatch.setattr(rs, "karcher_mean", refuse)
+    args = ["mean", "--synthetic", "2", "--points", "8", "--laterals", "2", "--quiet", "--out"]
+    assert (
+        main(["mean", "--synthetic", "2", "--points", "8", "--quiet", "--depth", "3", "--out", str(tmp_path / "a")])
+        == 1
+    )
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--depth 3" in err[0] and "--depth 2" in err[0], err
+    assert main(args + [str(tmp_path / "b")]) == 1
+    err = capsys.readouterr().err
+    assert "NotImplementedError" in err and "bug" in err
+
+
+@pytest.mark.slow
+def test_mean_at_depth_3_fails_clearly_or_works(tmp_path):
+    """Against the library as it is: a clear refusal while the mean needs depth 2, a mean
+    (with its second-order laterals written) once it handles depth 3."""
+    out = tmp_path / "m"
+    proc = run_cli("mean", "--synthetic", 3, "--depth", 3, "--points", 12, "--max-steps", 2, "--quiet", "--out", out)
+    if proc.returncode == 0:
+        assert (out / "mean.rsml").is_file()
+        return
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert "Traceback" not in proc.stderr and len(lines) == 1, proc.stderr
+    assert "--depth 2" in lines[0] and "bug" not in lines[0]
+
+
+@pytest.mark.slow
+def test_distances_at_depth_3_match_the_library(tmp_path):
+    roots = synthetic_roots(3, depth=3, seed=0)
+    out = tmp_path / "d"
+    proc = run_cli("distances", "--synthetic", 3, "--depth", 3, "--points", 16, "--float64", "--quiet", "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    D = read_matrix(out / "distances.csv")
+    tree3 = rs.batch(roots, depth=3, n_points=16, normalise_scale=True, dtype=np.float64)
+    ref = np.asarray(rs.pairwise_distances(tree3))
+    np.testing.assert_allclose(D, ref, rtol=1e-6, atol=1e-9)
+    # The second-order laterals count: depth 2 on the same roots gives other distances.
+    tree2 = rs.batch(roots, n_points=16, normalise_scale=True, dtype=np.float64)
+    D2 = np.asarray(rs.pairwise_distances(tree2))
+    assert not np.allclose(D, D2, rtol=1e-3)
