@@ -286,3 +286,35 @@ def test_distances_at_depth_3_match_the_library(tmp_path):
     tree2 = rs.batch(roots, n_points=16, normalise_scale=True, dtype=np.float64)
     D2 = np.asarray(rs.pairwise_distances(tree2))
     assert not np.allclose(D, D2, rtol=1e-3)
+
+
+# --------------------------------------------------------------------------------------------
+# Simulated plants (CPlantBox, the `sim` extra)
+
+
+def test_simulated_roots_keep_every_axis_and_order():
+    pytest.importorskip("plantbox")
+    from rootshape_jax.datasets import simulated_roots
+
+    taproots = simulated_roots("wheat", 2, days=12, seed=3)
+    plants = simulated_roots("wheat", 2, days=12, seed=3, by="plant")
+    for tap, plant in zip(taproots, plants):
+        assert rs.io.is_plant_system(plant)
+        assert plant.metadata["n_axes"] == plant.n_laterals > 1  # wheat: several seminal axes
+        # The first axis is the by="root" root, bit for bit, with its own laterals.
+        first = plant.children[0]
+        np.testing.assert_array_equal(first.main, tap.main)
+        np.testing.assert_array_equal(first.attach, tap.attach)
+        assert len(first.laterals) == tap.n_laterals
+        for x, y in zip(first.laterals, tap.laterals):
+            np.testing.assert_array_equal(x, y)
+        # Every axis starts at the collar, and deeper orders are there for batch(depth=3).
+        for axis in plant.laterals:
+            np.testing.assert_allclose(axis[0], plant.main[0], atol=1e-9)
+    counts = count_by_order(plants[0])
+    assert counts.get(2, 0) > 0
+    with pytest.warns(UserWarning, match="left out"):  # wheat's third order, at depth 3
+        tree = rs.batch(plants, depth=3, n_points=12)
+    assert int(np.sum(np.asarray(tree.deeper[0].mask[0]))) == counts[2]
+    with pytest.raises(ValueError, match="by"):
+        simulated_roots("pea", 1, by="plants")
