@@ -412,3 +412,70 @@ def test_write_rsml_round_trip_of_simulated_plants(tmp_path):
     assert len(back) == 1 and back[0].metadata["n_axes"] == plants[0].metadata["n_axes"]
     assert deepest(plants[0]) >= 3  # axes, their laterals, and theirs
     assert_same_system(plants[0], back[0], atol=1e-9)
+
+
+# --------------------------------------------------------------------------------------------
+# The demo's whole-root-systems section (run in-process, nothing registered)
+
+
+def _section_output(tmp_path, monkeypatch, folder):
+    from rootshape_jax._cli import _systems
+    from rootshape_jax._cli._parser import build_parser
+    from rootshape_jax._cli._report import Output
+
+    def no_cplantbox(n, args):
+        raise rs.MissingDependencyError("no CPlantBox here")
+
+    monkeypatch.setattr(_systems, "pea_population", no_cplantbox)
+    monkeypatch.setattr(_systems, "shared_rsml_folder", lambda: folder)
+    args = build_parser().parse_args(["demo", "--quiet", "--out", str(tmp_path / "out")])
+    out = Output(args.out, args)
+    _systems.run_whole_systems(out, args)
+    (section,) = out.sections
+    return out, section
+
+
+def test_demo_section_without_cplantbox_and_without_multi_order_files(tmp_path, monkeypatch):
+    folder = tmp_path / "real"
+    folder.mkdir()
+    write_rsml(synthetic_roots(2, seed=1), folder / "flat.rsml", unit="mm")
+    out, sec = _section_output(tmp_path, monkeypatch, folder)
+    assert any("CPlantBox" in n and "skipped" in n for n in sec.notes)
+    assert any("none of the 1 RSML files" in n and "second-order" in n for n in sec.notes)
+    assert not sec.items
+
+
+def test_demo_section_draws_a_real_multi_order_file(tmp_path, monkeypatch):
+    folder = tmp_path / "real"
+    folder.mkdir()
+    write_rsml(synthetic_roots(2, seed=1), folder / "a_flat.rsml", unit="mm")
+    write_rsml(synthetic_roots(1, depth=3, seed=2), folder / "b_deep.rsml", unit="mm")
+    out, sec = _section_output(tmp_path, monkeypatch, folder)
+    assert [i.path for i in sec.items] == ["systems_real.png"]
+    assert (out.folder / "systems_real.png").stat().st_size > 0
+    assert any("1 of 2 RSML files" in n and "b_deep.rsml" in n for n in sec.notes)
+
+
+@pytest.mark.skipif(not SHARED.is_dir(), reason="needs ../shared/data")
+def test_no_shared_rsml_file_holds_second_order_laterals():
+    """What the demo says about the real files, checked on the XML itself: no `<root>` with
+    geometry nested three deep (plant's root > lateral > lateral of the lateral)."""
+    import xml.etree.ElementTree as ET
+
+    from rootshape_jax._cli._systems import real_multi_order_files
+
+    found, seen = real_multi_order_files(SHARED / "rsml")
+    assert not found and len(seen) >= 10
+
+    def nesting(el, d=0):
+        best = d
+        for c in el:
+            tag = c.tag.split("}")[-1].lower()
+            has_geometry = tag == "root" and any(g.tag.split("}")[-1].lower() == "geometry" for g in c)
+            best = max(best, nesting(c, d + 1 if has_geometry else d))
+        return best
+
+    for path in sorted((SHARED / "rsml").rglob("*.rsml")):
+        if path.name == "root_ramifie.rsml":  # topology without geometry (NOTICE.md)
+            continue
+        assert nesting(ET.parse(path).getroot()) <= 2, path

@@ -32,6 +32,16 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {value}")
+    return value
+
+
 def _points(text: str) -> int:
     value = _positive_int(text)
     if value < 5:
@@ -541,5 +551,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_regress_options(p)
     _add_cluster_options(p)
     _add_geodesic_options(p)
+    g = p.add_argument_group("whole root systems")
+    g.add_argument(
+        "--plants",
+        type=_count,
+        default=10,
+        metavar="N",
+        help="CPlantBox pea plants of the whole-root-systems section (second-order laterals, "
+        "depth 3 against depth 2; needs the 'sim' extra; default 10, 0 skips it)",
+    )
     p.set_defaults(points=50)  # measured: keeps the demo within a few minutes on 2 cores
     return parser

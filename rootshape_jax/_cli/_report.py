@@ -66,6 +66,8 @@ OUTPUT_NAMES = (
     "permanova.md",
     "mds.csv",
     "mds.png",
+    "systems_*.csv",  # the demo's whole-root-systems section
+    "systems_*.png",
 )
 LOG_NAME = "rootshape.log"
 
