@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import subprocess
 import sys
 from pathlib import Path
@@ -479,3 +480,45 @@ def test_no_shared_rsml_file_holds_second_order_laterals():
         if path.name == "root_ramifie.rsml":  # topology without geometry (NOTICE.md)
             continue
         assert nesting(ET.parse(path).getroot()) <= 2, path
+
+
+def _orders_drawn(fig) -> dict[int, int]:
+    """Branches drawn per order over every Axes of a figure."""
+    total: dict[int, int] = {}
+    for ax in fig.axes:
+        for k, v in drawn(ax).items():
+            total[k] = total.get(k, 0) + len(v)
+    return total
+
+
+@pytest.mark.parametrize("which", ["mean", "modes", "samples", "regression", "dendrogram", "3d"])
+def test_every_root_plot_draws_second_order_laterals(which):
+    roots = synthetic_roots(4, depth=3, seed=8)
+    tree = rs.batch(roots, depth=3, n_points=12)
+    per_root = [count_by_order(r) for r in roots]
+    n2 = sum(c.get(2, 0) for c in per_root)
+    assert n2 > 0
+    D = np.array([[abs(i - j) + (i != j) for j in range(4)] for i in range(4)], float)
+    if which == "mean":
+        fig, _ = P.plot_mean(tree, rs.unstack(tree)[0])
+        want = n2 + per_root[0].get(2, 0)  # the samples and the "mean"
+    elif which == "modes":
+        grid = rs.stack([rs.stack(rs.unstack(tree)[:2]), rs.stack(rs.unstack(tree)[2:])])
+        fig, _ = P.plot_modes(grid, [-1.0, 1.0])
+        want = n2
+    elif which == "samples":
+        fig, _ = P.plot_samples_by_distance(tree, np.arange(4.0), n_groups=2)
+        want = n2
+    elif which == "regression":
+        fig, _ = P.plot_regression_sweep(tree, [1.0, 2.0, 3.0, 4.0], trait_name="t")
+        want = n2
+    elif which == "dendrogram":
+        fig, _ = P.plot_dendrogram(D, roots=tree, n_clusters=2)
+        want = n2
+    else:
+        root3 = synthetic_roots(1, depth=3, seed=8, dim=3)[0]
+        fig, ax = P.plot_root(root3, projection="3d")
+        fig.savefig(io.BytesIO(), format="png")  # 3D lines get their (projected) paths when drawn
+        assert {k: len(v) for k, v in drawn(ax).items()} == count_by_order(root3)
+        return
+    assert _orders_drawn(fig).get(2, 0) == want
