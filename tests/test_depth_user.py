@@ -522,3 +522,38 @@ def test_every_root_plot_draws_second_order_laterals(which):
         assert {k: len(v) for k, v in drawn(ax).items()} == count_by_order(root3)
         return
     assert _orders_drawn(fig).get(2, 0) == want
+
+
+def test_output_roots_drop_zero_length_branches_at_every_order():
+    """A geodesic's end steps hold branches of zero length (present on the other side only):
+    the CLI's RSML output leaves them out, at every order, so reading it back warns of nothing."""
+    import warnings
+
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from rootshape_jax._cli._inputs import Population, to_output_roots
+
+    root = small_system()
+    tree = rs.batch([root], depth=3, n_points=9, dtype=np.float64)
+    # Collapse lateral 1 (no children) and the second child of lateral 0 to their first point,
+    # as a geodesic's end step holds them.
+    lats = np.asarray(tree.laterals).copy()
+    lats[0, 1] = lats[0, 1, :1]
+    curves = np.asarray(tree.deeper[0].curves).copy()
+    curves[0, 0, 1] = curves[0, 0, 1, :1]
+    tree = eqx.tree_at(lambda t: t.laterals, tree, jnp.asarray(lats))
+    tree = eqx.tree_at(lambda t: t.deeper[0].curves, tree, jnp.asarray(curves))
+    pop = Population(
+        roots=[root], tree=tree, names=["r"], normalised=False, unit="mm", mean_length=1.0, conditions=None
+    )
+    (out,) = to_output_roots(tree, pop, ["r"])
+    assert count_by_order(root) == {0: 1, 1: 3, 2: 3}
+    assert count_by_order(out) == {0: 1, 1: 2, 2: 2}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        buf = io.BytesIO()
+        write_rsml(out, buf)
+        buf.seek(0)
+        back = read_rsml(buf)[0]
+    assert count_by_order(back) == {0: 1, 1: 2, 2: 2}
