@@ -59,6 +59,19 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _penalties(text: str) -> tuple[float, ...]:
+    """One or more non-negative numbers, comma-separated (several: inner cross-validation picks one)."""
+    try:
+        values = tuple(float(p) for p in text.split(","))
+    except ValueError:
+        values = ()
+    if not values or not all(math.isfinite(v) and v >= 0 for v in values):
+        raise argparse.ArgumentTypeError(
+            f"expected one or more non-negative numbers separated by commas (e.g. 1e-3 or 0,1e-3,1e-1), got {text!r}"
+        )
+    return values
+
+
 def _weights(text: str):
     """One non-negative number per metric term, in the order of `rootshape_jax.TERMS`; terms left
     out keep their default (so the paper's three values still work)."""
@@ -484,6 +497,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=2,
         metavar="N",
         help="at most N re-registrations of every pair at the new weights (default 2)",
+    )
+    g.add_argument(
+        "--regularisation",
+        type=_penalties,
+        default=(1e-3,),
+        metavar="R[,R...]",
+        help="penalty on log λ moving away from the starting weights (default 1e-3); several "
+        "values: an inner cross-validation on the training roots picks one",
     )
 
     p = add(

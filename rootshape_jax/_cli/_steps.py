@@ -602,6 +602,11 @@ def run_compare(ctx: Context, out: Output, args) -> None:
         sec.notes.append(note + ".")
 
 
+def _penalty(values: tuple[float, ...]) -> float | list[float]:
+    # One value is used as given; several go to the inner cross-validation as a list.
+    return values[0] if len(values) == 1 else list(values)
+
+
 def run_learn_weights(ctx: Context, out: Output, args) -> None:
     """Learn λ from the --by labels, then score it by nested cross-validation (held-out folds)."""
     import matplotlib.pyplot as plt
@@ -613,7 +618,12 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
         say(args, f"Learning the weights from {len(labels)} roots ({len(set(labels))} classes)...")
         with at_depth(pop, "learn-weights"):
             res = rs.learn_weights(
-                pop.tree, labels, weights=start, max_reregistrations=args.reregistrations, progress=not args.quiet
+                pop.tree,
+                labels,
+                weights=start,
+                max_reregistrations=args.reregistrations,
+                regularisation=_penalty(args.regularisation),
+                progress=not args.quiet,
             )
         rows = [[name, float(start[name]), float(v)] for name, v in res.weights.items()]
         header = ["term", "start", "learned"]
@@ -636,7 +646,8 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
         w = ",".join(f"{float(v):.4g}" for _, v in res.weights.items())
         sec.notes.append(
             f"learned weights {w} (main, lateral, position, thickness); status {res.status} after "
-            f"{res.n_reregistrations} re-registrations and {res.steps} optimiser steps. Accuracy on "
+            f"{res.n_reregistrations} re-registrations and {res.steps} optimiser steps (regularisation "
+            f"{res.regularisation:g}). Accuracy on "
             "these same roots would flatter the weights: see the cross-validation below."
         )
         if args.folds:
@@ -649,6 +660,7 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
                     seed=args.seed,
                     weights=start,
                     max_reregistrations=args.reregistrations,
+                    regularisation=_penalty(args.regularisation),
                     progress=not args.quiet,
                 )
             except rs.LabelError as e:
