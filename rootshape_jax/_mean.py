@@ -70,6 +70,7 @@ from ._curves import l2_norm_squared
 from ._engine import (
     MEAN_REGISTRATION,
     RegistrationOptions,
+    descendant_norms,
     register_pairs,
     registration_options,
     rotate_batch,
@@ -209,7 +210,13 @@ def _lower_bound_energy(a: SRVFTree, b: SRVFTree, weights: Weights, assignment: 
     Lb = l2_norm_squared(b.q) * b.mask
     both = a.mask[:, None] & b.mask[None, :]
     cauchy_schwarz = (jnp.sqrt(La)[:, None] - jnp.sqrt(Lb)[None, :]) ** 2  # of ||qa − w||², any warp
-    C = jnp.where(both, pair_lower_bounds(weights, a, b, cauchy_schwarz), null_costs(weights, a, b, La, Lb))
+    others = null_costs(weights, a, b, La, Lb)
+    if a.deeper:
+        # Depth D > 2: a real lateral left unmatched also costs its whole subtree (exact).
+        lam_s = level_weight(weights, "lateral", a.q0.dtype)
+        sub_a, sub_b = descendant_norms(a.deeper, lam_s), descendant_norms(b.deeper, lam_s)
+        others = others + jnp.where(a.mask[:, None], sub_a[:, None], jnp.where(b.mask[None, :], sub_b[None, :], 0.0))
+    C = jnp.where(both, pair_lower_bounds(weights, a, b, cauchy_schwarz), others)
     perm = linear_assignment(C, method=assignment)
     lap = jnp.sum(jnp.take_along_axis(C, perm[:, None], axis=1))
     L0a = l2_norm_squared(a.q0)

@@ -8,6 +8,8 @@ and the trapezoid weights on the main root, √λs and the trapezoid weights on 
 √λp on the attachment fractions. Euclidean geometry of the flattened ``v`` is then the
 metric's own, ``|v_i|² = d²(μ, x_i)``. A null lateral of a sample sits at the mean's position,
 so it adds no position difference, exactly as in the metric.
+At depth D > 2 every deeper level's branches and attachments are blocks of their own, whitened
+with that level's weights, and the length limits below are taken level by level.
 
 Following the paper, the covariance is ``(1/(n−1)) Σ v_i v_iᵀ`` (tangent vectors at the
 Karcher mean average to zero, so no further centring), computed by an SVD of the ``n × p``
