@@ -12,6 +12,11 @@ fixed, ``F`` is a weighted sum of squares in μ, minimised exactly by
 - ``s_μk`` = the mean attachment of the samples whose slot k is a real lateral
   (the position term only counts where both laterals are real).
 
+At depth D > 2 (docs/design.md §11) the same holds level by level: every branch slot of μ
+(second-order laterals included) is the mean of the registered samples' branches in that slot,
+its attachment the mean over the samples whose slot is real. The registrations carried by the
+fixed point and the rotation refit cover every level's matched branches, as the engine's.
+
 Two solvers, both optimistix:
 
 - ``method="fixed_point"`` (an `optx.AbstractFixedPointSolver`, by default
@@ -65,6 +70,7 @@ from ._curves import l2_norm_squared
 from ._engine import (
     MEAN_REGISTRATION,
     RegistrationOptions,
+    descendant_norms,
     register_pairs,
     registration_options,
     rotate_batch,
@@ -73,8 +79,8 @@ from ._errors import ConvergenceError
 from ._executor import LocalExecutor, executor_for
 from ._metric import Weights, level_weight, null_costs, pair_lower_bounds, preshape_terms
 from ._rotation import optimal_rotation
-from ._tangent import TreeParams, params_of, params_to_tree, unwhiten, whiten, whitening
-from ._tree import RootTree, SRVFTree, batch_size, check_compatible, to_curves, to_srvf
+from ._tangent import LevelParams, TreeParams, branch_weight, params_of, params_to_tree, unwhiten, whiten, whitening
+from ._tree import RootTree, SRVFLevel, SRVFTree, batch_size, check_compatible, to_curves, to_srvf
 
 # --------------------------------------------------------------------------------------------
 # Result
@@ -112,6 +118,9 @@ class KarcherMean(eqx.Module):
     - `dropped`: ``[K]`` True where a fitted lateral was shorter than the threshold and dropped.
     - `weights`: the metric weights used (for `tangent_pca`); `registration`: the
       registration options used (for `project`).
+    - `child_lengths`, `child_dropped` (depth D > 2): one entry per deeper level ℓ = 2 … D−1,
+      shaped ``[K1, …, Kℓ]``, as `lateral_lengths` and `dropped` for that level's branches of
+      the fitted mean (a dropped branch drops its children). ``()`` at depth 2.
     """
 
     mean: RootTree
@@ -128,6 +137,8 @@ class KarcherMean(eqx.Module):
     dropped: Bool[Array, " K"]
     weights: Weights
     registration: RegistrationOptions
+    child_lengths: tuple = ()
+    child_dropped: tuple = ()
 
 
 # --------------------------------------------------------------------------------------------
@@ -183,13 +194,6 @@ def _check_samples(samples: SRVFTree, what: str) -> int:
     n = batch_size(samples)
     if n < 1:
         raise ValueError(f"{what}: empty batch; give at least one root.")
-    if samples.deeper:
-        # Distances and geodesics work at any depth; the mean's update does not yet.
-        raise NotImplementedError(
-            f"{what}: the Karcher mean (and PCA, sampling and regression on it) works on trees of "
-            f"depth 2 only for now, got depth {samples.depth}; batch the roots with depth=2 "
-            "(the default) for these."
-        )
     return n
 
 
@@ -206,7 +210,13 @@ def _lower_bound_energy(a: SRVFTree, b: SRVFTree, weights: Weights, assignment: 
     Lb = l2_norm_squared(b.q) * b.mask
     both = a.mask[:, None] & b.mask[None, :]
     cauchy_schwarz = (jnp.sqrt(La)[:, None] - jnp.sqrt(Lb)[None, :]) ** 2  # of ||qa − w||², any warp
-    C = jnp.where(both, pair_lower_bounds(weights, a, b, cauchy_schwarz), null_costs(weights, a, b, La, Lb))
+    others = null_costs(weights, a, b, La, Lb)
+    if a.deeper:
+        # Depth D > 2: a real lateral left unmatched also costs its whole subtree (exact).
+        lam_s = level_weight(weights, "lateral", a.q0.dtype)
+        sub_a, sub_b = descendant_norms(a.deeper, lam_s), descendant_norms(b.deeper, lam_s)
+        others = others + jnp.where(a.mask[:, None], sub_a[:, None], jnp.where(b.mask[None, :], sub_b[None, :], 0.0))
+    C = jnp.where(both, pair_lower_bounds(weights, a, b, cauchy_schwarz), others)
     perm = linear_assignment(C, method=assignment)
     lap = jnp.sum(jnp.take_along_axis(C, perm[:, None], axis=1))
     L0a = l2_norm_squared(a.q0)
@@ -230,6 +240,9 @@ def _zero_tree_energy(samples: SRVFTree, weights: Weights):
     lam_m = level_weight(weights, "main", dtype)
     lam_s = level_weight(weights, "lateral", dtype)
     e = lam_m * l2_norm_squared(samples.q0) + lam_s * jnp.sum(l2_norm_squared(samples.q), axis=-1)
+    for level, lv in enumerate(samples.deeper, start=2):
+        lam = branch_weight(weights, level, dtype)
+        e = e + lam * jnp.sum(l2_norm_squared(lv.q).reshape(e.shape + (-1,)), axis=-1)
     return jnp.mean(e)
 
 
@@ -246,11 +259,23 @@ def _medoid(distances, n: int) -> int:
 # Fixed point: the iterate and its two halves
 
 
+class CarriedLevel(eqx.Module):
+    """One deeper level ℓ ≥ 2 of each sample's carried registration, without its rotation:
+    warped branches in the mean's slots ``[n, K1, …, Kℓ, T, C]``, their attachments and 1.0
+    where the slot holds a real branch ``[n, K1, …, Kℓ]`` (floats, as every iterate leaf:
+    fixed-point solvers do arithmetic on the iterate)."""
+
+    warped_q: Float[Array, "n *P K T C"]
+    reg_s: Float[Array, "n *P K"]
+    reg_real: Float[Array, "n *P K"]
+
+
 class FPIterate(eqx.Module):
     """The fixed point's iterate: the mean, each sample's rotation, and each sample's current
     registration without its rotation (warped main root, warped laterals permuted into the
-    mean's slots, their attachments, 1.0 where the slot holds a real lateral, and — with a
-    thickness channel — the registered starting radii)."""
+    mean's slots, their attachments, 1.0 where the slot holds a real lateral, with a
+    thickness channel the registered starting radii, and at depth D > 2 one `CarriedLevel`
+    per deeper level)."""
 
     mu: TreeParams
     rotations: Float[Array, "n d d"]
@@ -259,12 +284,19 @@ class FPIterate(eqx.Module):
     reg_s: Float[Array, "n K"]
     reg_real: Float[Array, "n K"]
     reg_base: Float[Array, "n K1"] | None
+    reg_deeper: tuple[CarriedLevel, ...] = ()
+
+
+def _carry_deeper(registered: SRVFTree, O_inv) -> tuple[CarriedLevel, ...]:
+    """The deeper levels of registered trees as carried (rotation `O_inv` undoes theirs)."""
+    return tuple(CarriedLevel(rotate_batch(lv.q, O_inv), lv.s, lv.mask.astype(lv.s.dtype)) for lv in registered.deeper)
 
 
 def _start_iterate(mu: TreeParams, registered: SRVFTree, O) -> FPIterate:
     q0, q = rotate_batch(registered.q0, _transpose(O)), rotate_batch(registered.q, _transpose(O))
     real = registered.mask.astype(mu.q0.dtype)
-    return FPIterate(mu, O, q0, q, registered.s, real, registered.base_radius)
+    deeper = _carry_deeper(registered, _transpose(O))
+    return FPIterate(mu, O, q0, q, registered.s, real, registered.base_radius, deeper)
 
 
 def _transpose(O):
@@ -277,6 +309,17 @@ def _carried(y: FPIterate, mu: SRVFTree, O, samples: SRVFTree) -> SRVFTree:
     q0 = rotate_batch(y.warped_q0, O)
     q = rotate_batch(y.warped_q, O) * real[..., None, None]
     s = jnp.where(real, y.reg_s, mu.s[None])
+    deeper = []
+    for cl, lm, lv in zip(y.reg_deeper, mu.deeper, samples.deeper):
+        r = cl.reg_real > 0.5
+        deeper.append(
+            SRVFLevel(
+                q=rotate_batch(cl.warped_q, O) * r[..., None, None],
+                s=jnp.where(r, cl.reg_s, lm.s[None]),
+                mask=r,
+                base_radius=lv.base_radius,
+            )
+        )
     return SRVFTree(
         q0=q0,
         q=q,
@@ -285,6 +328,7 @@ def _carried(y: FPIterate, mu: SRVFTree, O, samples: SRVFTree) -> SRVFTree:
         origin=samples.origin,
         base_radius=y.reg_base,
         thickness_scale=samples.thickness_scale,
+        deeper=tuple(deeper),
     )
 
 
@@ -302,13 +346,36 @@ def _project_rotation(O):
     return (U * D[..., None, :]) @ Vt
 
 
-def _exact_update(registered: SRVFTree, mu_s) -> TreeParams:
-    """The minimiser of F over mu for fixed registrations (module docstring)."""
-    m = registered.mask.astype(registered.s.dtype)
+def _mean_attachment(mask, s, fallback):
+    """Mean attachment over the samples whose slot is real; `fallback` where none is."""
+    m = mask.astype(s.dtype)
     count = jnp.sum(m, axis=0)
-    s_sum = jnp.sum(m * registered.s, axis=0)
-    s = jnp.where(count > 0, s_sum / jnp.maximum(count, 1), mu_s)
-    return TreeParams(jnp.mean(registered.q0, axis=0), jnp.mean(registered.q, axis=0), s)
+    s_sum = jnp.sum(m * s, axis=0)
+    return jnp.where(count > 0, s_sum / jnp.maximum(count, 1), fallback)
+
+
+def _exact_update(registered: SRVFTree, mu_s, deeper_s=None) -> TreeParams:
+    """The minimiser of F over mu for fixed registrations (module docstring), level by level:
+    q the mean of the registered branches (nulls count 0), s the mean attachment of the samples
+    whose slot is real, or mu's own where none is (`mu_s`, and `deeper_s` one per deeper
+    level; by default the registered trees', which hold mu's attachment in null slots)."""
+    s = _mean_attachment(registered.mask, registered.s, mu_s)
+    if deeper_s is None:
+        deeper_s = tuple(lv.s[0] for lv in registered.deeper)
+    deeper = tuple(
+        LevelParams(jnp.mean(lv.q, axis=0), _mean_attachment(lv.mask, lv.s, fallback))
+        for lv, fallback in zip(registered.deeper, deeper_s)
+    )
+    return TreeParams(jnp.mean(registered.q0, axis=0), jnp.mean(registered.q, axis=0), s, deeper)
+
+
+def _rotate_samples(samples: SRVFTree, O) -> SRVFTree:
+    """Every branch of every sample rotated by its rotation (spatial channels)."""
+    out = eqx.tree_at(lambda t: (t.q0, t.q), samples, (rotate_batch(samples.q0, O), rotate_batch(samples.q, O)))
+    if not samples.deeper:
+        return out
+    deeper = tuple(eqx.tree_at(lambda lv: lv.q, lv, rotate_batch(lv.q, O)) for lv in samples.deeper)
+    return eqx.tree_at(lambda t: t.deeper, out, deeper)
 
 
 @eqx.filter_jit
@@ -325,7 +392,7 @@ def fp_register(y: FPIterate, samples: SRVFTree, mu_like: SRVFTree, weights: Wei
     # ... against warps and correspondence solved afresh for the current rotation. The DP is
     # exact for its own discretisation of the warp energy, not for the grid energy used here,
     # so the fresh solution is kept only where it is better: the energy never increases.
-    xb = eqx.tree_at(lambda t: (t.q0, t.q), samples, (rotate_batch(samples.q0, O), rotate_batch(samples.q, O)))
+    xb = _rotate_samples(samples, O)
     new, e_new, _ = register_onto(mu, xb, weights, opts.without_rotation(), active)
     better = e_new < e_old
     return _pick(better, new, old), jnp.where(better, e_new, e_old)
@@ -336,25 +403,33 @@ def fp_update(y: FPIterate, registered: SRVFTree, energies, weights: Weights):
     """Global half of a fixed-point step: the exact mean update and each rotation's refit."""
     O = _project_rotation(y.rotations)
     energy = jnp.mean(energies)
-    mu_new = _exact_update(registered, y.mu.s)
+    mu_new = _exact_update(registered, y.mu.s, tuple(lp.s for lp in y.mu.deeper))
     d = O.shape[-1]
-    # Refit each rotation (weighted Kabsch, spatial channels) against the new mean.
+    # Refit each rotation (weighted Kabsch, spatial channels) against the new mean, over every
+    # matched branch of every level (the mean's slots are all real), as the engine's refit.
     w0, wq = rotate_batch(registered.q0, _transpose(O)), rotate_batch(registered.q, _transpose(O))
-    A = jnp.concatenate([mu_new.q0[None], mu_new.q], axis=0)[..., :d]
+    deeper = _carry_deeper(registered, _transpose(O))
     dtype = mu_new.q0.dtype
-    lam_m = level_weight(weights, "main", dtype)
-    lam_s = level_weight(weights, "lateral", dtype)
+    T, C = mu_new.q0.shape
+    A = jnp.concatenate([mu_new.q0[None], mu_new.q] + [lp.q.reshape(-1, T, C) for lp in mu_new.deeper], axis=0)
+    A = A[..., :d]
+    lam_m = branch_weight(weights, 0, dtype)
+    lam_s = branch_weight(weights, 1, dtype)
+    lam_deeper = [branch_weight(weights, level, dtype) for level in range(2, 2 + len(deeper))]
 
-    def refit(b0, bq, mask, O_old):
-        Bm = jnp.concatenate([b0[None], bq], axis=0)[..., :d]
-        w = jnp.concatenate([lam_m[None], lam_s * mask.astype(dtype)])
+    def refit(b0, bq, mask, bdeep, O_old):
+        Bm = jnp.concatenate([b0[None], bq] + [cl.warped_q.reshape(-1, T, C) for cl in bdeep], axis=0)[..., :d]
+        w = jnp.concatenate(
+            [lam_m[None], lam_s * mask.astype(dtype)]
+            + [lam * (cl.reg_real > 0.5).reshape(-1).astype(dtype) for lam, cl in zip(lam_deeper, bdeep)]
+        )
         O_new = optimal_rotation(A, Bm, w)
         # Degenerate data (all weights zero) gives no information: keep the old rotation.
         return jnp.where(jnp.sum(w) > 0, O_new, O_old)
 
-    O_new = jax.vmap(refit)(w0, wq, registered.mask, O)
+    O_new = jax.vmap(refit)(w0, wq, registered.mask, deeper, O)
     real = registered.mask.astype(dtype)
-    return FPIterate(mu_new, O_new, w0, wq, registered.s, real, registered.base_radius), energy
+    return FPIterate(mu_new, O_new, w0, wq, registered.s, real, registered.base_radius, deeper), energy
 
 
 # --------------------------------------------------------------------------------------------
@@ -439,7 +514,7 @@ class _SampleBlocks:
         return registered, rest["energies"], rest["rotations"]
 
     def step(self, y: FPIterate, mu_like, weights, opts):
-        rows = (y.rotations, y.warped_q0, y.warped_q, y.reg_s, y.reg_real, y.reg_base)
+        rows = (y.rotations, y.warped_q0, y.warped_q, y.reg_s, y.reg_real, y.reg_base, y.reg_deeper)
 
         def per_block(a, z):
             return (_take(rows, self._index(a, z)),)
@@ -524,7 +599,7 @@ def _warm_up(mu0, blocks, mu_like, weights, opts, *, atol, n_steps, bar):
     mu, F = mu0, float(jnp.mean(energies))
     trace = [F]
     for _ in range(n_steps):
-        mu_new = _exact_update_jit(registered, mu.s)
+        mu_new = _exact_update_jit(registered, mu.s, tuple(lp.s for lp in mu.deeper))
         reg_new, e_new, O_new = blocks.full_registration(mu_new, mu_like, weights, opts)
         F_new = float(jnp.mean(e_new))
         if not F_new < F - atol:
@@ -631,7 +706,7 @@ def _gradient_fn(z: TreeParams, args):
 
 @eqx.filter_jit
 def _solve_gradient(mu0: TreeParams, samples, mu_like, weights, opts, solver, max_steps, throw):
-    c = whitening(weights, mu0.q0.shape[0], mu0.q0.dtype)
+    c = whitening(weights, mu0.q0.shape[0], mu0.q0.dtype, depth=2 + len(mu0.deeper))
     sol = optx.minimise(
         _gradient_fn,
         solver,
@@ -680,6 +755,22 @@ def _base_radius_mean(registered: SRVFTree):
     m = jnp.concatenate([jnp.ones_like(registered.mask[:, :1]), registered.mask], axis=1).astype(registered.s.dtype)
     count = jnp.sum(m, axis=0)
     return jnp.where(count > 0, jnp.sum(m * registered.base_radius, axis=0) / jnp.maximum(count, 1), 0.0)
+
+
+def _drop_deeper(fitted: SRVFTree, lengths, keep, min_lateral_length):
+    """Lengths and kept branches of the fitted mean's deeper levels: a branch is kept when at
+    least `min_lateral_length` long (default 2 % of its parent's length, as the laterals
+    against the main root) and its parent is kept."""
+    out_lengths, out_keep = [], []
+    parent_len, parent_keep = lengths, keep
+    for lv in fitted.deeper:
+        L = l2_norm_squared(lv.q)
+        thr = 0.02 * parent_len[..., None] if min_lateral_length is None else jnp.asarray(min_lateral_length)
+        k = (L >= thr) & parent_keep[..., None]
+        out_lengths.append(L)
+        out_keep.append(k)
+        parent_len, parent_keep = L, k
+    return tuple(out_lengths), tuple(out_keep)
 
 
 def karcher_mean(
@@ -737,7 +828,9 @@ def karcher_mean(
     - `distances`: an ``(n, n)`` distance matrix (e.g. `pairwise_distances(trees)`) for the
       medoid; without it the medoid of the DP-free lower bound of the elastic distance is used.
     - `min_lateral_length`: mean laterals shorter than this are dropped at the end; default
-      2 % of the mean's main-root length.
+      2 % of the mean's main-root length. At depth D > 2 the same applies to every branch
+      against its parent (default 2 % of the parent's length; one value given applies to
+      every level), and a dropped branch drops its children.
     - `registration`: a `RegistrationOptions` (or a dict of its fields, on top of
       `MEAN_REGISTRATION`, the default), used for every registration.
     - `client`: a ``dask.distributed.Client`` (extra ``rootshape_jax[dask]``): the fixed
@@ -845,6 +938,13 @@ def karcher_mean(
     threshold = 0.02 * main_length if min_lateral_length is None else jnp.asarray(min_lateral_length)
     keep = lengths >= threshold
     mean_srvf = eqx.tree_at(lambda t: (t.q, t.mask), fitted, (fitted.q * keep[:, None, None], keep))
+    child_lengths, child_keep = _drop_deeper(fitted, lengths, keep, min_lateral_length)
+    if fitted.deeper:
+        deeper = tuple(
+            eqx.tree_at(lambda lv: (lv.q, lv.mask), lv, (lv.q * k[..., None, None], k))
+            for lv, k in zip(fitted.deeper, child_keep)
+        )
+        mean_srvf = eqx.tree_at(lambda t: t.deeper, mean_srvf, deeper)
     return KarcherMean(
         mean=to_curves(mean_srvf),
         mean_srvf=mean_srvf,
@@ -860,4 +960,6 @@ def karcher_mean(
         dropped=~keep,
         weights=weights,
         registration=opts,
+        child_lengths=child_lengths,
+        child_dropped=tuple(~k for k in child_keep),
     )

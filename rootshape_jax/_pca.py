@@ -8,6 +8,8 @@ and the trapezoid weights on the main root, √λs and the trapezoid weights on 
 √λp on the attachment fractions. Euclidean geometry of the flattened ``v`` is then the
 metric's own, ``|v_i|² = d²(μ, x_i)``. A null lateral of a sample sits at the mean's position,
 so it adds no position difference, exactly as in the metric.
+At depth D > 2 every deeper level's branches and attachments are blocks of their own, whitened
+with that level's weights, and the length limits below are taken level by level.
 
 Following the paper, the covariance is ``(1/(n−1)) Σ v_i v_iᵀ`` (tangent vectors at the
 Karcher mean average to zero, so no further centring), computed by an SVD of the ``n × p``
@@ -40,7 +42,7 @@ from ._engine import RegistrationOptions, registration_options
 from ._executor import LocalExecutor
 from ._mean import KarcherMean, register_onto
 from ._metric import Weights
-from ._tangent import TreeParams, exp_map, flatten, log_map, whiten, whitening
+from ._tangent import TreeParams, exp_map, flatten, log_map, params_of, whiten, whitening
 from ._tree import RootTree, SRVFTree, check_compatible, to_curves, to_srvf
 
 
@@ -59,9 +61,11 @@ class TangentPCA(eqx.Module):
     - `n_components`: leading components explaining at least `variance` of the total
       (static; 0 when the samples do not vary beyond rounding: total variance below
       ``(10⁴ ε)² |W^{1/2} μ|²``).
-    - `scales`: whitening factors per block (main, laterals, positions).
+    - `scales`: whitening factors per block (main, laterals, positions; per deeper level).
     - `weights`: the metric weights. `min_lateral_length`: synthesised laterals shorter than
       this are nulls; `max_lateral_length`: longer ones are scaled down to it (inf: never).
+      At depth D > 2 both hold one value per branch level ``[D − 1]`` (first-order laterals
+      first), or one value for every level.
     """
 
     mean: SRVFTree
@@ -72,8 +76,8 @@ class TangentPCA(eqx.Module):
     scales: TreeParams
     weights: Weights
     registration: RegistrationOptions
-    min_lateral_length: Float[Array, ""]
-    max_lateral_length: Float[Array, ""]
+    min_lateral_length: Float[Array, "*L"]
+    max_lateral_length: Float[Array, "*L"]
     n_components: int = eqx.field(static=True)
     variance: float = eqx.field(static=True)
 
@@ -81,7 +85,7 @@ class TangentPCA(eqx.Module):
 @eqx.filter_jit
 def _fit(registered: SRVFTree, mean: SRVFTree, weights: Weights):
     T = mean.q0.shape[0]
-    c = whitening(weights, T, mean.q0.dtype)
+    c = whitening(weights, T, mean.q0.dtype, depth=mean.depth)
     V = log_map(registered, mean, c)
     n = V.shape[0]
     # SVD through the n × n Gram matrix: n (roots) is far smaller than p (coordinates), and
@@ -95,16 +99,27 @@ def _fit(registered: SRVFTree, mean: SRVFTree, weights: Weights):
     total = jnp.sum(eig)
     ratio = jnp.where(total > 0, eig / jnp.where(total > 0, total, 1.0), 0.0)
     scores = _scores(V, Vt, eig)
-    mean_norm2 = jnp.sum(flatten(whiten(TreeParams(mean.q0, mean.q, mean.s), c)) ** 2)
-    # The data's lateral lengths (registration keeps every branch's length).
-    lengths = l2_norm_squared(registered.q)
-    real = registered.mask
-    any_real = jnp.any(real)
-    low = jnp.nanquantile(jnp.where(real, lengths, jnp.nan), 0.1)
-    high = jnp.max(jnp.where(real, lengths, -jnp.inf))
+    mean_norm2 = jnp.sum(flatten(whiten(params_of(mean), c)) ** 2)
+    # The data's branch lengths, level by level (registration keeps every branch's length).
+    limits = [_length_limits(registered.q, registered.mask, mean)]
+    limits += [_length_limits(lv.q, lv.mask, mean) for lv in registered.deeper]
+    if registered.deeper:
+        threshold, longest = (jnp.stack(x) for x in zip(*limits))
+    else:
+        threshold, longest = limits[0]
+    return c, Vt, eig, ratio, scores, mean_norm2, threshold, longest
+
+
+def _length_limits(q, mask, mean):
+    """The 10th percentile and the largest of the real branches' lengths; without any,
+    2 % of the mean's main-root length and inf."""
+    lengths = l2_norm_squared(q)
+    any_real = jnp.any(mask)
+    low = jnp.nanquantile(jnp.where(mask, lengths, jnp.nan), 0.1)
+    high = jnp.max(jnp.where(mask, lengths, -jnp.inf))
     threshold = jnp.where(any_real, low, 0.02 * l2_norm_squared(mean.q0))
     longest = jnp.where(any_real, high, jnp.inf)
-    return c, Vt, eig, ratio, scores, mean_norm2, threshold, longest
+    return threshold, longest
 
 
 def _scores(V, Vt, eig):
@@ -139,6 +154,10 @@ def tangent_pca(
       the mean's main-root length when no sample has a lateral).
     - `max_lateral_length`: laterals of synthesised roots longer than this are scaled down to
       it; default the samples' longest lateral (``float("inf")`` turns it off).
+
+    At depth D > 2 the defaults are taken level by level (second-order laterals against the
+    samples' second-order laterals, ...); a value given applies to every level, and a
+    synthesised branch that becomes a null drops its children.
     """
     if not isinstance(mean, KarcherMean):
         raise TypeError(f"tangent_pca expects the result of karcher_mean, got {type(mean).__name__}.")

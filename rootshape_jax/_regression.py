@@ -28,9 +28,9 @@ from jaxtyping import Array, Float
 
 from ._curves import cumulative_sum, safe_norm, trapezoid_weights
 from ._pca import TangentPCA
-from ._tangent import unflatten
+from ._tangent import level_value, limit_lengths, unflatten
 from ._traits import traits as measure_traits
-from ._tree import RootTree, SRVFTree, to_curves, to_roots
+from ._tree import RootTree, SRVFLevel, SRVFTree, to_curves, to_roots
 
 PAPER_TRAITS: tuple[str, ...] = ("main_length", "mean_lateral_length", "std_lateral_length")
 
@@ -106,7 +106,19 @@ _SWEEP_CHUNK = 64
 
 @functools.partial(jax.jit, static_argnames="curves")
 def _synthesize(
-    offset, slopes, s_offset, s_slopes, origin, min_len, max_len, trait_mean, trait_scale, v, curves, thick=None
+    offset,
+    slopes,
+    s_offset,
+    s_slopes,
+    origin,
+    min_len,
+    max_len,
+    trait_mean,
+    trait_scale,
+    v,
+    curves,
+    thick=None,
+    deeper=(),
 ):
     # Plain jax.jit on the arrays it needs: one regressed root is dispatch-bound, so no Module
     # flattening, and the affine map is unrolled over the few traits (XLA:CPU's
@@ -118,16 +130,33 @@ def _synthesize(
         w = trapezoid_weights(qa.shape[1], qa.dtype)
         length = jnp.sum(jnp.sum(qa * qa, axis=0) * w[:, None], axis=0)
         # As `_tangent.exp_map`: laterals longer than the data's longest are scaled down to it.
-        too_long = (jnp.arange(qa.shape[-1]) > 0) & (length > max_len)
-        qa = qa * jnp.where(too_long, jnp.sqrt(max_len / jnp.where(too_long, length, 1.0)), 1.0)
-        keep = (length >= min_len).at[0].set(True)  # slot 0 is the main root
+        lo, hi = level_value(min_len, 1), level_value(max_len, 1)
+        too_long = (jnp.arange(qa.shape[-1]) > 0) & (length > hi)
+        qa = qa * jnp.where(too_long, jnp.sqrt(hi / jnp.where(too_long, length, 1.0)), 1.0)
+        keep = (length >= lo).at[0].set(True)  # slot 0 is the main root
         real = keep[1:]
-        if curves and thick is None:
+        if curves and thick is None and not deeper:
             main, laterals = _stacked_to_curves(qa, s, keep, origin)
             return RootTree(main=main, laterals=laterals, attach=s, mask=real)
         q = jnp.transpose(qa[:, :, 1:], (2, 1, 0)) * real[:, None, None]
+        # Deeper levels (depth D > 2) as exp_map does: limits per level, nulls drop children.
+        levels, parent = [], real
+        for level, (q_off, q_sl, s_off, s_sl) in enumerate(deeper, start=2):
+            ql = q_off + sum(z[i] * q_sl[i] for i in range(q_sl.shape[0]))
+            sl = jnp.clip(s_off + sum(z[i] * s_sl[i] for i in range(s_sl.shape[0])), 0.0, 1.0)
+            ql, parent = limit_lengths(ql, level_value(min_len, level), level_value(max_len, level), parent)
+            levels.append(SRVFLevel(q=ql, s=sl, mask=parent))
         base, scale = (None, None) if thick is None else thick
-        tree = SRVFTree(q0=qa[:, :, 0].T, q=q, s=s, mask=real, origin=origin, base_radius=base, thickness_scale=scale)
+        tree = SRVFTree(
+            q0=qa[:, :, 0].T,
+            q=q,
+            s=s,
+            mask=real,
+            origin=origin,
+            base_radius=base,
+            thickness_scale=scale,
+            deeper=tuple(levels),
+        )
         # With a thickness channel the curves come with radii: the general path.
         return to_curves(tree) if curves else tree
 
@@ -143,7 +172,8 @@ def _synthesize(
 def _affine_map(pca: TangentPCA, M: np.ndarray):
     """``M`` composed with the PCA basis and un-whitened, in float64: the SRVF tree of
     ``[z; 1]`` is ``offset + Σ z_i slopes[i]`` (stacked ``(d, T, K+1)``) and its positions
-    ``s_offset + Σ z_i s_slopes[i]`` (before clipping to [0, 1])."""
+    ``s_offset + Σ z_i s_slopes[i]`` (before clipping to [0, 1]); at depth D > 2 also one
+    ``(q_offset, q_slopes, s_offset, s_slopes)`` per deeper level, in the level's own shapes."""
     f64 = lambda x: np.asarray(x, dtype=np.float64)  # noqa: E731
     m = M.shape[0]
     # Rows sliced before the float64 copy: the basis is (components × p), p = (K+1)·T·d + K.
@@ -151,14 +181,18 @@ def _affine_map(pca: TangentPCA, M: np.ndarray):
     G = (M.T * np.sqrt(f64(pca.eigenvalues)[:m])) @ components  # (l+1, p) whitened
     mean, c = pca.mean, pca.scales
     T, C = mean.q0.shape  # C = d, or d + 1 with a thickness channel
-    K = mean.q.shape[0]
-    u = unflatten(G, T, K, C)
+    u = unflatten(G, T, mean.capacities, C)
     q0 = f64(u.q0) / f64(c.q0)  # (l+1, T, d)
     q = f64(u.q) / f64(c.q)  # (l+1, K, T, d)
     stacked = np.concatenate([q0[:, None], q], axis=1).transpose(0, 3, 2, 1)  # (l+1, d, T, K+1)
     base = np.concatenate([f64(mean.q0)[None], f64(mean.q)], axis=0).transpose(2, 1, 0)
     s = f64(u.s) / f64(c.s)
-    return base + stacked[-1], stacked[:-1], f64(mean.s) + s[-1], s[:-1]
+    deeper = []
+    for lu, lc, lm in zip(u.deeper, c.deeper, mean.deeper):
+        ql = f64(lu.q) / f64(lc.q)  # (l+1, K1, …, Kℓ, T, C)
+        sl = f64(lu.s) / f64(lc.s)
+        deeper.append((f64(lm.q) + ql[-1], ql[:-1], f64(lm.s) + sl[-1], sl[:-1]))
+    return base + stacked[-1], stacked[:-1], f64(mean.s) + s[-1], s[:-1], tuple(deeper)
 
 
 def _check_values(reg: "TraitRegression", values):
@@ -192,6 +226,7 @@ def _synthesize_method(reg: "TraitRegression", values, *, srvf: bool = False) ->
         _check_values(reg, values),
         curves=not srvf,
         thick=None if pc.mean.thickness_scale is None else (pc.mean.base_radius, pc.mean.thickness_scale),
+        deeper=reg.deeper,
     )
 
 
@@ -221,6 +256,9 @@ class TraitRegression(eqx.Module):
     The rest is the whole map from ``z`` to an SRVF tree, precomputed so that one root costs
     ``l`` multiply-adds per SRVF value: ``offset + Σ_i z_i slopes[i]`` stacked ``(d, T, K+1)``
     with the main root in slot 0 of the last axis, and likewise for the attachment positions.
+    At depth D > 2, `deeper` holds ``(q_offset, q_slopes, s_offset, s_slopes)`` per deeper
+    level, shaped like that level (``[K1, …, Kℓ, T, C]`` and ``[K1, …, Kℓ]``, slopes with a
+    leading ``l``).
     """
 
     pca: TangentPCA
@@ -235,6 +273,7 @@ class TraitRegression(eqx.Module):
     trait_names: tuple[str, ...] = eqx.field(static=True)
     ignored: tuple[str, ...] = eqx.field(static=True)
     n_components: int = eqx.field(static=True)
+    deeper: tuple = ()
 
     @classmethod
     def fit(
@@ -304,10 +343,12 @@ class TraitRegression(eqx.Module):
         M = B @ np.linalg.pinv(Z)
         M[:, np.flatnonzero(constant)] = 0.0  # exactly, not 1e-17
         dtype = np.dtype(pca.mean.q0.dtype)
-        fields = (M, mu, sd, *_affine_map(pca, M))
+        *affine, deeper = _affine_map(pca, M)
+        fields = (M, mu, sd, *affine)
         matrix, trait_mean, trait_scale, offset, slopes, s_offset, s_slopes = jax.device_put(
             tuple(np.asarray(x, dtype) for x in fields)
         )
+        deeper = jax.device_put(jax.tree.map(lambda x: np.asarray(x, dtype), deeper))
         return cls(
             pca=pca,
             matrix=matrix,
@@ -317,6 +358,7 @@ class TraitRegression(eqx.Module):
             slopes=slopes,
             s_offset=s_offset,
             s_slopes=s_slopes,
+            deeper=deeper,
             names=tuple(names),
             trait_names=traits,
             ignored=ignored,
