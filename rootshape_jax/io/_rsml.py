@@ -726,7 +726,12 @@ def read_rsml(
 def plant_system(axes: Sequence[Root], *, name: str = "", metadata: dict | None = None) -> Root:
     """One plant as one `Root` (docs/design.md §11): a virtual main root of zero length at the
     collar (the base of the first axis), the axes as laterals at ``attach = 0``, and the axes
-    themselves (with their own laterals) as `Root.children`."""
+    themselves (with their own laterals) as `Root.children`.
+
+    `batch` marks such systems (`RootTree.virtual_main`) and registration weighs their axes as
+    main roots and every deeper level as the level above it, so plants of one axis each give
+    exactly the distances of the axes as taproot systems (at one more level of depth:
+    ``batch(plants, depth=D + 1)`` matches ``batch(axes, depth=D)``)."""
     axes = list(axes)
     if not axes:
         raise InvalidRootError("plant_system: a plant needs at least one axis.")
