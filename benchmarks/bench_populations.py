@@ -19,8 +19,8 @@ the roots (same chunk shapes), reported apart; the mean's is its first call minu
 ``--paths all-cores`` runs the same after ``rs.use_all_cores()`` (one XLA device per core).
 ``rounds``: lateral DPs run and skipped per alternation round, on 32 random pairs (the engine
 is deterministic, so round r's counts are the difference of runs capped at r and r − 1 rounds).
-With ``--baseline`` every matrix and mean run is repeated with that checkout of the package,
-interleaved, and reported as a ratio. Results: ``results/populations.json``.
+With ``--baseline`` every run is repeated with that checkout of the package, interleaved, and
+reported as a ratio (rounds: both DP counts side by side). Results: ``results/populations.json``.
 """
 
 from __future__ import annotations
@@ -164,12 +164,12 @@ def main(argv=None):
                         "mean_calls": args.mean_calls,
                     }
                     versions = [("new", None)]
-                    if args.baseline is not None and what != "rounds":
+                    if args.baseline is not None:
                         versions = [("baseline", args.baseline), ("new", None)]
                     row = dict(spec)
                     for label, package in versions:
                         row[label] = run_child(spec, package)
-                    if "baseline" in row:
+                    if "baseline" in row and "seconds" in row["new"]:
                         row["speedup"] = row["baseline"]["seconds"] / row["new"]["seconds"]
                     results["runs"].append(row)
                     print(json.dumps(row), flush=True)
