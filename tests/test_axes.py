@@ -105,6 +105,7 @@ def test_one_axis_plants_equal_taproots_distances_and_registration():
     assert rp.registered.virtual_main
 
 
+@pytest.mark.slow
 def test_one_axis_plants_with_per_level_weights_and_normalised_scale_equal_taproots():
     # Taproots at depth 3 (second-order laterals) against plants at depth 4: every level is
     # one down, and takes the weights of the level above it.
@@ -208,23 +209,42 @@ def test_real_plate_by_plant_one_axis_plants_equal_taproots():
     assert len(roots) >= len(plants)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (SHARED / "rsml" / "rootnav_osr").is_dir(), reason="shared data absent")
-def test_real_rootnav_plants_register_with_several_axes():
-    files = sorted((SHARED / "rsml" / "rootnav_osr").rglob("*.rsml"))
-    plants = []
+def test_real_rootnav_plants_equal_taproots_and_a_two_seedling_system_ignores_axis_order():
+    # The shared files hold one axis per plant; a system of two seedlings of the plate gives
+    # a real several-axes case.
+    files = sorted((SHARED / "rsml" / "rootnav_osr").glob("*.rsml"))[:3]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        for f in files:
-            plants += read_rsml(f, by="plant")
-            if len(plants) >= 3:
-                break
-    plants = plants[:3]
-    tree = rs.batch(plants, n_points=16, depth=3, normalise_scale=True, dtype=np.float64)
-    assert tree.virtual_main
-    D = _matrix(tree)
-    assert np.all(np.isfinite(D)) and np.all(D[np.triu_indices(len(plants), 1)] > 0)
-    t = rs.unstack(tree)
-    assert float(rs.register(t[0], t[0], weights=W, neighbourhood=NB).energy) < 1e-12
+        plants = [p for f in files for p in read_rsml(f, by="plant")]
+        taps = [r for f in files for r in read_rsml(f)]
+    assert [p.metadata["n_axes"] for p in plants] == [1, 1, 1] and len(taps) == 3
+    t_root = rs.batch(taps, n_points=16, depth=2, normalise_scale=True, dtype=np.float64)
+    t_plant = rs.batch(plants, n_points=16, depth=3, normalise_scale=True, dtype=np.float64)
+    # At a fixed rotation the two analyses agree to rounding (measured 6e-14).
+    np.testing.assert_allclose(_matrix(t_plant, rotation=False), _matrix(t_root, rotation=False), rtol=1e-9, atol=0)
+    # With the rotation search they agree less tightly on these files (measured 2.3e-6 on one
+    # pair of three): the refit sums the branches in another order, and the rounding
+    # difference (1e-16) moves the alternation's rotations apart (1e-7 after 4 rounds) where
+    # the piecewise-straight RootNav polylines make DP ties. Synthetic roots and the plate
+    # agree to 1e-13 or better (the tests above).
+    np.testing.assert_allclose(_matrix(t_plant), _matrix(t_root), rtol=1e-5, atol=0)
+
+    plate = sorted((SHARED / "rsml" / "arabidopsis_plate").glob("*.rsml"))
+    if not plate:
+        return
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        seedlings = read_rsml(plate[0])
+    two = plant_system(seedlings[:2])
+    two_swapped = plant_system(seedlings[1::-1])
+    caps = (4, 2 * max(r.n_laterals for r in seedlings[:3]))
+    kw = dict(n_points=16, depth=3, max_children=caps, normalise_scale=True, dtype=np.float64)
+    D = _matrix(rs.batch([two, plant_system(seedlings[2:3])], **kw))
+    D2 = _matrix(rs.batch([two_swapped, plant_system(seedlings[2:3])], **kw))
+    assert np.isfinite(D[0, 1]) and D[0, 1] > 0
+    np.testing.assert_allclose(D2, D, rtol=1e-9)
 
 
 # --------------------------------------------------------------------------------------------
