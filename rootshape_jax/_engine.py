@@ -624,8 +624,10 @@ def lazy_assignment(
     Depth D > 2 (docs/design.md §11): a real–real pair's cost also holds the exact assignment
     cost of the two laterals' children at the rotations O (`child_assignment`, the same
     procedure one level down). Until a pair is computed its bound holds `child_bound`
-    (`child_lower_bounds`); computing it runs its DP and its children's assignment together,
-    so nested costs whose bound already loses are never computed.
+    (`child_lower_bounds`). A pair is made exact in tiers, each only when the assignment picks
+    it again: refined bound, then its own DP (its children still by their bound), then its
+    children's exact assignment. So a nested cost is computed only for pairs that still win
+    with their own DP known, and never where the bound already loses.
     """
     B, K = p.La.shape
     dtype = p.La.dtype
@@ -656,7 +658,7 @@ def lazy_assignment(
         alone = (p.sub_a[:, :, None] + p.sub_b[:, None, :]).reshape(-1)
 
     def children(need, A, counts):
-        A = jnp.where(need & ~nested, alone, A)
+        """The exact assignment cost of the children of the pairs `need` (both have children)."""
 
         def step(lanes, carry):
             A, counts = carry
@@ -675,50 +677,81 @@ def lazy_assignment(
 
         return run_in_slabs(need & nested, step, (A, counts), slab=_slab_size(n_items, CHILD_SLAB))
 
-    def exact(need, E, G, A, counts):
+    def exact(need, E, G, A, counts, nested_done):
+        """The DPs of the pairs `need`; their children's cost where no assignment is needed."""
         E, G = slabs(need, lateral_pair, E, G)
         if n_below:
-            A, counts = children(need, A, counts)
-        return E, G, A, counts
+            A = jnp.where(need & ~nested, alone, A)
+            nested_done = nested_done | (need & ~nested)
+        return E, G, A, counts, nested_done
 
-    def costs(E, A, computed, bound):
+    def costs(E, A, computed, nested_done, bound):
         known = p.lam_lateral * E.reshape(B, K, K) + p.fixed
         unknown = bound_costs(p, bound.reshape(B, K, K))
         if n_below:
-            known = known + A.reshape(B, K, K)
-            unknown = unknown + jnp.where(p.both, child_bound, 0.0)
+            # Three tiers: bounds; the pair's own DP with its children's bound; all exact.
+            child = jnp.where(p.both, child_bound, 0.0)
+            unknown = unknown + child
+            known = jnp.where(nested_done.reshape(B, K, K), known + A.reshape(B, K, K), known + child)
         return jnp.where(computed.reshape(B, K, K), known, unknown)
 
-    def picks(perm, computed):
+    def picks(perm, done):
         chosen = jax.nn.one_hot(perm, K, dtype=bool)
-        return (chosen & p.both & ~computed.reshape(B, K, K) & rows[:, None, None]).reshape(-1)
+        return (chosen & p.both & ~done.reshape(B, K, K) & rows[:, None, None]).reshape(-1)
 
     computed = p.both & rows[:, None, None] if not options.prune else jnp.zeros_like(p.both)
     computed = computed.reshape(-1)
     T = qb.shape[-2]
-    E, G, A, counts = exact(
+    E, G, A, counts, nested_done = exact(
         computed,
         jnp.zeros((n_items,), dtype),
         jnp.zeros((n_items, T), dtype),
         jnp.zeros((n_items,), dtype),
         jnp.zeros((n_items, n_below), jnp.int32),
+        jnp.zeros_like(computed),
     )
-    bound = energy_bound.reshape(-1)
+    if n_below:
+        A, counts = children(computed & ~nested_done, A, counts)
+        nested_done = computed
+    else:
+        nested_done = computed  # nothing below: a computed pair is exact
 
     def body(state):
-        E, G, A, counts, computed, refined, bound, _, chosen = state
+        E, G, A, counts, computed, nested_done, refined, bound, _, chosen = state
+        # A pair picked for the first time gets its refined bound, then its DP, then (depth
+        # D > 2, when picked with its DP known) its children's exact assignment.
         bound = refine(chosen & ~refined, bound)
-        E, G, A, counts = exact(chosen & refined, E, G, A, counts)
-        computed = computed | (chosen & refined)
+        run_dp = chosen & refined & ~computed
+        if n_below:
+            A, counts = children(chosen & computed & ~nested_done, A, counts)
+            nested_done = nested_done | (chosen & computed)
+            E, G, A, counts, nested_done = exact(run_dp, E, G, A, counts, nested_done)
+        else:
+            E, G, A, counts, _ = exact(run_dp, E, G, A, counts, nested_done)
+        computed = computed | run_dp
+        if not n_below:
+            nested_done = computed
         refined = refined | chosen
-        perm = solve(costs(E, A, computed, bound))
-        return E, G, A, counts, computed, refined, bound, perm, picks(perm, computed)
+        perm = solve(costs(E, A, computed, nested_done, bound))
+        return E, G, A, counts, computed, nested_done, refined, bound, perm, picks(perm, nested_done)
 
-    perm = solve(costs(E, A, computed, bound))
-    state = (E, G, A, counts, computed, jnp.zeros_like(computed), bound, perm, picks(perm, computed))
-    E, G, A, counts, computed, _, bound, perm, _ = lax.while_loop(lambda s: jnp.any(s[-1]), body, state)
+    bound = energy_bound.reshape(-1)
+    perm = solve(costs(E, A, computed, nested_done, bound))
+    state = (
+        E,
+        G,
+        A,
+        counts,
+        computed,
+        nested_done,
+        jnp.zeros_like(computed),
+        bound,
+        perm,
+        picks(perm, nested_done),
+    )
+    E, G, A, counts, computed, nested_done, _, bound, perm, _ = lax.while_loop(lambda s: jnp.any(s[-1]), body, state)
     below = jnp.sum(counts.reshape(B, K * K, n_below), axis=1, dtype=jnp.int32)
-    return costs(E, A, computed, bound), perm, computed.reshape(B, K, K), G.reshape(B, K, K, T), below
+    return costs(E, A, computed, nested_done, bound), perm, computed.reshape(B, K, K), G.reshape(B, K, K, T), below
 
 
 def assign_at(p: Prepared, O: Array, rows: Array, options):

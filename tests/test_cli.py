@@ -346,7 +346,9 @@ class _Links(HTMLParser):
 @pytest.mark.slow
 def test_demo_tiny_index_links_exist(tmp_path):
     out = tmp_path / "demo"
-    proc = run_cli("demo", "--samples", 6, "--points", 30, "--laterals", 4, "-n", 4, "--max-steps", 5, "--out", out)
+    proc = run_cli(
+        "demo", "--samples", 6, "--points", 30, "--laterals", 4, "-n", 4, "--max-steps", 5, "--plants", 3, "--out", out
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "Traceback" not in proc.stderr
     assert str(out.resolve()) in proc.stdout

@@ -52,6 +52,7 @@ def test_learn_weights_end_to_end(labelled_folder, tmp_path):
     proc = run_cli(
         "learn-weights", d, "--labels", table, "--by", "condition", "--out", out, "--points", "12",
         "--laterals", "3", "--folds", "3", "--reregistrations", "1", "--quiet",
+        "--regularisation", "1e-3,0.1",
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     w = {r["term"]: r for r in read_csv(out / "weights.csv")}
@@ -64,3 +65,15 @@ def test_learn_weights_end_to_end(labelled_folder, tmp_path):
         for k in ("learned_1nn", "learned_class_mean", "start_1nn", "start_class_mean"):
             assert 0.0 <= float(r[k]) <= 1.0
     assert (out / "loss_trace.png").is_file()
+    # The inner cross-validation picked one of the two penalties given.
+    assert "(regularisation 0.001)" in proc.stdout or "(regularisation 0.1)" in proc.stdout, proc.stdout
+
+
+@pytest.mark.parametrize("bad", ["-1", "x", "1e-3,,2", "nan"])
+def test_bad_regularisation_is_a_usage_error(labelled_folder, tmp_path, bad):
+    d, table = labelled_folder
+    proc = run_cli(
+        "learn-weights", d, "--labels", table, "--by", "condition", "--out", tmp_path / "o", "--regularisation", bad
+    )
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert "--regularisation" in proc.stderr and "non-negative numbers" in proc.stderr, proc.stderr

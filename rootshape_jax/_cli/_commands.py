@@ -24,6 +24,7 @@ from ._steps import (
     run_sample,
     run_traits,
 )
+from ._systems import run_whole_systems
 
 
 def _read(args, out: Output, reading: Reading, paths=None) -> list:
@@ -155,6 +156,8 @@ def cmd_demo(args) -> None:
         ("regression", lambda: run_regress(ctx, out, args)),
         ("clusters", lambda: run_cluster(ctx, out, args)),
     ]
+    if args.plants:
+        steps.append(("whole root systems (CPlantBox pea, depth 3)", lambda: run_whole_systems(out, args)))
     for i, (name, fn) in enumerate(steps, 1):
         say(args, f"[{i}/{len(steps)}] {name}")
         fn()
@@ -179,6 +182,15 @@ def cmd_demo(args) -> None:
             else ""
         )
         + ".",
+        *(
+            [
+                f"The last section compares whole root systems: {args.plants} CPlantBox pea plants with "
+                "second-order laterals, at depth 3 (every order matched under its parent's match) and at "
+                "depth 2 (--plants 0 skips it)."
+            ]
+            if args.plants
+            else []
+        ),
         f"Total time {time.perf_counter() - start:.0f} s, including compilation (see the timings).",
     ]
     write_index(out, title="rootshape demo", intro=intro, settings=settings(args, pop))

@@ -42,9 +42,11 @@ def load_roots(args, *, paths: Sequence[str] | None = None, reading: Reading | N
             raise CLIError("--metadata labels files read from disk; synthetic roots already carry their condition.")
 
         conditions = args.condition or ["control"]
+        # Synthetic roots grow second-order laterals when the analysis keeps them.
+        depth = min(getattr(args, "depth", None) or 2, 3)
         roots = []
         for c in conditions:
-            roots.extend(synthetic_roots(synthetic, condition=c, seed=args.seed))
+            roots.extend(synthetic_roots(synthetic, condition=c, seed=args.seed, depth=depth))
         return roots
     if not paths:
         raise CLIError("no input: give RSML files, folders or images, or --synthetic N for example roots.")
@@ -66,6 +68,7 @@ def load_roots(args, *, paths: Sequence[str] | None = None, reading: Reading | N
         unit=unit,
         report=reading,
         notice=notice,
+        by=getattr(args, "per", "root"),
     )
     if unit:
         roots = io.convert_units(roots, unit)
@@ -167,7 +170,8 @@ def prepare(roots: list, args, *, min_roots: int = 1, samples: int | None = None
     normalised = args.normalise_scale
     by = group_column(args)
     conditions = io.labels_of(roots, by) if by else [r.metadata.get("condition") for r in roots]
-    tree = rs.batch(roots, n_points=args.points, normalise_scale=normalised)
+    # depth None (no --depth) is batch's default: depth 2, deeper orders ignored silently.
+    tree = rs.batch(roots, n_points=args.points, normalise_scale=normalised, depth=getattr(args, "depth", None))
     return Population(
         roots=roots,
         tree=tree,
@@ -199,10 +203,31 @@ def label_columns(roots: list) -> dict[str, list[str]]:
     return {k: [str(r.metadata.get(k, "")) for r in roots] for k in names}
 
 
+def length(polyline) -> float:
+    return float(np.sum(np.linalg.norm(np.diff(np.asarray(polyline), axis=0), axis=1)))
+
+
+def without_empty_branches(root, tol: float):
+    """`root` without the branches of length <= `tol` (at every order, with their own
+    laterals): a branch present on one side of a geodesic only has zero length at the other
+    end, and an RSML reader skips a zero-length root with a warning."""
+    keep = [k for k, lat in enumerate(root.laterals) if length(lat) > tol]
+    if len(keep) < root.n_laterals:
+        root = root.select_laterals(keep)
+    if root.children:
+        kids = tuple(without_empty_branches(c, tol) for c in root.children)
+        root = dataclasses.replace(root, children=kids)
+    return root
+
+
 def to_output_roots(tree, pop: Population, names: Sequence[str]) -> list:
-    """Unpadded roots (null slots dropped) labelled with the input's unit."""
+    """Unpadded roots (null slots and zero-length branches dropped) labelled with the input's unit."""
     meta = {"unit": pop.unit} if pop.unit else {}
-    return [dataclasses.replace(r, metadata=dict(meta)) for r in rs.to_roots(tree, names=list(names))]
+    out = []
+    for r in rs.to_roots(tree, names=list(names)):
+        tol = 1e-9 * max(length(r.main), *(length(x) for x in r.laterals), 1e-300)
+        out.append(dataclasses.replace(without_empty_branches(r, tol), metadata=dict(meta)))
+    return out
 
 
 def in_input_units(tree, pop: Population):

@@ -32,6 +32,16 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {value}")
+    return value
+
+
 def _points(text: str) -> int:
     value = _positive_int(text)
     if value < 5:
@@ -47,6 +57,19 @@ def _positive_float(text: str) -> float:
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
     return value
+
+
+def _penalties(text: str) -> tuple[float, ...]:
+    """One or more non-negative numbers, comma-separated (several: inner cross-validation picks one)."""
+    try:
+        values = tuple(float(p) for p in text.split(","))
+    except ValueError:
+        values = ()
+    if not values or not all(math.isfinite(v) and v >= 0 for v in values):
+        raise argparse.ArgumentTypeError(
+            f"expected one or more non-negative numbers separated by commas (e.g. 1e-3 or 0,1e-3,1e-1), got {text!r}"
+        )
+    return values
 
 
 def _weights(text: str):
@@ -69,12 +92,35 @@ def _weights(text: str):
     return tuple(values) + tuple(t.default_weight for t in rs.TERMS[len(values) :])
 
 
+def _add_system_options(p: argparse.ArgumentParser) -> None:
+    """What one root system is and how many orders of laterals the analysis keeps."""
+    g = p.add_argument_group("whole root systems")
+    g.add_argument(
+        "--depth",
+        type=int,
+        choices=(2, 3, 4),
+        default=None,
+        help="levels of the root system compared: 2 = main root + laterals (default, the "
+        "paper's), 3 adds the laterals' own laterals (second order), 4 the third order; deeper "
+        "branches than that are left out with a warning",
+    )
+    g.add_argument(
+        "--per",
+        choices=("root", "plant"),
+        default="root",
+        help="one root system per top-level root of an RSML file (root, default) or per plant "
+        "(plant: all its axes, seminal and nodal roots or several seedlings, as one system "
+        "around a zero-length main root at the collar; use with --depth 3 to keep the axes' "
+        "laterals)",
+    )
+
+
 _DESCRIPTION = """\
 Compare the shapes of plant root systems: distances between roots, the optimal deformation of
 one root into another, the mean root and its main modes of variation, random and trait-driven
 new roots, and clusters. Roots are read from RSML files (SmartRoot, RootNav, RhizoVision,
 CPlantBox, ...), folders of RSML files, or scanned images; each root is a main root with its
-first-order laterals.
+first-order laterals (--depth 3 adds second-order laterals, --per plant joins a plant's axes).
 
 Results (CSV tables, PNG figures, RSML files) go into the folder given by --out.
 Try:  rootshape demo          (everything on a bundled set of 53 roots)
@@ -133,6 +179,7 @@ def _add_common(p: argparse.ArgumentParser, *, inputs: bool = True, default_out:
             action="store_true",
             help="stop at the first unreadable file of a folder (default: skip it, name it, and go on with the others)",
         )
+        _add_system_options(p)
     g = p.add_argument_group("analysis")
     g.add_argument(
         "--out",
@@ -335,6 +382,7 @@ def build_parser() -> argparse.ArgumentParser:
     img = p.add_argument_group("images")
     img.add_argument("--pixel-size", type=_positive_float, metavar="SIZE", help="length of one image pixel")
     img.add_argument("--unit", metavar="UNIT", help="unit of --pixel-size (default mm)")
+    _add_system_options(p)
 
     p = add(
         "mean",
@@ -450,6 +498,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="at most N re-registrations of every pair at the new weights (default 2)",
     )
+    g.add_argument(
+        "--regularisation",
+        type=_penalties,
+        default=(1e-3,),
+        metavar="R[,R...]",
+        help="penalty on log λ moving away from the starting weights (default 1e-3); several "
+        "values: an inner cross-validation on the training roots picks one",
+    )
 
     p = add(
         "traits",
@@ -516,5 +572,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_regress_options(p)
     _add_cluster_options(p)
     _add_geodesic_options(p)
+    g = p.add_argument_group("whole root systems")
+    g.add_argument(
+        "--plants",
+        type=_count,
+        default=10,
+        metavar="N",
+        help="CPlantBox pea plants of the whole-root-systems section (second-order laterals, "
+        "depth 3 against depth 2; needs the 'sim' extra; default 10, 0 skips it)",
+    )
     p.set_defaults(points=50)  # measured: keeps the demo within a few minutes on 2 cores
     return parser

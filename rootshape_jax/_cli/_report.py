@@ -66,6 +66,8 @@ OUTPUT_NAMES = (
     "permanova.md",
     "mds.csv",
     "mds.png",
+    "systems_*.csv",  # the demo's whole-root-systems section
+    "systems_*.png",
 )
 LOG_NAME = "rootshape.log"
 
@@ -324,6 +326,8 @@ def settings(args, pop) -> list[tuple[str, str]]:
         ("roots", str(len(pop.names))),
         ("points per root (T)", str(args.points)),
         ("lateral slots (K)", str(int(pop.tree.capacity))),
+        ("depth (levels; child slots per level)", f"{pop.tree.depth}; {', '.join(map(str, pop.tree.capacities))}"),
+        ("one system per", getattr(args, "per", "root")),
         ("most laterals of a root", str(max(r.n_laterals for r in pop.roots))),
         ("scale normalised", "yes (every main root scaled to length 1)" if pop.normalised else "no"),
         ("weights " + ", ".join(t.name for t in rs.TERMS), ", ".join(f"{v:g}" for v in w)),

@@ -184,9 +184,11 @@ def simulated_roots(
     days: float = 21.0,
     seed: int = 0,
     dim: int = 3,
+    by: str = "root",
     verbose: bool = False,
 ) -> list[Root]:
-    """Simulate ``n`` plants with CPlantBox and return each plant's primary root system.
+    """Simulate ``n`` plants with CPlantBox and return each plant's primary root system, or
+    with ``by="plant"`` its whole root system.
 
     **Arguments**
 
@@ -199,11 +201,17 @@ def simulated_roots(
       output is deterministic and plant ``i`` does not depend on ``n``.
     - `dim`: 3, or 2 for the projection on the vertical (x, depth) plane — what a flatbed scan
       or a rhizobox photograph of the plant would show.
+    - `by`: ``"root"`` (default): each plant's first top-level root, the primary / tap root
+      (CPlantBox writes it first). ``"plant"``: every top-level root of the plant (the tap
+      root, and the basal, seminal or shoot-borne roots when the species has them) as one
+      system around a virtual main root of zero length at the collar, as
+      ``read_rsml(by="plant")`` reads a plant (`rootshape_jax.io.plant_system`; the axes are
+      its laterals at ``attach = 0``, ``metadata["n_axes"]`` counts them).
     - `verbose`: let CPlantBox print its messages (silenced by default).
 
-    **Returns** one `Root` per plant: the plant's first order-1 root in the RSML (the primary /
-    tap root, which CPlantBox writes first) with its order-2 laterals (and deeper orders in
-    `Root.children` when the reader provides them). Coordinates are converted to the
+    **Returns** one `Root` per plant, with every order CPlantBox simulated: a branch's own
+    laterals are in `Root.children` (second-order laterals of the tap root, ...), so
+    ``batch(roots, depth=3)`` (or more) keeps them. Coordinates are converted to the
     library's convention — millimetres, ``(x, y, z)`` with z the depth growing downward
     (CPlantBox writes cm with z up: a 180° rotation about x, no mirror image); in 2D,
     ``(x, y)`` with y the depth. CPlantBox's RSML leaves out each lateral's branching node;
@@ -221,6 +229,8 @@ def simulated_roots(
     pb = _plantbox()
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
         raise ValueError(f"`n` must be a non-negative integer number of plants, got {n!r}.")
+    if by not in ("root", "plant"):
+        raise ValueError(f"`by` must be 'root' (the primary root) or 'plant' (every axis), got {by!r}.")
     if dim not in (2, 3):
         raise ValueError(f"`dim` must be 2 or 3, got {dim!r}.")
     if not np.isfinite(days) or days <= 0:
@@ -244,7 +254,7 @@ def simulated_roots(
                 # CPlantBox writes just-emerged laterals as one-point polylines; the reader
                 # drops them with a warning that says nothing useful here.
                 warnings.simplefilter("ignore", RSMLWarning)
-                read = read_rsml(out, strict=False)
+                read = read_rsml(out, strict=False, by=by)
             if not read:
                 raise InvalidRootError(
                     f"CPlantBox produced no root with geometry for species {species!r} after "

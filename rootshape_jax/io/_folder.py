@@ -71,8 +71,12 @@ def read_root_file(
     unit: str | None = None,
     report: ReadReport | None = None,
     notice: Callable[[str, str], None] | None = None,
+    by: str = "root",
 ) -> list[Root]:
     """Every root of one RSML file or image, named and tagged with ``metadata["source_file"]``.
+
+    `by`: as in `read_rsml` (``"plant"``: one system per plant of an RSML file); an image's
+    roots are its seedlings, one system each, either way.
 
     Parts of an RSML file that cannot be read are summarised in one `notice` line (full text
     in ``report.log``); a file with nothing readable raises `RSMLError` with the precise reason.
@@ -84,9 +88,9 @@ def read_root_file(
     if suffix in RSML_SUFFIXES:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            roots = read_rsml(path)
+            roots = read_rsml(path, by=by)
         if not roots:
-            read_rsml(path, strict=True)  # raises the precise reason as one RSMLError
+            read_rsml(path, strict=True, by=by)  # raises the precise reason as one RSMLError
         # Parts skipped in a file that is otherwise readable: one line here, all in the log.
         for w in caught:
             if not issubclass(w.category, RSMLWarning):
@@ -162,16 +166,18 @@ def read_paths(
     unit: str | None = None,
     report: ReadReport | None = None,
     notice: Callable[[str, str], None] | None = None,
+    by: str = "root",
 ) -> list[Root]:
     """The roots of files and folders. A file named in `paths` must be readable; a file found
     in a folder that cannot be read is skipped (one `notice` line, its reason in
-    ``report.log``) unless `strict`. Raises `InputError` when nothing at all is readable."""
+    ``report.log``) unless `strict`. Raises `InputError` when nothing at all is readable.
+    `by`: ``"root"`` or ``"plant"``, as in `read_rsml`."""
     report = ReadReport() if report is None else report
     notice = _default_notice if notice is None else notice
     roots: list[Root] = []
     for f, in_folder in expand(paths):
         try:
-            got = read_root_file(f, pixel_size=pixel_size, unit=unit, report=report, notice=notice)
+            got = read_root_file(f, pixel_size=pixel_size, unit=unit, report=report, notice=notice, by=by)
         except (RootShapeError, OSError, ValueError) as e:
             if not in_folder or strict:
                 raise

@@ -1066,9 +1066,10 @@ def _write_one_root(
         if child is None:
             # Named so that the lateral keeps an identity when read back.
             child = Root(main=lat, name=f"{root.name}/{k + 1}" if root.name else "")
-        else:
+        elif child.main_radius is not None or lat_radius is None or not np.any(lat_radius > 0):
             # The child is the branch's own record: no radius there means none was known
-            # (read_rsml pads such a lateral with 0 in `lateral_radii`).
+            # (read_rsml pads such a lateral with 0 in `lateral_radii`). Radii given only on
+            # the parent (a user's Root) are kept: all-zero padding is the one thing dropped.
             lat_radius = child.main_radius
         node = _nearest_node(root.main, float(root.attach[k]))
         jobs.append((el, lat, child, f"{attrs['id']}.{k + 1}", node, lat_radius))

@@ -7,7 +7,8 @@ package does not choose a matplotlib backend and needs no display: figures are p
 yourself (so notebooks display them).
 
 Depth points down by default (``invert_y=True``: image convention, root base at the top);
-lateral slot ``k`` has the same colour (`slot_color(k)`) in every plot.
+lateral slot ``k`` has the same colour (`slot_color(k)`) in every plot, and a deeper branch a
+shade of its parent's (`branch_color`).
 """
 
 from .._errors import MissingDependencyError
@@ -31,7 +32,7 @@ from ._diagnostics import (
     plot_energy_trace as plot_energy_trace,
     plot_explained_variance as plot_explained_variance,
 )
-from ._draw import slot_color as slot_color
+from ._draw import branch_color as branch_color, slot_color as slot_color
 from ._labels import label_colors as label_colors, plot_mds as plot_mds
 from ._roots import (
     plot_geodesic as plot_geodesic,

@@ -50,6 +50,23 @@ def slot_color(k: int) -> str:
     return SLOT_PALETTE[int(k) % len(SLOT_PALETTE)]
 
 
+def shade(color: Any, k: int) -> str:
+    """The colour of child slot ``k`` of a branch drawn in ``color``: the parent's colour mixed
+    with white (30, 40 or 50 %, by ``k``), so a branch's children read as its family and
+    siblings stay apart. Deeper orders are shades of shades, lighter at every level."""
+    rgb = np.asarray(mcolors.to_rgb(color))
+    t = 0.3 + 0.1 * (int(k) % 3)
+    return mcolors.to_hex((1 - t) * rgb + t)
+
+
+def branch_color(slot: Sequence[int]) -> str:
+    """Colour of the branch at ``slot = (k1, k2, …)``: `slot_color(k1)` for a first-order
+    lateral, and for a deeper branch a `shade` of its parent's colour. It depends on the slot
+    only, so matched branches (same slot after registration, or along a geodesic) share it
+    at every level."""
+    return deeper_color(tuple(slot), None, True)
+
+
 # --------------------------------------------------------------------------------------------
 # Inputs -> plain numpy drawings
 
@@ -65,6 +82,8 @@ class Drawing:
     name: str = ""
     main_radius: np.ndarray | None = None  # (n,) when known
     lateral_radii: tuple[tuple[int, np.ndarray], ...] = ()  # (slot, (m,)) where known
+    # Second-order laterals and below: (slot (k1, …, kℓ), (m, d) polyline, (m,) radius or None).
+    deeper: tuple[tuple[tuple[int, ...], np.ndarray, np.ndarray | None], ...] = ()
 
     @property
     def dim(self) -> int:
@@ -77,7 +96,23 @@ class Drawing:
             main=self.main + shift,
             laterals=tuple((k, lat + shift) for k, lat in self.laterals),
             nulls=tuple((k, p + shift) for k, p in self.nulls),
+            deeper=tuple((slot, b + shift, r) for slot, b, r in self.deeper),
         )
+
+
+def _root_deeper(root: Root) -> tuple:
+    """Every branch below the first-order laterals of ``root``, keyed by its slot path."""
+    out = []
+    stack = [((k,), c) for k, c in enumerate(root.children)][::-1]
+    while stack:
+        slot, node = stack.pop()
+        for k, lat in enumerate(node.laterals):
+            r = None if node.lateral_radii is None else np.asarray(node.lateral_radii[k], dtype=float)
+            if node.children and node.children[k].main_radius is not None:
+                r = np.asarray(node.children[k].main_radius, dtype=float)
+            out.append((slot + (k,), np.asarray(lat, dtype=float), r))
+        stack.extend([(slot + (k,), c) for k, c in enumerate(node.children)][::-1])
+    return tuple(out)
 
 
 def _from_root(root: Root) -> Drawing:
@@ -94,18 +129,26 @@ def _from_root(root: Root) -> Drawing:
         name=root.name,
         main_radius=main_radius,
         lateral_radii=lateral_radii,
+        deeper=_root_deeper(root),
     )
 
 
-def _from_arrays(main, lats, mask, main_r=None, lat_r=None) -> Drawing:
+def _from_arrays(main, lats, mask, main_r=None, lat_r=None, deeper=()) -> Drawing:
+    """``deeper``: one ``(curves [K1..Kℓ, T, d], mask [K1..Kℓ], radius or None)`` per level."""
     # In a batch, a root without radius data is padded with radius 0: draw it as unknown.
     known = main_r is not None and (np.any(main_r > 0) or np.any(lat_r[mask] > 0))
+    branches = []
+    for curves, m, r in deeper:
+        for slot in zip(*np.nonzero(m)):
+            slot = tuple(int(k) for k in slot)
+            branches.append((slot, curves[slot], r[slot] if known and r is not None else None))
     return Drawing(
         main=main,
         laterals=tuple((k, lats[k]) for k in range(lats.shape[0]) if mask[k]),
         nulls=tuple((k, lats[k, 0]) for k in range(lats.shape[0]) if not mask[k]),
         main_radius=main_r if known else None,
         lateral_radii=tuple((k, lat_r[k]) for k in range(lats.shape[0]) if mask[k]) if known else (),
+        deeper=tuple(branches),
     )
 
 
@@ -132,11 +175,20 @@ def _tree_drawings(tree: RootTree) -> np.ndarray:
         lat_r = np.asarray(lat_r, dtype=float)
     else:
         main_r = lat_r = None
+    levels = [
+        (
+            np.asarray(lv.curves, dtype=float),
+            np.asarray(lv.mask, dtype=bool),
+            None if lv.radius is None or main_r is None else np.asarray(lv.radius, dtype=float),
+        )
+        for lv in tree.deeper
+    ]
     batch = main.shape[:-2]
     out = np.empty(batch, dtype=object)
     for idx in np.ndindex(*batch):
         radii = (main_r[idx], lat_r[idx]) if main_r is not None else (None, None)
-        out[idx] = _from_arrays(main[idx], lats[idx], mask[idx], *radii)
+        deeper = [(c[idx], m[idx], None if r is None else r[idx]) for c, m, r in levels]
+        out[idx] = _from_arrays(main[idx], lats[idx], mask[idx], *radii, deeper=deeper)
     return out
 
 
@@ -281,6 +333,7 @@ def segment_widths(radius: np.ndarray, reference: float, linewidth: float) -> np
 
 def _radius_reference(drawing: Drawing) -> float:
     rs = ([drawing.main_radius] if drawing.main_radius is not None else []) + [r for _, r in drawing.lateral_radii]
+    rs += [r for _, _, r in drawing.deeper if r is not None]
     ref = max((float(np.max(r)) for r in rs if r.size), default=0.0)
     return ref if np.isfinite(ref) and ref > 0 else 0.0
 
@@ -302,6 +355,10 @@ def draw(
     zorder: float = 2.0,
 ) -> None:
     """Draw one root on ``ax``: laterals first, main root on top, nulls as hollow circles.
+
+    Every order is drawn: second-order laterals and below (`Drawing.deeper`) under their
+    parents, thinner, each in a `shade` of its parent's colour. Each order is one line
+    collection whose ``gid`` is ``"order ℓ"`` (0 main root, 1 laterals, 2 their laterals, ...).
 
     Where the radius is known, each segment's width follows it (`segment_widths`: relative to
     the root's largest radius, clipped to a readable range); elsewhere laterals are
@@ -325,13 +382,14 @@ def draw(
     if projection == "3d":
         from mpl_toolkits.mplot3d.art3d import Line3DCollection
 
-        def add(lines, cs, lw, z):
+        def add(lines, cs, lw, z, level=0):
             lc = Line3DCollection(lines, colors=cs, linewidths=lw, alpha=alpha, zorder=z)
+            lc.set_gid(f"order {level}")
             ax.add_collection3d(lc)
 
     else:
 
-        def add(lines, cs, lw, z):
+        def add(lines, cs, lw, z, level=0):
             lc = LineCollection(
                 lines,
                 colors=cs,
@@ -341,17 +399,24 @@ def draw(
                 capstyle="round",
                 joinstyle="round",
             )
+            lc.set_gid(f"order {level}")  # the branch order it draws: 0 main root, 1 laterals, ...
             ax.add_collection(lc, autolim=True)
 
     if segs:
-        add(segs, lat_colors, lat_widths, zorder)
+        add(segs, lat_colors, lat_widths, zorder, 1)
+    # Second-order laterals and below: one collection per level, under their parents, each
+    # level thinner and (by its shade of the parent's colour) lighter.
+    for level, (segs, cs, widths) in sorted(
+        _deeper_segments(drawing, cols, colors, slot_colors, linewidth, reference).items()
+    ):
+        add(segs, cs, widths, zorder - 0.01 * level, level)
     if reference > 0 and drawing.main_radius is not None:
         pieces = _split(drawing.main[:, cols])
         widths = segment_widths(drawing.main_radius, reference, linewidth)
-        add(pieces, [main_color] * len(pieces), list(widths), zorder + 0.1)
+        add(pieces, [main_color] * len(pieces), list(widths), zorder + 0.1, 0)
     else:
         # The main root is drawn thicker, as it is in the plant.
-        add([drawing.main[:, cols]], [main_color], 1.6 * linewidth, zorder + 0.1)
+        add([drawing.main[:, cols]], [main_color], 1.6 * linewidth, zorder + 0.1, 0)
     if show_nulls and drawing.nulls:
         pts = np.stack([p[cols] for _, p in drawing.nulls])
         ncol = [_lateral_color(k, colors, slot_colors) for k, _ in drawing.nulls]
@@ -366,9 +431,43 @@ def draw(
         )
 
 
+# Width of an order-ℓ branch (ℓ >= 2) without radius data: DEEPER_WIDTH^(ℓ-1) x `linewidth`.
+DEEPER_WIDTH = 0.6
+
+
+def deeper_color(slot: Sequence[int], colors: Any, slot_colors: bool) -> Any:
+    """Colour of the deeper branch at ``slot``: one colour for the whole root when `colors` is
+    one colour, otherwise a `shade` of its parent's colour at every level (`branch_color`)."""
+    color = _lateral_color(slot[0], colors, slot_colors)
+    if _is_single_color(colors):
+        return color
+    for k in slot[1:]:
+        color = shade(color, k)
+    return color
+
+
+def _deeper_segments(drawing: Drawing, cols, colors, slot_colors, linewidth, reference) -> dict:
+    """{order ℓ: (segments, colours, widths)} of the branches below the first-order laterals."""
+    out: dict[int, tuple[list, list, list]] = {}
+    for slot, line, radius in drawing.deeper:
+        segs, cs, widths = out.setdefault(len(slot), ([], [], []))
+        c = deeper_color(slot, colors, slot_colors)
+        if radius is not None and reference > 0 and line.shape[0] >= 2:
+            pieces = _split(line[:, cols])
+            segs += pieces
+            cs += [c] * len(pieces)
+            widths += list(segment_widths(radius, reference, linewidth))
+        else:
+            segs.append(line[:, cols])
+            cs.append(c)
+            widths.append(linewidth * DEEPER_WIDTH ** (len(slot) - 1))
+    return out
+
+
 def points_of(drawing: Drawing, projection: str, show_nulls: bool) -> np.ndarray:
     cols = list(COLUMNS[projection])
     parts = [drawing.main[:, cols]] + [lat[:, cols] for _, lat in drawing.laterals]
+    parts += [b[:, cols] for _, b, _ in drawing.deeper]
     if show_nulls and drawing.nulls:
         parts.append(np.stack([p[cols] for _, p in drawing.nulls]))
     return np.concatenate(parts, axis=0)

@@ -7,6 +7,9 @@ Conventions shared by every function here:
 - **Colours**: the main root is near-black and drawn thicker; lateral slot ``k`` always has
   `slot_color(k)`, so after registration (or along a geodesic) one colour is one lateral in
   every panel. `colors` overrides this: one colour for the whole root, or one per slot.
+- **Deeper orders** (trees of depth 3 or more, `Root.children`): second-order laterals and
+  below are drawn under their parents, thinner, each in a lighter shade of its parent's colour
+  (`branch_color`), so matched branches share a colour at every level.
 - **3D roots** are drawn as the side view ``projection="xz"`` (x against depth) unless you ask
   for ``"yz"``, ``"xy"`` (top view) or ``"3d"`` (a 3D axis).
 - Panels of a multi-root figure share one scale (equal aspect); a scale bar gives the length.
@@ -207,7 +210,8 @@ def plot_geodesic(
     **Arguments**
 
     - `path`: a batched `RootTree` whose leading axis is the step (or a list of roots). Slot
-      ``k`` has the same colour in every step, so you can follow each lateral along the path.
+      ``k`` has the same colour in every step, so you can follow each lateral along the path;
+      at depth 3 or more each lateral's own laterals keep a shade of its colour the same way.
     - `axes`: one Axes per step to draw into; a new figure when None.
     - `taus`: the path parameter of each step, for the panel titles (default evenly spaced
       from 0 to 1).
