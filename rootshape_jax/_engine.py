@@ -41,7 +41,18 @@ from jaxtyping import Array, Bool, Float, Int
 from ._assignment import linear_assignment
 from ._curves import l2_norm_squared, safe_norm, safe_normalise, safe_sqrt, tiny, trapezoid_weights
 from ._devices import split_over_devices
-from ._metric import MetricTerms, Weights, level_weight, null_costs, pair_costs, pair_lower_bounds, preshape_terms
+from ._metric import (
+    MetricTerms,
+    Weights,
+    child_weights,
+    lateral_weight,
+    level_weight,
+    null_costs,
+    pair_costs,
+    pair_lower_bounds,
+    preshape_terms,
+    system_weights,
+)
 from ._rotation import optimal_rotation
 from ._tree import SRVFLevel, SRVFTree
 from ._warp import apply_warp_srvf, dp_warp_if
@@ -333,13 +344,14 @@ class Prepared(eqx.Module):
     sub_b: Array | None = None
 
 
-def descendant_norms(levels: tuple, lam) -> Array | None:
+def descendant_norms(levels: tuple, weights: Weights, first: int) -> Array | None:
     """λ-weighted squared norms of every branch's descendants, summed per parent slot of
-    ``levels[0]`` (shape ``levels[0].mask.shape[:-1]``): what leaving the parent unmatched
-    costs below it. None when there are no levels."""
+    ``levels[0]`` (shape ``levels[0].mask.shape[:-1]``; ``levels[k]`` is level ``first + k``,
+    weighted by its own λs): what leaving the parent unmatched costs below it. None when
+    there are no levels."""
     acc = None
-    for lv in reversed(levels):
-        own = lam * l2_norm_squared(lv.q) * lv.mask
+    for k, lv in reversed(list(enumerate(levels))):
+        own = lateral_weight(weights, first + k, lv.q.dtype) * l2_norm_squared(lv.q) * lv.mask
         acc = own if acc is None else own + jnp.sum(acc, axis=-1)
     return None if acc is None else jnp.sum(acc, axis=-1)
 
@@ -350,18 +362,32 @@ def children_of(t: SRVFTree, bi: Array, i: Array) -> SRVFTree:
     lv = t.deeper[0]
     q = lv.q[bi, i]
     q0 = jnp.zeros(q.shape[:1] + q.shape[2:], q.dtype)
+    thick = {}
+    if t.has_thickness:  # the radius channel rides along (docs/design.md §11)
+        base = jnp.concatenate([jnp.zeros_like(lv.base_radius[bi, i][:, :1]), lv.base_radius[bi, i]], axis=1)
+        thick = dict(base_radius=base, thickness_scale=t.thickness_scale[bi])
     return SRVFTree(
         q0=q0,
         q=q,
         s=lv.s[bi, i],
         mask=lv.mask[bi, i],
         origin=jnp.zeros(q.shape[:1] + (t.dim,), q.dtype),
-        deeper=tuple(SRVFLevel(q=x.q[bi, i], s=x.s[bi, i], mask=x.mask[bi, i]) for x in t.deeper[1:]),
+        **thick,
+        deeper=tuple(
+            SRVFLevel(
+                q=x.q[bi, i],
+                s=x.s[bi, i],
+                mask=x.mask[bi, i],
+                base_radius=None if x.base_radius is None else x.base_radius[bi, i],
+            )
+            for x in t.deeper[1:]
+        ),
     )
 
 
 def prepare(a: SRVFTree, b: SRVFTree, weights: Weights) -> Prepared:
     a, b, weights = lax.stop_gradient((a, b, weights))
+    weights = system_weights(weights, a)  # a plant's axes weigh as main roots (§11)
     dtype = a.q0.dtype
     lam_m = level_weight(weights, "main", dtype)
     lam_s = level_weight(weights, "lateral", dtype)
@@ -372,7 +398,7 @@ def prepare(a: SRVFTree, b: SRVFTree, weights: Weights) -> Prepared:
     below = (None,) * 4
     if a.deeper:
         # A real lateral left unmatched costs its whole subtree (docs/design.md §11).
-        sub_a, sub_b = descendant_norms(a.deeper, lam_s), descendant_norms(b.deeper, lam_s)
+        sub_a, sub_b = descendant_norms(a.deeper, weights, 2), descendant_norms(b.deeper, weights, 2)
         others = others + jnp.where(
             a.mask[:, :, None], sub_a[:, :, None], jnp.where(b.mask[:, None, :], sub_b[:, None, :], 0.0)
         )
@@ -442,17 +468,17 @@ def child_lower_bounds(p: Prepared, O: Float[Array, "B d d"]) -> Float[Array, "B
     matrix, so its cost is at least the sum of the row minima, and of the column minima.
     """
     la, lb = p.a.deeper[0], p.b.deeper[0]
-    lam = p.lam_lateral
+    lam = lateral_weight(p.weights, 2, p.La.dtype)
     La = l2_norm_squared(la.q) * la.mask
     Lb = l2_norm_squared(lb.q) * lb.mask
-    sub_a = descendant_norms(p.a.deeper[1:], lam)
-    sub_b = descendant_norms(p.b.deeper[1:], lam)
+    sub_a = descendant_norms(p.a.deeper[1:], p.weights, 3)
+    sub_b = descendant_norms(p.b.deeper[1:], p.weights, 3)
     # What leaving a child unmatched costs: its own norm and its whole subtree's.
     own_a = lam * La + (0.0 if sub_a is None else sub_a)
     own_b = lam * Lb + (0.0 if sub_b is None else sub_b)
     rows = (p.child_cone_a, p.child_cone_b, O, La, Lb, la.s, lb.s, la.mask, lb.mask, own_a, own_b)
     # One pair at a time: the [K, K, K2, K2] table of a pair is the largest array here.
-    return lax.map(lambda r: _child_bound_one(p.weights, *r), rows)
+    return lax.map(lambda r: _child_bound_one(child_weights(p.weights), *r), rows)
 
 
 def _child_bound_one(weights, cone_a, cone_b, O, La, Lb, sa, sb, ma, mb, own_a, own_b):
@@ -640,7 +666,12 @@ def lazy_assignment(
             bi, rem = jnp.divmod(safe, K * K)
             i, j = jnp.divmod(rem, K)
             total, n_dp = child_assignment(
-                children_of(p.a, bi, i), children_of(p.b, bi, j), p.weights, O[bi], lanes < n_items, options
+                children_of(p.a, bi, i),
+                children_of(p.b, bi, j),
+                child_weights(p.weights),
+                O[bi],
+                lanes < n_items,
+                options,
             )
             return A.at[lanes].set(total, mode="drop"), counts.at[lanes].set(n_dp, mode="drop")
 
@@ -770,7 +801,7 @@ def child_registrations(p: Prepared, O: Array, perm: Array, matched: Array, opti
         bi, i = jnp.divmod(safe, K)
         a_c, b_c = children_of(p.a, bi, i), children_of(p.b, bi, perm[bi, i])
         active = lanes < n_items
-        pc, (_, perm_c, computed, G, _) = _assign_children(a_c, b_c, p.weights, O[bi], active, options)
+        pc, (_, perm_c, computed, G, _) = _assign_children(a_c, b_c, child_weights(p.weights), O[bi], active, options)
         S, K2 = perm_c.shape
         both = jnp.any(jax.nn.one_hot(perm_c, K2, dtype=bool) & pc.both, axis=2) & active[:, None]
         gam = jnp.take_along_axis(G, perm_c[:, :, None, None], axis=2)[:, :, 0]
@@ -862,13 +893,14 @@ def refit_rotation(p: Prepared, perm: Array, g0: Array, gam: Array, children=())
     Bm = jnp.concatenate([q0w[:, None], qw], axis=1)[..., :d]
     w = jnp.concatenate([jnp.broadcast_to(p.lam_main, (B, 1)), p.lam_lateral * (a.mask & mbp).astype(dtype)], axis=1)
     perms, matched = [perm], a.mask & mbp
-    for la, lb, (pm, gm) in zip(a.deeper, b.deeper, children):
+    for ell, (la, lb, (pm, gm)) in enumerate(zip(a.deeper, b.deeper, children), start=2):
         perms.append(pm)
         qb = _warp_all(reorder_level(lb.q, perms), gm)
         matched = matched[..., None] & la.mask & reorder_level(lb.mask, perms)
         A = jnp.concatenate([A, la.q.reshape(B, -1, *la.q.shape[-2:])[..., :d]], axis=1)
         Bm = jnp.concatenate([Bm, qb.reshape(B, -1, *qb.shape[-2:])[..., :d]], axis=1)
-        w = jnp.concatenate([w, p.lam_lateral * matched.reshape(B, -1).astype(dtype)], axis=1)
+        lam = lateral_weight(p.weights, ell, dtype)
+        w = jnp.concatenate([w, lam * matched.reshape(B, -1).astype(dtype)], axis=1)
     return jax.vmap(optimal_rotation)(A, Bm, w)
 
 
@@ -896,11 +928,26 @@ def _initial_children(p: Prepared) -> list:
     ]
 
 
+def starting_rotation(a: SRVFTree, b: SRVFTree) -> Float[Array, "B d d"]:
+    """The rotation the alternation starts from: the one aligning the main roots, or for
+    plants' systems (zero-length virtual main roots) the one aligning the longest axes
+    (``||q||²``, first on ties), which is the taproot's start when each plant has one axis."""
+    d = a.dim
+    if not a.virtual_main:
+        return jax.vmap(optimal_rotation)(a.q0[..., :d], b.q0[..., :d])
+
+    def longest(t):
+        L = jnp.where(t.mask, l2_norm_squared(t.q), -1.0)
+        return jnp.take_along_axis(t.q, jnp.argmax(L, axis=-1)[:, None, None, None], axis=1)[:, 0, :, :d]
+
+    return jax.vmap(optimal_rotation)(longest(a), longest(b))
+
+
 def search(a: SRVFTree, b: SRVFTree, weights: Weights, active: Array, options: RegistrationOptions) -> SearchResult:
     """Optimal (rotation, permutation, warps) for a batch of B pairs; no gradients.
 
     Alternates `evaluate` (correspondence and warps at fixed rotation) and `refit_rotation`,
-    starting from the rotation that aligns the main roots; a pair stops when its energy falls
+    starting from `starting_rotation`; a pair stops when its energy falls
     by less than `rtol` (relative) or stops falling. Inactive pairs do no work.
     """
     p = prepare(a, b, weights)
@@ -910,7 +957,7 @@ def search(a: SRVFTree, b: SRVFTree, weights: Weights, active: Array, options: R
     identity = _identity_grid(T, dtype)
     eye = jnp.broadcast_to(jnp.eye(d, dtype=dtype), (B, d, d))
     rotation = options.rotation
-    start = jax.vmap(optimal_rotation)(p.a.q0[..., :d], p.b.q0[..., :d])
+    start = starting_rotation(p.a, p.b)
     O_start = jnp.where(rotation, start, eye)
     n_rounds = jnp.where(rotation, options.max_iterations, 1)
 
@@ -974,7 +1021,10 @@ def apply_registration(a: SRVFTree, b: SRVFTree, O, perm, g0, gam, children=()) 
         m = reorder_level(lb.mask[None], perms)[0]
         q = _warp_all(rotate_srvf(reorder_level(lb.q[None], perms)[0], O), gm) * m[..., None, None]
         s_b = reorder_level(lb.s[None], perms)[0]
-        deeper.append(SRVFLevel(q=q, s=jnp.where(m, s_b, la.s), mask=m))
+        base_b = None
+        if lb.base_radius is not None:  # a null takes its partner's starting radius, as at level 1
+            base_b = jnp.where(m, reorder_level(lb.base_radius[None], perms)[0], la.base_radius)
+        deeper.append(SRVFLevel(q=q, s=jnp.where(m, s_b, la.s), mask=m, base_radius=base_b))
     return SRVFTree(
         q0=q0,
         q=qw,
@@ -984,6 +1034,7 @@ def apply_registration(a: SRVFTree, b: SRVFTree, O, perm, g0, gam, children=()) 
         base_radius=base,
         thickness_scale=b.thickness_scale,
         deeper=tuple(deeper),
+        virtual_main=b.virtual_main,
     )
 
 
@@ -991,9 +1042,30 @@ def apply_registration(a: SRVFTree, b: SRVFTree, O, perm, g0, gam, children=()) 
 # Symmetric distances
 
 
+def _axes_view(t: SRVFTree):
+    """A plant's system (batched) seen as a taproot system, for `_order_key` only: the sum of
+    its axes as the main root, every deeper level one up (the first two slot axes merged).
+    With one axis per plant the key is the taproot's, so both register in the same direction."""
+    B, K = t.mask.shape
+
+    def up(x):
+        return x.reshape((B, K * x.shape[2]) + x.shape[3:])
+
+    return types.SimpleNamespace(
+        q0=jnp.sum(t.q, axis=1),
+        q=up(t.deeper[0].q),
+        s=up(t.deeper[0].s),
+        mask=up(t.deeper[0].mask),
+        origin=t.origin,
+        deeper=tuple(types.SimpleNamespace(q=up(lv.q)) for lv in t.deeper[1:]),
+    )
+
+
 def _order_key(t: SRVFTree) -> Float[Array, "B F"]:
     """A few numbers read off a tree's content (any fixed function works; only its values on
     the two trees of a pair are compared)."""
+    if t.virtual_main and t.deeper:
+        t = _axes_view(t)
     dtype = t.q0.dtype
     L = l2_norm_squared(t.q) * t.mask
     feats = [
@@ -1066,11 +1138,6 @@ def register_pairs(
     ``split=True`` the pairs are spread over every XLA device. Trace-safe: call it inside
     `eqx.filter_jit` functions; `register_pairs_jit` is the compiled entry for eager callers.
     """
-    if a.deeper and (a.thickness_scale is not None or b.thickness_scale is not None):
-        raise NotImplementedError(
-            "registration of trees deeper than 2 levels with a thickness channel is not supported "
-            "yet: use Weights(thickness=0) or batch(..., depth=2)."
-        )
     if len(a.deeper) != len(b.deeper):
         raise ValueError(f"trees of depth {a.depth} and {b.depth} cannot be registered: batch them together.")
     if active is None:

@@ -26,7 +26,11 @@ def geodesic_srvf(a: SRVFTree, registered_b: SRVFTree, taus) -> SRVFTree:
     levels = []
     for la, lb in zip(a.deeper, registered_b.deeper):
         ls_a = jnp.where(la.mask, la.s, lb.s)
-        levels.append((la.q, lb.q, ls_a, jnp.where(lb.mask, lb.s, ls_a), la.mask | lb.mask))
+        base = None
+        if la.base_radius is not None:  # as at level 1: a one-sided branch keeps its partner's
+            rb_b = jnp.where(lb.mask, lb.base_radius, la.base_radius)
+            base = (jnp.where(la.mask, la.base_radius, rb_b), rb_b)
+        levels.append((la.q, lb.q, ls_a, jnp.where(lb.mask, lb.s, ls_a), la.mask | lb.mask, base))
 
     def point(tau):
         lerp = lambda x, y: (1 - tau) * x + tau * y  # noqa: E731
@@ -46,7 +50,11 @@ def geodesic_srvf(a: SRVFTree, registered_b: SRVFTree, taus) -> SRVFTree:
             origin=lerp(a.origin, registered_b.origin),
             base_radius=base,
             thickness_scale=a.thickness_scale,
-            deeper=tuple(SRVFLevel(q=lerp(qa, qb), s=lerp(sa, sb), mask=m) for qa, qb, sa, sb, m in levels),
+            deeper=tuple(
+                SRVFLevel(q=lerp(qa, qb), s=lerp(sa, sb), mask=m, base_radius=None if r is None else lerp(*r))
+                for qa, qb, sa, sb, m, r in levels
+            ),
+            virtual_main=a.virtual_main,
         )
 
     return jax.vmap(point)(jnp.asarray(taus, a.q0.dtype))

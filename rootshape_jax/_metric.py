@@ -67,22 +67,80 @@ class Weights(_ByTerm):
     - `position` (λp, default 1): movement of attachment points, ``Σ (sa_k − sb_k)²``.
     - `thickness` (λr, default 0): radius along each branch, through the extended SRVF of
       ``(x, √λr·r)`` (docs/design.md §11); used where trees carry radii. 0 is the paper's metric.
+    - `deeper` (keyword only, default ``()``): ``((λs, λp), …)`` of levels 2, 3, … (second-order
+      laterals and below, docs/design.md §11: each level has its own weights). A level beyond
+      the tuple takes its last entry; with ``()`` every level takes `lateral` and `position`,
+      as the paper's first-order laterals do (`Weights.at_level`).
 
     ``Weights(0.02, 1, 1)`` gives values in that order; names are clearer. The paper's figures
     use ``(0.02, 1, 1)``. The values are JAX arrays, so weights can be learned by
     differentiating through `distance`.
     """
 
-    def __init__(self, *args, **kwargs):
+    deeper: tuple[tuple[Array, Array], ...]
+
+    def __init__(self, *args, deeper=(), **kwargs):
         values = _by_name("Weights", args, kwargs, defaults=True)
         self.values = {k: jnp.asarray(v) for k, v in values.items()}
+        try:
+            pairs = tuple(tuple(p) for p in deeper)
+        except TypeError:
+            pairs = None
+        if pairs is None or any(len(p) != 2 for p in pairs):
+            raise ValueError(
+                f"Weights.deeper must be a sequence of (λs, λp) pairs, one per level from 2 on; got {deeper!r}."
+            )
+        self.deeper = tuple((jnp.asarray(ls), jnp.asarray(lp)) for ls, lp in pairs)
 
     def __check_init__(self):
-        for name, v in self.values.items():
+        named = list(self.values.items())
+        for ell, (ls, lp) in enumerate(self.deeper, start=2):
+            named += [(f"deeper[{ell - 2}] (level {ell}) λs", ls), (f"deeper[{ell - 2}] (level {ell}) λp", lp)]
+        for name, v in named:
             if isinstance(v, jax.core.Tracer) or not isinstance(v, (jax.Array, np.ndarray)):
                 continue
             if v.shape != () or not np.isfinite(v) or v < 0:
                 raise ValueError(f"Weights.{name} must be a finite non-negative scalar, got {v!r}.")
+
+    def at_level(self, level: int) -> tuple[Array, Array]:
+        """``(λs, λp)`` of the branches at `level` (1 = the main root's laterals, 2 = their
+        laterals, ...): `lateral` and `position` at level 1, ``deeper[level − 2]`` below, the
+        last entry of `deeper` beyond it (level 1's when `deeper` is empty)."""
+        if level < 1:
+            raise ValueError(f"Weights.at_level: level must be >= 1 (1 = first-order laterals), got {level}.")
+        if level == 1 or not self.deeper:
+            return self.values["lateral"], self.values["position"]
+        return self.deeper[min(level - 2, len(self.deeper) - 1)]
+
+
+def lateral_weight(weights: Weights, level: int, dtype) -> Array:
+    """λs of `level` (`Weights.at_level`) as a `dtype` array."""
+    return jnp.asarray(weights.at_level(level)[0], dtype)
+
+
+def child_weights(weights: Weights) -> Weights:
+    """The weights seen one level down, from a branch whose children are compared as the
+    laterals of a tree (nested registration): level ℓ + 1's weights become level ℓ's."""
+    if not weights.deeper:
+        return weights
+    lam_s, lam_p = weights.deeper[0]
+    values = {**dict(weights.items()), "lateral": lam_s, "position": lam_p}
+    return Weights(**values, deeper=weights.deeper[1:])
+
+
+def system_weights(weights: Weights, tree) -> Weights:
+    """The weights that `tree`'s levels use (docs/design.md §11).
+
+    A plant's system (`SRVFTree.virtual_main`: a virtual main root of zero length whose
+    level-1 branches are the plant's axes, all at s = 0) is weighed as the taproot analysis of
+    its axes: the axes take the main root's λm (no position term), level ℓ ≥ 2 the weights of
+    level ℓ − 1. One axis per plant then gives exactly the taproot distances. Any other tree:
+    `weights` as given.
+    """
+    if not getattr(tree, "virtual_main", False):
+        return weights
+    values = {**dict(weights.items()), "lateral": weights.main, "position": jnp.zeros_like(weights.position)}
+    return Weights(**values, deeper=((weights.lateral, weights.position),) + weights.deeper)
 
 
 class MetricTerms(_ByTerm):
@@ -125,7 +183,8 @@ def pair_lower_bounds(weights: Weights, a: SRVFTree, b: SRVFTree, dp_bound: Arra
 
 def null_costs(weights: Weights, a: SRVFTree, b: SRVFTree, La: Array, Lb: Array) -> Float[Array, "*B K K"]:
     """Exact cost of the lateral pairs that are not both real: a real lateral matched to a null
-    costs its whole λ-weighted norm (`La`, `Lb`: lengths ``||q||²``, 0 for nulls); null–null 0."""
+    costs its whole λ-weighted norm (`La`, `Lb`: lengths ``||q||²``, 0 for nulls); null–null 0.
+    (Level-1 weights; the engine adds what lies below.)"""
     lam = level_weight(weights, "lateral", La.dtype)
     return jnp.where(
         a.mask[..., :, None],
@@ -137,11 +196,12 @@ def null_costs(weights: Weights, a: SRVFTree, b: SRVFTree, La: Array, Lb: Array)
 def preshape_terms(a: SRVFTree, b: SRVFTree, weights: Weights | None = None) -> MetricTerms:
     """Weighted terms of the squared pre-shape distance, slot by slot (no registration).
 
-    Slot k of `a` is compared with slot k of `b`. A position difference counts only where both
+    Slot k of `a` is compared with slot k of `b`; every level takes its own weights
+    (`Weights.at_level`, and `system_weights` for a plant's system). A position difference counts only where both
     slots are real laterals: a null lateral has no length, so it sits at its partner's
     attachment point (docs/design.md §4: real vs null costs ``λs||q||²`` only).
     """
-    weights = Weights() if weights is None else weights
+    weights = system_weights(Weights() if weights is None else weights, a)
     return MetricTerms(**{t.name: t.energy(weights, a, b) for t in TERMS})
 
 

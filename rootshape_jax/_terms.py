@@ -89,12 +89,12 @@ class LateralTerm(MetricTerm):
     tangent_block = "q"
 
     def energy(self, weights, a, b):
-        total = jnp.sum(l2_norm_squared(spatial(a.q - b.q, a.dim)), axis=-1)
-        # Deeper orders (docs/design.md §11) weigh the same: every branch below the main root.
-        for la, lb in zip(a.deeper, b.deeper):
+        total = weights.lateral * jnp.sum(l2_norm_squared(spatial(a.q - b.q, a.dim)), axis=-1)
+        # Deeper orders (docs/design.md §11), each level with its own λs.
+        for ell, (la, lb) in enumerate(zip(a.deeper, b.deeper), start=2):
             e = l2_norm_squared(spatial(la.q - lb.q, a.dim))
-            total = total + jnp.sum(e.reshape(e.shape[: total.ndim] + (-1,)), axis=-1)
-        return weights.lateral * total
+            total = total + weights.at_level(ell)[0] * jnp.sum(e.reshape(e.shape[: total.ndim] + (-1,)), axis=-1)
+        return total
 
 
 class PositionTerm(MetricTerm):
@@ -107,11 +107,11 @@ class PositionTerm(MetricTerm):
         # Only where both slots are real: a null lateral has no length and sits at its
         # partner's attachment point (real vs null costs λs||q||² only).
         both = jnp.logical_and(a.mask, b.mask)
-        total = jnp.sum(jnp.where(both, (a.s - b.s) ** 2, 0.0), axis=-1)
-        for la, lb in zip(a.deeper, b.deeper):
+        total = weights.position * jnp.sum(jnp.where(both, (a.s - b.s) ** 2, 0.0), axis=-1)
+        for ell, (la, lb) in enumerate(zip(a.deeper, b.deeper), start=2):
             e = jnp.where(la.mask & lb.mask, (la.s - lb.s) ** 2, 0.0)
-            total = total + jnp.sum(e.reshape(e.shape[: total.ndim] + (-1,)), axis=-1)
-        return weights.position * total
+            total = total + weights.at_level(ell)[1] * jnp.sum(e.reshape(e.shape[: total.ndim] + (-1,)), axis=-1)
+        return total
 
     def pair_cost(self, weights, a, b):
         return weights.position * (a.s[..., :, None] - b.s[..., None, :]) ** 2

@@ -41,6 +41,10 @@ class ThicknessTerm(MetricTerm):
             return jnp.zeros(a.q0.shape[:-2], a.q0.dtype)
         main = weights.main * l2_norm_squared(a.q0[..., d:] - b.q0[..., d:])
         lateral = weights.lateral * jnp.sum(l2_norm_squared(a.q[..., d:] - b.q[..., d:]), axis=-1)
+        # Deeper levels (docs/design.md §11): the channel's share of each level's λs term.
+        for ell, (la, lb) in enumerate(zip(a.deeper, b.deeper), start=2):
+            e = l2_norm_squared(la.q[..., d:] - lb.q[..., d:])
+            lateral = lateral + weights.at_level(ell)[0] * jnp.sum(e.reshape(e.shape[: main.ndim] + (-1,)), axis=-1)
         return main + lateral
 
 

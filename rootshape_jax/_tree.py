@@ -176,6 +176,11 @@ class RootTree(eqx.Module):
     - `deeper`: ``()`` for the paper's depth-2 tree; otherwise one `BranchLevel` per deeper
       level ℓ = 2 … D−1 (second-order laterals, their laterals, ...), level ℓ shaped
       ``[K1, …, Kℓ, T, d]`` (docs/design.md §11). ``depth = 2 + len(deeper)``.
+    - `virtual_main` (static): True for plants' systems (`rootshape_jax.io.plant_system`,
+      ``read_rsml(by="plant")``): the main root is a virtual one of zero length and the level-1
+      branches are the plant's axes. Registration then weighs the axes as main roots and each
+      deeper level as the level above it (`rootshape_jax.Weights`, docs/design.md §11), so one
+      axis per plant is exactly the taproot analysis. `batch` sets it.
 
     Radius padding: null slots have radius 0; so does every branch of a root that came without
     radius data in a batch where other roots have it (`batch` warns and names those roots).
@@ -188,6 +193,7 @@ class RootTree(eqx.Module):
     main_radius: Float[Array, "*B T"] | None = None
     lateral_radius: Float[Array, "*B K T"] | None = None
     deeper: tuple[BranchLevel, ...] = ()
+    virtual_main: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         _check_shapes("RootTree", self.main, self.laterals, self.attach, self.mask, names=("main", "laterals"))
@@ -247,6 +253,8 @@ class SRVFTree(eqx.Module):
     - `deeper`: ``()`` at depth 2; otherwise one `SRVFLevel` per deeper level ℓ = 2 … D−1,
       shaped ``[K1, …, Kℓ, T, C]`` (with their own `SRVFLevel.base_radius` under a thickness
       channel).
+    - `virtual_main` (static): a plant's system, as in `RootTree` (kept by `to_srvf` and
+      `to_curves`).
     """
 
     q0: Float[Array, "*B T C"]
@@ -257,6 +265,7 @@ class SRVFTree(eqx.Module):
     base_radius: Float[Array, "*B K1"] | None = None
     thickness_scale: Float[Array, "*B"] | None = None
     deeper: tuple[SRVFLevel, ...] = ()
+    virtual_main: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         _check_shapes("SRVFTree", self.q0, self.q, self.s, self.mask, names=("q0", "q"))
@@ -679,9 +688,37 @@ def batch(
             )
         )
     tree = RootTree(
-        jnp.asarray(main), jnp.asarray(lats), jnp.asarray(attach), jnp.asarray(mask), **radii, deeper=tuple(deeper)
+        jnp.asarray(main),
+        jnp.asarray(lats),
+        jnp.asarray(attach),
+        jnp.asarray(mask),
+        **radii,
+        deeper=tuple(deeper),
+        virtual_main=_virtual_main(roots_list),
     )
     return unstack(tree)[0] if single else tree
+
+
+def _is_system(root: Root) -> bool:
+    """A plant's system: marked by `plant_system`, or a zero-length main root with laterals
+    (a real root never has zero length; a mean or mode of systems has)."""
+    return bool(root.metadata.get("virtual_main")) or (
+        root.n_laterals > 0 and polyline_length(root.main.astype(np.float64)) == 0.0
+    )
+
+
+def _virtual_main(roots: Sequence[Root]) -> bool:
+    flags = [_is_system(r) for r in roots]
+    if any(flags) and not all(flags):
+        systems = [_root_label(r, i) for i, r in enumerate(roots) if flags[i]][:3]
+        single = [_root_label(r, i) for i, r in enumerate(roots) if not flags[i]][:3]
+        raise InvalidRootError(
+            f"batch(): the roots mix plants' systems (a virtual main root, e.g. {', '.join(systems)}) "
+            f"with single roots (e.g. {', '.join(single)}); they cannot be compared. Read every file "
+            "with the same `by` (read_rsml(path, by='plant') for all), or wrap single roots with "
+            "rootshape_jax.io.plant_system([root])."
+        )
+    return bool(flags and flags[0])
 
 
 def _children_counts(root: Root, depth: int) -> list[int]:
@@ -869,7 +906,8 @@ def to_roots(tree: RootTree, *, names: Sequence[str] | None = None, unit: str | 
                 name=names[i] if names is not None else "",
                 main_radius=main_r[i] if has_radius else None,
                 lateral_radii=tuple(lat_r[i, k] for k in keep) if has_radius else None,
-                metadata={} if unit is None else {"unit": unit},
+                metadata=({} if unit is None else {"unit": unit})
+                | ({"virtual_main": True} if tree.virtual_main else {}),
                 children=children,
             )
         )
@@ -935,12 +973,22 @@ def to_srvf(tree: RootTree | SRVFTree, *, weights=None) -> SRVFTree:
         )
         deeper = tuple(_level_srvf(lv, c) for lv in tree.deeper)
         return SRVFTree(
-            q0=q0, q=q, s=tree.attach, mask=tree.mask, origin=origin, base_radius=base, thickness_scale=c, deeper=deeper
+            q0=q0,
+            q=q,
+            s=tree.attach,
+            mask=tree.mask,
+            origin=origin,
+            base_radius=base,
+            thickness_scale=c,
+            deeper=deeper,
+            virtual_main=tree.virtual_main,
         )
     q0 = srvf(tree.main)
     q = srvf(tree.laterals) * tree.mask[..., None, None]
     deeper = tuple(_level_srvf(lv, None) for lv in tree.deeper)
-    return SRVFTree(q0=q0, q=q, s=tree.attach, mask=tree.mask, origin=origin, deeper=deeper)
+    return SRVFTree(
+        q0=q0, q=q, s=tree.attach, mask=tree.mask, origin=origin, deeper=deeper, virtual_main=tree.virtual_main
+    )
 
 
 def _level_srvf(level: BranchLevel, c) -> SRVFLevel:
@@ -977,7 +1025,7 @@ def _to_curves_single(t: SRVFTree) -> RootTree:
         q = t.q * t.mask[:, None, None]
         lats = jax.vmap(srvf_to_curve)(q, bases)
         deeper = _deeper_curves(t, lats)
-        return RootTree(main=main, laterals=lats, attach=t.s, mask=t.mask, deeper=deeper)
+        return RootTree(main=main, laterals=lats, attach=t.s, mask=t.mask, deeper=deeper, virtual_main=t.virtual_main)
     c = t.thickness_scale
     main, r0 = integrate_branch(t.q0, t.origin, t.base_radius[0], c)
     bases = interpolate_at_fraction(main, t.s)
@@ -985,7 +1033,16 @@ def _to_curves_single(t: SRVFTree) -> RootTree:
     lats, r = jax.vmap(integrate_branch, in_axes=(0, 0, 0, None))(q, bases, t.base_radius[1:], c)
     r = r * t.mask[:, None]
     deeper = _deeper_curves(t, lats)
-    return RootTree(main=main, laterals=lats, attach=t.s, mask=t.mask, main_radius=r0, lateral_radius=r, deeper=deeper)
+    return RootTree(
+        main=main,
+        laterals=lats,
+        attach=t.s,
+        mask=t.mask,
+        main_radius=r0,
+        lateral_radius=r,
+        deeper=deeper,
+        virtual_main=t.virtual_main,
+    )
 
 
 def _deeper_curves(t: SRVFTree, lats: Array) -> tuple[BranchLevel, ...]:
@@ -1040,6 +1097,12 @@ def check_compatible(a: RootTree | SRVFTree, b: RootTree | SRVFTree, what: str =
             f"{what} have different capacities: (T, K, d) = {(a.n_points, a.capacity, a.dim)} vs "
             f"{(b.n_points, b.capacity, b.dim)}. Build them in one call to batch() or pass the same "
             "n_points and max_laterals."
+        )
+    if a.virtual_main != b.virtual_main:
+        raise ValueError(
+            f"{what}: one is a plant's system (virtual main root, read_rsml(by='plant')) and the other a "
+            "single root; read both with the same `by`, or wrap single roots with "
+            "rootshape_jax.io.plant_system([root])."
         )
     if a.capacities != b.capacities:
         raise ValueError(

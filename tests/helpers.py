@@ -323,9 +323,18 @@ def reference_tree_distance(
 ) -> tuple[float, dict]:
     """Register b onto a and return (minimised squared distance, details), slowly and plainly.
 
-    - `weights`: a `rootshape_jax.Weights` (thickness must be 0); λm weights the main roots.
+    - `weights`: a `rootshape_jax.Weights`; λm weights the main roots. With a thickness weight
+      λr > 0 and roots with radii, every branch is the extended curve ``(x, √λr·r)``
+      (`rootshape_jax.to_srvf`): its SRVF has one more channel, which the rotation leaves alone.
     - `level_weights`: ``[(λs, λp), …]`` for levels 1 … depth − 1; default ``(weights.lateral,
-      weights.position)`` at every level.
+      weights.position)`` at level 1 and ``weights.deeper[ℓ − 2]`` at level ℓ ≥ 2 (its last
+      entry beyond it, level 1's when it is empty).
+
+    Plants' systems (the roots are `rootshape_jax.io.plant_system`s, a virtual main root of zero
+    length): the axes (level 1) weigh as main roots, ``(λm, 0)``, and level ℓ ≥ 2 takes the
+    weights level ℓ − 1 would have in a taproot system; the rotation starts from the Kabsch
+    rotation of the longest axes (largest ``||q||²``, the first on ties) instead of the main
+    roots'.
 
     At a fixed rotation O (applied to b), bottom-up (docs/design.md §11): a branch pair at level
     ℓ costs ``λs_ℓ ||qa − (O qb∘γ)√γ'||²`` with γ from `reference_dp` (the warped SRVF rescaled
@@ -344,15 +353,26 @@ def reference_tree_distance(
     import rootshape_jax as rs
 
     weights = rs.Weights() if weights is None else weights
-    if float(weights.thickness) != 0.0:
-        raise ValueError("reference_tree_distance: thickness must be 0.")
     lam_m = float(weights.main)
-    if level_weights is None:
-        level_weights = [(float(weights.lateral), float(weights.position))] * (depth - 1)
     kw = {} if depth == 2 and max_children is None else {"depth": depth, "max_children": max_children}
     tree = rs.to_srvf(
-        rs.batch([a_root, b_root], n_points=n_points, normalise_scale=normalise_scale, dtype=np.float64, **kw)
+        rs.batch([a_root, b_root], n_points=n_points, normalise_scale=normalise_scale, dtype=np.float64, **kw),
+        weights=weights,
     )
+    d = tree.dim  # spatial channels; a thickness channel may follow
+
+    def rot(q, O):
+        out = np.array(q, dtype=float)
+        out[:, :d] = q[:, :d] @ O.T
+        return out
+
+    system = bool(a_root.metadata.get("virtual_main")) and bool(b_root.metadata.get("virtual_main"))
+    if level_weights is None:
+        per_level = [(float(weights.lateral), float(weights.position))]
+        per_level += [(float(ls), float(lp)) for ls, lp in weights.deeper]
+        if system:  # every level takes the weights of the level above it in a taproot system
+            per_level = [(lam_m, 0.0)] + per_level
+        level_weights = [per_level[min(ell, len(per_level) - 1)] for ell in range(depth - 1)]
     A, B = _ref_branches(tree, 0), _ref_branches(tree, 1)
     n_dp = [0] * depth  # DPs run per level (0 = main)
 
@@ -360,7 +380,7 @@ def reference_tree_distance(
         return level_weights[ell - 1][0] * _ref_norm2(br["q"]) + sum(null_cost(c, ell + 1) for c in br["children"])
 
     def branch_energy(qa, qb, O, ell):
-        qbo = qb @ O.T
+        qbo = rot(qb, O)
         gamma, _ = reference_dp(qa, qbo, neighbourhood)
         n_dp[ell] += 1
         return _ref_norm2(qa - _ref_warp_keep_norm(qbo, gamma)), gamma
@@ -409,13 +429,16 @@ def reference_tree_distance(
         return lam_m * e + c, [(A, B, gamma, 0)] + matches
 
     def refit(matches):
-        qa = [x["q"] for x, _, _, _ in matches]
-        qb = [_ref_warp_keep_norm(y["q"], g) for _, y, g, _ in matches]
+        qa = [x["q"][:, :d] for x, _, _, _ in matches]
+        qb = [_ref_warp_keep_norm(y["q"], g)[:, :d] for _, y, g, _ in matches]
         w = [lam_m if ell == 0 else level_weights[ell - 1][0] for *_, ell in matches]
         return _ref_kabsch(qa, qb, w)
 
-    d = A["q"].shape[-1]
-    O = _ref_kabsch([A["q"]], [B["q"]], [1.0]) if rotation else np.eye(d)
+    if system:
+        longest = [max(t["children"], key=lambda c: _ref_norm2(c["q"]))["q"] for t in (A, B)]
+        O = _ref_kabsch([longest[0][:, :d]], [longest[1][:, :d]], [1.0]) if rotation else np.eye(d)
+    else:
+        O = _ref_kabsch([A["q"][:, :d]], [B["q"][:, :d]], [1.0]) if rotation else np.eye(d)
     best_E, best_matches, best_O = np.inf, None, O
     rounds = max_iterations if rotation else 1
     for it in range(rounds):

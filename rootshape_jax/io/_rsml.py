@@ -448,7 +448,7 @@ def read_rsml(
       stored pixel coordinates and report ``unit = "pixel"``.
     - `by`: ``"root"`` (default): one `Root` per top-level root, as described below.
       ``"plant"``: one `Root` per plant, the whole system (docs/design.md §11): a *virtual main
-      root* of zero length (two copies of the collar, the base of the plant's first axis), its
+      root* of zero length (two copies of the collar, the mean of the bases of the plant's axes), its
       top-level roots (seminal, nodal axes, several seedlings' roots) as laterals at
       ``attach = 0`` in file order, and each axis's `Root` (with its own laterals, recursively)
       as the matching entry of `Root.children`. Its radius is 0 along the virtual main root
@@ -725,12 +725,20 @@ def read_rsml(
 
 def plant_system(axes: Sequence[Root], *, name: str = "", metadata: dict | None = None) -> Root:
     """One plant as one `Root` (docs/design.md §11): a virtual main root of zero length at the
-    collar (the base of the first axis), the axes as laterals at ``attach = 0``, and the axes
-    themselves (with their own laterals) as `Root.children`."""
+    collar (the mean of the axes' bases, so the order of the axes does not matter), the axes
+    as laterals at ``attach = 0``, and the axes themselves (with their own laterals) as
+    `Root.children`.
+
+    `batch` marks such systems (`RootTree.virtual_main`) and registration weighs their axes as
+    main roots and every deeper level as the level above it, so plants of one axis each give
+    exactly the distances of the axes as taproot systems (at one more level of depth:
+    ``batch(plants, depth=D + 1)`` matches ``batch(axes, depth=D)``)."""
     axes = list(axes)
     if not axes:
         raise InvalidRootError("plant_system: a plant needs at least one axis.")
-    collar = axes[0].main[0]
+    # The mean of the axes' bases: the same whatever the order of the axes (one axis: its base;
+    # axes sharing a collar: that point); an axis starting elsewhere is joined to it by `batch`.
+    collar = np.mean([np.asarray(a.main[0], dtype=np.float64) for a in axes], axis=0).astype(axes[0].main.dtype)
     has_radius = any(a.main_radius is not None for a in axes)
     meta = dict(metadata or {})
     meta.update(virtual_main=True, n_axes=len(axes))
