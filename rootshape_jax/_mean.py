@@ -194,6 +194,14 @@ def _check_samples(samples: SRVFTree, what: str) -> int:
     n = batch_size(samples)
     if n < 1:
         raise ValueError(f"{what}: empty batch; give at least one root.")
+    if samples.virtual_main:
+        # The engine weighs a plant's axes as main roots (`_metric.system_weights`); the mean's
+        # own update, refit and tangent space do not yet.
+        raise NotImplementedError(
+            f"{what}: the Karcher mean (and PCA, sampling and regression on it) of plants' systems "
+            "(read_rsml(..., by='plant'), several axes per plant) is not supported yet; distances, "
+            "geodesics and clustering are. Read the roots with by='root' (one system per axis) for these."
+        )
     return n
 
 
@@ -213,8 +221,7 @@ def _lower_bound_energy(a: SRVFTree, b: SRVFTree, weights: Weights, assignment: 
     others = null_costs(weights, a, b, La, Lb)
     if a.deeper:
         # Depth D > 2: a real lateral left unmatched also costs its whole subtree (exact).
-        lam_s = level_weight(weights, "lateral", a.q0.dtype)
-        sub_a, sub_b = descendant_norms(a.deeper, lam_s), descendant_norms(b.deeper, lam_s)
+        sub_a, sub_b = descendant_norms(a.deeper, weights, 2), descendant_norms(b.deeper, weights, 2)
         others = others + jnp.where(a.mask[:, None], sub_a[:, None], jnp.where(b.mask[None, :], sub_b[None, :], 0.0))
     C = jnp.where(both, pair_lower_bounds(weights, a, b, cauchy_schwarz), others)
     perm = linear_assignment(C, method=assignment)

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._curves import l2_norm_squared, trapezoid_weights
-from ._metric import TERMS, Weights, level_weight
+from ._metric import TERMS, Weights, lateral_weight, level_weight
 from ._tree import SRVFLevel, SRVFTree
 
 
@@ -45,18 +45,20 @@ class TreeParams(eqx.Module):
 
 def term_weight(weights: Weights, name: str, level: int):
     """The weight λ of term `name` at branch level `level` (0 = main root, 1 = first-order
-    laterals, ...). Every level below the main root uses the level-1 weights today, as the
-    metric does (`_terms.LateralTerm`, `_terms.PositionTerm`); per-level weights change only
-    this function."""
-    del level
+    laterals, ...): the lateral and position terms take that level's own weights
+    (`Weights.at_level`, docs/design.md §11), the other terms their one weight."""
+    if level >= 1 and name in ("lateral", "position"):
+        return weights.at_level(level)[0 if name == "lateral" else 1]
     return weights[name]
 
 
 def branch_weight(weights: Weights, level: int, dtype) -> Array:
     """Weight of the branch DPs at `level` (0 = main root, else laterals of that order): the
-    weight of the rotation fit's terms there (`_metric.level_weight`; every level below the
-    main root weighs as level 1 today, like `term_weight`)."""
-    return level_weight(weights, "main" if level == 0 else "lateral", dtype)
+    weight of the rotation fit's terms there (`_metric.level_weight` at levels 0 and 1, that
+    level's λs below)."""
+    if level <= 1:
+        return level_weight(weights, "main" if level == 0 else "lateral", dtype)
+    return lateral_weight(weights, level, dtype)
 
 
 def level_value(x: Array, level: int) -> Array:

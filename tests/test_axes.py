@@ -326,3 +326,27 @@ def test_thickness_at_depth_three_equals_the_reference(thick_systems, pair):
     back = rs.to_curves(rs.to_srvf(ta, weights=w)).deeper[0]
     np.testing.assert_allclose(np.asarray(start.radius)[m], np.asarray(back.radius)[m], atol=1e-9)
     np.testing.assert_allclose(np.asarray(start.radius)[m], np.asarray(ta.deeper[0].radius)[m], atol=1e-5)
+
+
+def test_mean_of_plants_systems_is_refused_with_the_fix():
+    # The engine weighs a plant's axes as main roots; the mean's update does not yet: a named
+    # refusal before any registration, not a silently different mean.
+    trees = rs.batch(_multi_axis_plants(), n_points=T, depth=3, max_children=(6, 8), dtype=np.float64)
+    with pytest.raises(NotImplementedError, match="by='root'"):
+        rs.karcher_mean(trees)
+
+
+def test_tangent_space_reads_the_per_level_weights():
+    from rootshape_jax._tangent import branch_weight, term_weight, whitening
+
+    w = rs.Weights(main=0.3, lateral=1.0, position=0.7, deeper=((2.5, 0.2),))
+    assert float(term_weight(w, "lateral", 1)) == 1.0 and float(term_weight(w, "position", 1)) == 0.7
+    assert float(term_weight(w, "lateral", 2)) == 2.5 and float(term_weight(w, "position", 3)) == 0.2
+    assert float(term_weight(w, "main", 0)) == 0.3
+    assert float(branch_weight(w, 2, np.float64)) == 2.5 and float(branch_weight(w, 1, np.float64)) == 1.0
+    c = whitening(w, T, np.float64, depth=3)
+    c1 = whitening(rs.Weights(main=0.3, lateral=1.0, position=0.7), T, np.float64, depth=3)
+    # Level 2's blocks scale with √2.5 and √0.2 instead of level 1's √1 and √0.7.
+    np.testing.assert_allclose(np.asarray(c.deeper[0].q) / np.asarray(c1.deeper[0].q), np.sqrt(2.5))
+    np.testing.assert_allclose(np.asarray(c.deeper[0].s) / np.asarray(c1.deeper[0].s), np.sqrt(0.2 / 0.7))
+    np.testing.assert_allclose(np.asarray(c.q), np.asarray(c1.q))

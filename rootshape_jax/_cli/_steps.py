@@ -47,6 +47,12 @@ def at_depth(pop: Population, what: str):
         yield
     except NotImplementedError:
         depth = int(pop.tree.depth)
+        if pop.tree.virtual_main:
+            raise CLIError(
+                f"{what} does not work on plants' systems (--per plant) in this version of rootshape_jax "
+                "yet; run it with --per root (one system per axis). distances, compare, cluster, "
+                "geodesic and traits work on plants' systems."
+            ) from None
         if depth <= 2:
             raise
         raise CLIError(
