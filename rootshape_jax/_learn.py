@@ -387,6 +387,13 @@ def _learned_names(learn_thickness: bool) -> tuple[str, ...]:
 
 def _prepare(trees, weights, registration, options):
     weights = Weights() if weights is None else weights
+    if weights.deeper:
+        # The learned model has one lateral and one position weight for every order; separate
+        # weights of deeper orders would be silently dropped by it.
+        raise ValueError(
+            "learn_weights: weights with per-level values (Weights(..., deeper=...)) cannot be learned "
+            "yet (one λs and λp are learned for every order); pass weights without deeper=."
+        )
     opts = registration_options(registration, **options)
     if not isinstance(trees, (RootTree, SRVFTree)):
         raise TypeError(

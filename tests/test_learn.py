@@ -430,3 +430,14 @@ def test_nested_cv_needs_n_folds_members_per_class(no_registration):
     trees = rs.batch(roots, n_points=12, dtype=np.float64)
     with pytest.raises(LabelError, match="fewer than 5"):
         rs.nested_cv_accuracy(trees, ["a"] * 3 + ["b"] * 3, n_folds=5, progress=False)
+
+
+def test_per_level_weights_are_refused_before_registering(no_registration):
+    # The model learns one λs and λp for every order: per-level values would be dropped silently.
+    roots, _ = position_signal_roots(n_per_class=3)
+    trees = rs.batch(roots, n_points=12, dtype=np.float64)
+    w = rs.Weights(deeper=((2.0, 0.5),))
+    with pytest.raises(ValueError, match="deeper="):
+        rs.learn_weights(trees, ["a"] * 3 + ["b"] * 3, weights=w, progress=False)
+    with pytest.raises(ValueError, match="deeper="):
+        rs.nested_cv_accuracy(trees, ["a"] * 3 + ["b"] * 3, weights=w, progress=False)
