@@ -163,8 +163,3 @@ def test_geodesic_at_depth_three_runs_between_the_systems(systems):
         want = np.asarray(tree.deeper[0].curves)[np.asarray(tree.deeper[0].mask)]
         assert got.shape == want.shape
         assert _deviation(got.reshape(-1, 2), want) < 0.05 * scale
-
-
-def test_mean_at_depth_three_says_it_is_not_supported_yet(systems):
-    with pytest.raises(NotImplementedError, match="depth=2"):
-        rs.karcher_mean(_batch(systems))
