@@ -677,13 +677,14 @@ def lazy_assignment(
 
         return run_in_slabs(need & nested, step, (A, counts), slab=_slab_size(n_items, CHILD_SLAB))
 
-    def exact(need, E, G, A, counts, nested_done):
-        """The DPs of the pairs `need`; their children's cost where no assignment is needed."""
+    def exact(need, E, G, A, nested_done):
+        """The DPs of the pairs `need`. A pair with no children's assignment to do (no deeper
+        levels, or one side childless) is then exact: its children's cost is known."""
         E, G = slabs(need, lateral_pair, E, G)
+        direct = need & ~nested if n_below else need
         if n_below:
-            A = jnp.where(need & ~nested, alone, A)
-            nested_done = nested_done | (need & ~nested)
-        return E, G, A, counts, nested_done
+            A = jnp.where(direct, alone, A)
+        return E, G, A, nested_done | direct
 
     def costs(E, A, computed, nested_done, bound):
         known = p.lam_lateral * E.reshape(B, K, K) + p.fixed
@@ -702,19 +703,17 @@ def lazy_assignment(
     computed = p.both & rows[:, None, None] if not options.prune else jnp.zeros_like(p.both)
     computed = computed.reshape(-1)
     T = qb.shape[-2]
-    E, G, A, counts, nested_done = exact(
+    E, G, A, nested_done = exact(
         computed,
         jnp.zeros((n_items,), dtype),
         jnp.zeros((n_items, T), dtype),
         jnp.zeros((n_items,), dtype),
-        jnp.zeros((n_items, n_below), jnp.int32),
         jnp.zeros_like(computed),
     )
+    counts = jnp.zeros((n_items, n_below), jnp.int32)
     if n_below:
         A, counts = children(computed & ~nested_done, A, counts)
         nested_done = computed
-    else:
-        nested_done = computed  # nothing below: a computed pair is exact
 
     def body(state):
         E, G, A, counts, computed, nested_done, refined, bound, _, chosen = state
@@ -725,12 +724,8 @@ def lazy_assignment(
         if n_below:
             A, counts = children(chosen & computed & ~nested_done, A, counts)
             nested_done = nested_done | (chosen & computed)
-            E, G, A, counts, nested_done = exact(run_dp, E, G, A, counts, nested_done)
-        else:
-            E, G, A, counts, _ = exact(run_dp, E, G, A, counts, nested_done)
+        E, G, A, nested_done = exact(run_dp, E, G, A, nested_done)
         computed = computed | run_dp
-        if not n_below:
-            nested_done = computed
         refined = refined | chosen
         perm = solve(costs(E, A, computed, nested_done, bound))
         return E, G, A, counts, computed, nested_done, refined, bound, perm, picks(perm, nested_done)
