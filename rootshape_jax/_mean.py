@@ -77,7 +77,7 @@ from ._engine import (
 )
 from ._errors import ConvergenceError
 from ._executor import LocalExecutor, executor_for
-from ._metric import Weights, level_weight, null_costs, pair_lower_bounds, preshape_terms
+from ._metric import Weights, level_weight, null_costs, pair_lower_bounds, preshape_terms, system_weights
 from ._rotation import optimal_rotation
 from ._tangent import LevelParams, TreeParams, branch_weight, params_of, params_to_tree, unwhiten, whiten, whitening
 from ._tree import RootTree, SRVFLevel, SRVFTree, batch_size, check_compatible, to_curves, to_srvf
@@ -194,14 +194,6 @@ def _check_samples(samples: SRVFTree, what: str) -> int:
     n = batch_size(samples)
     if n < 1:
         raise ValueError(f"{what}: empty batch; give at least one root.")
-    if samples.virtual_main:
-        # The engine weighs a plant's axes as main roots (`_metric.system_weights`); the mean's
-        # own update, refit and tangent space do not yet.
-        raise NotImplementedError(
-            f"{what}: the Karcher mean (and PCA, sampling and regression on it) of plants' systems "
-            "(read_rsml(..., by='plant'), several axes per plant) is not supported yet; distances, "
-            "geodesics and clustering are. Read the roots with by='root' (one system per axis) for these."
-        )
     return n
 
 
@@ -213,6 +205,7 @@ def _lower_bound_energy(a: SRVFTree, b: SRVFTree, weights: Weights, assignment: 
     """A lower bound of ``min_g d²(a, g·b)`` needing no DP: ``λm(||q0a|| − ||q0b||)²`` plus the
     optimal assignment of the laterals' lower bounds (exact null and DP-free pair costs).
     Cauchy–Schwarz bounds every DP term from below for any rotation and reparameterisation."""
+    weights = system_weights(weights, a)  # a plant's axes weigh as main roots (§11)
     lam_m = level_weight(weights, "main", a.q0.dtype)
     La = l2_norm_squared(a.q) * a.mask
     Lb = l2_norm_squared(b.q) * b.mask
@@ -243,6 +236,7 @@ def lower_bound_distances(samples: SRVFTree, weights: Weights, assignment: str =
 @eqx.filter_jit
 def _zero_tree_energy(samples: SRVFTree, weights: Weights):
     """Mean squared distance of the samples from the zero tree (no registration): F's scale."""
+    weights = system_weights(weights, samples)
     dtype = samples.q0.dtype
     lam_m = level_weight(weights, "main", dtype)
     lam_s = level_weight(weights, "lateral", dtype)
@@ -336,6 +330,7 @@ def _carried(y: FPIterate, mu: SRVFTree, O, samples: SRVFTree) -> SRVFTree:
         base_radius=y.reg_base,
         thickness_scale=samples.thickness_scale,
         deeper=tuple(deeper),
+        virtual_main=samples.virtual_main,
     )
 
 
@@ -420,6 +415,8 @@ def fp_update(y: FPIterate, registered: SRVFTree, energies, weights: Weights):
     T, C = mu_new.q0.shape
     A = jnp.concatenate([mu_new.q0[None], mu_new.q] + [lp.q.reshape(-1, T, C) for lp in mu_new.deeper], axis=0)
     A = A[..., :d]
+    # The refit weighs branches as the engine does: a plant's axes as main roots (§11).
+    weights = system_weights(weights, registered)
     lam_m = branch_weight(weights, 0, dtype)
     lam_s = branch_weight(weights, 1, dtype)
     lam_deeper = [branch_weight(weights, level, dtype) for level in range(2, 2 + len(deeper))]
@@ -713,7 +710,7 @@ def _gradient_fn(z: TreeParams, args):
 
 @eqx.filter_jit
 def _solve_gradient(mu0: TreeParams, samples, mu_like, weights, opts, solver, max_steps, throw):
-    c = whitening(weights, mu0.q0.shape[0], mu0.q0.dtype, depth=2 + len(mu0.deeper))
+    c = whitening(system_weights(weights, mu_like), mu0.q0.shape[0], mu0.q0.dtype, depth=2 + len(mu0.deeper))
     sol = optx.minimise(
         _gradient_fn,
         solver,
@@ -835,7 +832,8 @@ def karcher_mean(
     - `distances`: an ``(n, n)`` distance matrix (e.g. `pairwise_distances(trees)`) for the
       medoid; without it the medoid of the DP-free lower bound of the elastic distance is used.
     - `min_lateral_length`: mean laterals shorter than this are dropped at the end; default
-      2 % of the mean's main-root length. At depth D > 2 the same applies to every branch
+      2 % of the mean's main-root length (for plants' systems, ``read_rsml(..., by="plant")``:
+      2 % of the mean's longest axis). At depth D > 2 the same applies to every branch
       against its parent (default 2 % of the parent's length; one value given applies to
       every level), and a dropped branch drops its children.
     - `registration`: a `RegistrationOptions` (or a dict of its fields, on top of
@@ -941,7 +939,9 @@ def karcher_mean(
     trace = jnp.concatenate([jnp.asarray(trace, energy.dtype), energy[None]])
     fitted = params_to_tree(mu, mu_like, base_radius=_base_radius_mean(registered))
     lengths = l2_norm_squared(fitted.q)
-    main_length = l2_norm_squared(fitted.q0)
+    # Laterals shorter than 2 % of the main root are dropped; a plant's axes (its main root is
+    # virtual, of length 0) against the longest axis, so one axis per plant is the taproot's.
+    main_length = jnp.max(lengths) if fitted.virtual_main else l2_norm_squared(fitted.q0)
     threshold = 0.02 * main_length if min_lateral_length is None else jnp.asarray(min_lateral_length)
     keep = lengths >= threshold
     mean_srvf = eqx.tree_at(lambda t: (t.q, t.mask), fitted, (fitted.q * keep[:, None, None], keep))

@@ -41,7 +41,7 @@ from ._curves import l2_norm_squared
 from ._engine import RegistrationOptions, registration_options
 from ._executor import LocalExecutor
 from ._mean import KarcherMean, register_onto
-from ._metric import Weights
+from ._metric import Weights, system_weights
 from ._tangent import TreeParams, exp_map, flatten, log_map, params_of, whiten, whitening
 from ._tree import RootTree, SRVFTree, check_compatible, to_curves, to_srvf
 
@@ -85,7 +85,8 @@ class TangentPCA(eqx.Module):
 @eqx.filter_jit
 def _fit(registered: SRVFTree, mean: SRVFTree, weights: Weights):
     T = mean.q0.shape[0]
-    c = whitening(weights, T, mean.q0.dtype, depth=mean.depth)
+    # A plant's axes are whitened as main roots, as the engine weighs them (§11).
+    c = whitening(system_weights(weights, mean), T, mean.q0.dtype, depth=mean.depth)
     V = log_map(registered, mean, c)
     n = V.shape[0]
     # SVD through the n × n Gram matrix: n (roots) is far smaller than p (coordinates), and

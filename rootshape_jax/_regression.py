@@ -104,7 +104,7 @@ def _stacked_to_curves(qa, s, keep, origin):
 _SWEEP_CHUNK = 64
 
 
-@functools.partial(jax.jit, static_argnames="curves")
+@functools.partial(jax.jit, static_argnames=("curves", "virtual_main"))
 def _synthesize(
     offset,
     slopes,
@@ -119,6 +119,7 @@ def _synthesize(
     curves,
     thick=None,
     deeper=(),
+    virtual_main=False,
 ):
     # Plain jax.jit on the arrays it needs: one regressed root is dispatch-bound, so no Module
     # flattening, and the affine map is unrolled over the few traits (XLA:CPU's
@@ -137,7 +138,7 @@ def _synthesize(
         real = keep[1:]
         if curves and thick is None and not deeper:
             main, laterals = _stacked_to_curves(qa, s, keep, origin)
-            return RootTree(main=main, laterals=laterals, attach=s, mask=real)
+            return RootTree(main=main, laterals=laterals, attach=s, mask=real, virtual_main=virtual_main)
         q = jnp.transpose(qa[:, :, 1:], (2, 1, 0)) * real[:, None, None]
         # Deeper levels (depth D > 2) as exp_map does: limits per level, nulls drop children.
         levels, parent = [], real
@@ -156,6 +157,7 @@ def _synthesize(
             base_radius=base,
             thickness_scale=scale,
             deeper=tuple(levels),
+            virtual_main=virtual_main,
         )
         # With a thickness channel the curves come with radii: the general path.
         return to_curves(tree) if curves else tree
@@ -227,6 +229,7 @@ def _synthesize_method(reg: "TraitRegression", values, *, srvf: bool = False) ->
         curves=not srvf,
         thick=None if pc.mean.thickness_scale is None else (pc.mean.base_radius, pc.mean.thickness_scale),
         deeper=reg.deeper,
+        virtual_main=pc.mean.virtual_main,
     )
 
 

@@ -92,6 +92,7 @@ def params_to_tree(p: TreeParams, like: SRVFTree, origin=None, base_radius=None)
         base_radius=base_radius,
         thickness_scale=like.thickness_scale,
         deeper=deeper,
+        virtual_main=like.virtual_main,
     )
 
 
@@ -227,5 +228,13 @@ def exp_map(
         base = jnp.broadcast_to(mean.base_radius, lead + mean.base_radius.shape)
         scale = jnp.broadcast_to(mean.thickness_scale, lead)
     return SRVFTree(
-        q0=q0, q=q, s=s, mask=real, origin=origin, base_radius=base, thickness_scale=scale, deeper=tuple(deeper)
+        q0=q0,
+        q=q,
+        s=s,
+        mask=real,
+        origin=origin,
+        base_radius=base,
+        thickness_scale=scale,
+        deeper=tuple(deeper),
+        virtual_main=mean.virtual_main,
     )

@@ -328,12 +328,65 @@ def test_thickness_at_depth_three_equals_the_reference(thick_systems, pair):
     np.testing.assert_allclose(np.asarray(start.radius)[m], np.asarray(ta.deeper[0].radius)[m], atol=1e-5)
 
 
-def test_mean_of_plants_systems_is_refused_with_the_fix():
-    # The engine weighs a plant's axes as main roots; the mean's update does not yet: a named
-    # refusal before any registration, not a silently different mean.
-    trees = rs.batch(_multi_axis_plants(), n_points=T, depth=3, max_children=(6, 8), dtype=np.float64)
-    with pytest.raises(NotImplementedError, match="by='root'"):
-        rs.karcher_mean(trees)
+# The mean, PCA and synthesis of plants' systems
+
+MEAN_OPTS = dict(weights=W, registration={"neighbourhood": NB}, n_starts=1)
+
+
+def test_mean_and_pca_of_one_axis_plants_equal_the_taproots():
+    # A plant's axis weighs as the taproot's main root in the engine, the rotation refit and
+    # the tangent space's whitening: the mean, its energy and the PCA are the taproot analysis.
+    roots = _taproots()
+    taps = rs.batch(roots, n_points=T, dtype=np.float64)
+    syst = rs.batch([plant_system([r]) for r in roots], n_points=T, depth=3, dtype=np.float64)
+    kt, kp = rs.karcher_mean(taps, **MEAN_OPTS), rs.karcher_mean(syst, **MEAN_OPTS)
+    assert kp.mean_srvf.virtual_main and int(kp.steps) == int(kt.steps) > 1
+    np.testing.assert_allclose(np.asarray(kp.energies), np.asarray(kt.energies), rtol=1e-9)
+    # The mean's one axis is the taproot mean's main root; its level 2 the taproot's laterals.
+    axes = np.flatnonzero(np.asarray(kp.mean_srvf.mask))
+    assert axes.size == 1
+    k = int(axes[0])
+    np.testing.assert_allclose(np.asarray(kp.mean_srvf.q[k]), np.asarray(kt.mean_srvf.q0), atol=1e-9)
+    np.testing.assert_allclose(np.asarray(kp.mean_srvf.q0), 0.0, atol=0)
+    sub = kp.mean_srvf.deeper[0]
+    np.testing.assert_array_equal(np.asarray(sub.mask[k]), np.asarray(kt.mean_srvf.mask))
+    np.testing.assert_allclose(np.asarray(sub.q[k]), np.asarray(kt.mean_srvf.q), atol=1e-9)
+    np.testing.assert_allclose(np.asarray(sub.s[k]), np.asarray(kt.mean_srvf.s), atol=1e-9)
+    pt, pp = rs.tangent_pca(kt), rs.tangent_pca(kp)
+    assert pp.n_components == pt.n_components > 0
+    np.testing.assert_allclose(np.asarray(pp.eigenvalues), np.asarray(pt.eigenvalues), rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(np.abs(np.asarray(pp.scores)), np.abs(np.asarray(pt.scores)), atol=1e-8)
+
+
+def test_mean_of_several_axis_plants_ignores_axis_order_and_reconstructs():
+    plants = _multi_axis_plants()
+    caps = (6, 8)
+    trees = rs.batch(plants, n_points=T, depth=3, max_children=caps, dtype=np.float64)
+    shuffled = [plant_system(p.children[::-1]) for p in plants]
+    shuffled[1] = plant_system([plants[1].children[k] for k in (1, 2, 0)])
+    km = rs.karcher_mean(trees, **MEAN_OPTS)
+    km2 = rs.karcher_mean(rs.batch(shuffled, n_points=T, depth=3, max_children=caps, dtype=np.float64), **MEAN_OPTS)
+    np.testing.assert_allclose(float(km2.energy), float(km.energy), rtol=1e-9)
+    # The mean is below the start (a sample) and each energy is the sample's registration
+    # energy onto the mean (an independent registration).
+    D = _matrix(trees)
+    assert float(km.energy) < np.min(np.mean(D**2, axis=1)) - 1e-6
+    mean = km.mean_srvf
+    assert mean.virtual_main and 2 <= int(np.sum(np.asarray(mean.mask))) <= 3
+    for i, t in enumerate(rs.unstack(rs.to_srvf(trees))):
+        e = rs.register(mean, t, weights=W, neighbourhood=NB).energy
+        assert float(e) >= float(km.energies[i]) * (1 - 1e-6) - 1e-9
+    # The tangent space round trip: the PCA's scores rebuild every registered sample.
+    from rootshape_jax._pca import reconstruct
+
+    pc = rs.tangent_pca(km, variance=1.0, min_lateral_length=0.0, max_lateral_length=float("inf"))
+    # The whitening is the metric (axes weigh λm): the squared tangent norms are the energies.
+    n = len(plants)
+    np.testing.assert_allclose(float(np.sum(pc.eigenvalues)) * (n - 1), float(np.sum(km.energies)), rtol=1e-9)
+    rec = reconstruct(pc, pc.scores, srvf=True)
+    assert rec.virtual_main
+    np.testing.assert_allclose(np.asarray(rec.q), np.asarray(km.registered.q), atol=1e-8)
+    np.testing.assert_allclose(np.asarray(rec.deeper[0].q), np.asarray(km.registered.deeper[0].q), atol=1e-8)
 
 
 def test_tangent_space_reads_the_per_level_weights():

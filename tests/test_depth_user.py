@@ -557,3 +557,22 @@ def test_output_roots_drop_zero_length_branches_at_every_order():
         buf.seek(0)
         back = read_rsml(buf)[0]
     assert count_by_order(back) == {0: 1, 1: 2, 2: 2}
+
+
+def test_mean_per_plant_writes_a_plant_system_and_regress_per_plant_is_refused(plant_file, tmp_path, capsys):
+    from rootshape_jax._cli import main
+
+    out = tmp_path / "m"
+    args = ["mean", str(plant_file), "--per", "plant", "--depth", "3", "--points", "12", "--quiet"]
+    assert main(args + ["--out", str(out)]) == 0
+    mean = read_rsml(out / "mean.rsml", by="plant")
+    # One system: a virtual main root (length 0) and its axes, in the input's units.
+    assert len(mean) == 1 and mean[0].metadata["virtual_main"] and mean[0].main_length == 0
+    assert 1 <= mean[0].n_laterals <= 2
+    longest = max(max(r.lateral_lengths) for r in read_rsml(plant_file, by="plant"))
+    assert 0.2 * longest < max(mean[0].lateral_lengths) < 2 * longest
+    capsys.readouterr()
+    assert main(["regress", str(plant_file), "--per", "plant", "--depth", "3", "--out", str(tmp_path / "r")]) == 1
+    err = capsys.readouterr().err
+    assert "--per root" in err and "Traceback" not in err
+    assert not (tmp_path / "r" / "mean.rsml").exists()

@@ -69,7 +69,13 @@ def cmd_sample(args) -> None:
 
 
 def cmd_regress(args) -> None:
-    # Check the requested traits before the long computation.
+    # Check the request before the long computation.
+    if getattr(args, "per", "root") == "plant":
+        raise CLIError(
+            "regress predicts roots from the paper's traits (main-root length, mean and spread of "
+            "the lateral lengths), which a plant's system (--per plant: several axes under a "
+            "virtual main root) does not have; run regress with --per root (one system per axis)."
+        )
     names = list(PAPER_TRAITS) + covariate_columns(args)
     args.requested_values = read_requested(args.requested, names) if args.requested else None
     _pipeline(args, [run_mean, run_pca, run_regress], min_roots=len(PAPER_TRAITS) + 2)
