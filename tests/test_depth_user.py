@@ -576,3 +576,27 @@ def test_mean_per_plant_writes_a_plant_system_and_regress_per_plant_is_refused(p
     err = capsys.readouterr().err
     assert "--per root" in err and "Traceback" not in err
     assert not (tmp_path / "r" / "mean.rsml").exists()
+
+
+def test_level_weights_option_builds_per_order_weights_and_reaches_the_matrix(tmp_path, capsys):
+    from rootshape_jax._cli import main
+    from rootshape_jax._cli._common import CLIError, make_weights
+    from rootshape_jax._cli._parser import build_parser
+
+    parse = build_parser().parse_args
+    args = parse(["distances", "--synthetic", "3", "--depth", "3", "--level-weights", "2,0.5;1,0"])
+    w = make_weights(args)
+    assert [tuple(float(x) for x in p) for p in w.deeper] == [(2.0, 0.5), (1.0, 0.0)]
+    with pytest.raises(CLIError, match="--depth 3"):
+        make_weights(parse(["distances", "--synthetic", "3", "--level-weights", "2,0.5"]))
+    for bad in ("2", "2,1,1", "a,b", "-1,1", "1,1;"):
+        assert main(["distances", "--synthetic", "3", "--depth", "3", "--level-weights", bad]) == 2
+        assert "--level-weights" in capsys.readouterr().err
+    # The first-order laterals' own weights give the default matrix; other weights another.
+    base = ["distances", "--synthetic", "3", "--depth", "3", "--points", "12", "--laterals", "3", "--quiet"]
+    mats = {}
+    for name, extra in (("default", []), ("same", ["--level-weights", "1,1"]), ("heavy", ["--level-weights", "25,0"])):
+        assert main(base + extra + ["--out", str(tmp_path / name)]) == 0
+        mats[name] = read_matrix(tmp_path / name / "distances.csv")
+    np.testing.assert_allclose(mats["same"], mats["default"], rtol=1e-6)
+    assert np.all(mats["heavy"][np.triu_indices(3, 1)] > mats["default"][np.triu_indices(3, 1)] * (1 + 1e-3))

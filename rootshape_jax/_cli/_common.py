@@ -77,7 +77,14 @@ def fmt(x: float, digits: int = 4) -> str:
 def make_weights(args):
     import rootshape_jax as rs
 
-    return rs.Weights(*args.weights)  # one value per term, in the order of rs.TERMS
+    deeper = tuple(getattr(args, "level_weights", ()) or ())
+    if deeper and (getattr(args, "depth", None) or 2) < 3:
+        raise CLIError(
+            "--level-weights weighs second-order laterals and below, which the analysis keeps "
+            "only with --depth 3 or 4; add --depth 3, or leave --level-weights out."
+        )
+    # One value per term, in the order of rs.TERMS; then (λs, λp) per order from the second.
+    return rs.Weights(*args.weights, deeper=deeper)
 
 
 def version() -> str:

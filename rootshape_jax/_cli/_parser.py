@@ -90,6 +90,21 @@ def _weights(text: str):
     return tuple(values) + tuple(t.default_weight for t in rs.TERMS[len(values) :])
 
 
+def _level_weights(text: str) -> tuple[tuple[float, float], ...]:
+    """Pairs ``LS,LP`` (lateral shape, lateral position) separated by ``;``, one pair per order
+    from the second down."""
+    try:
+        pairs = tuple(tuple(float(v) for v in part.split(",")) for part in text.split(";"))
+    except ValueError:
+        pairs = ()
+    if not pairs or not all(len(p) == 2 and all(math.isfinite(v) and v >= 0 for v in p) for p in pairs):
+        raise argparse.ArgumentTypeError(
+            "expected pairs of non-negative numbers LS,LP (shape, position) separated by ';', "
+            f"one per order from the second (e.g. 1,1 or 2,0.5;1,1), got {text!r}"
+        )
+    return pairs
+
+
 def _add_system_options(p: argparse.ArgumentParser) -> None:
     """What one root system is and how many orders of laterals the analysis keeps."""
     g = p.add_argument_group("whole root systems")
@@ -110,6 +125,15 @@ def _add_system_options(p: argparse.ArgumentParser) -> None:
         "(plant: all its axes, seminal and nodal roots or several seedlings, as one system "
         "around a zero-length main root at the collar; use with --depth 3 to keep the axes' "
         "laterals)",
+    )
+    g.add_argument(
+        "--level-weights",
+        type=_level_weights,
+        default=(),
+        metavar="LS,LP[;LS,LP...]",
+        help="weights of the lateral shape and position terms for second-order laterals, then "
+        "third-order (the last pair repeats below; needs --depth 3 or 4). Default: every order "
+        "takes the first-order laterals' weights (L,P of --weights)",
     )
 
 

@@ -331,6 +331,12 @@ def settings(args, pop) -> list[tuple[str, str]]:
         ("most laterals of a root", str(max(r.n_laterals for r in pop.roots))),
         ("scale normalised", "yes (every main root scaled to length 1)" if pop.normalised else "no"),
         ("weights " + ", ".join(t.name for t in rs.TERMS), ", ".join(f"{v:g}" for v in w)),
+        (
+            "weights of deeper orders (lateral, position)",
+            "; ".join(f"order {k}: {a:g}, {b:g}" for k, (a, b) in enumerate(args.level_weights, start=2))
+            if getattr(args, "level_weights", ())
+            else "as the first-order laterals'",
+        ),
         ("precision", jax.numpy.zeros(()).dtype.name),
         ("devices", f"{len(jax.devices())} × {jax.devices()[0].platform.upper()}"),
         ("worker threads", str(rs.LocalExecutor().n_workers())),
