@@ -124,6 +124,22 @@ def test_plot_root_tree_respects_mask(roots, trees, tmp_path):
     assert all(isinstance(c, LineCollection) for c in ax2.collections)
 
 
+def test_show_nulls_marks_padding_at_every_level(tmp_path):
+    from test_hierarchy import deep_root
+
+    rng = np.random.default_rng(2)
+    roots = [deep_root(rng, n_laterals=2, max_sub=2), deep_root(rng, n_laterals=3, max_sub=1)]
+    tree = unstack(batch(roots, n_points=10, depth=3, max_children=(5, 3)))[0]
+    m1, m2 = np.asarray(tree.mask), np.asarray(tree.deeper[0].mask)
+    # Reference: first-order nulls, then each real lateral's unused child slots.
+    want = [np.asarray(tree.laterals[k, 0]) for k in np.flatnonzero(~m1)]
+    want += [np.asarray(tree.deeper[0].curves[k, j, 0]) for k in np.flatnonzero(m1) for j in np.flatnonzero(~m2[k])]
+    assert len(want) > int((~m1).sum())  # the test sees deeper nulls
+    fig, ax = P.plot_root(tree, show_nulls=True, invert_y=False)
+    check_png(fig, tmp_path / "nulls.png", 1)
+    np.testing.assert_allclose(ax.collections[-1].get_offsets(), np.stack(want), atol=1e-9)
+
+
 def test_plot_root_into_given_axes(roots, tmp_path):
     fig, ax = P.plot_root(roots[0])
     P.plot_root(roots[1], ax=ax, colors="#123456")

@@ -84,6 +84,8 @@ class Drawing:
     lateral_radii: tuple[tuple[int, np.ndarray], ...] = ()  # (slot, (m,)) where known
     # Second-order laterals and below: (slot (k1, …, kℓ), (m, d) polyline, (m,) radius or None).
     deeper: tuple[tuple[tuple[int, ...], np.ndarray, np.ndarray | None], ...] = ()
+    # Padding slots below the first order whose parent is real: (slot (k1, …, kℓ), (d,) position).
+    deeper_nulls: tuple[tuple[tuple[int, ...], np.ndarray], ...] = ()
 
     @property
     def dim(self) -> int:
@@ -97,6 +99,7 @@ class Drawing:
             laterals=tuple((k, lat + shift) for k, lat in self.laterals),
             nulls=tuple((k, p + shift) for k, p in self.nulls),
             deeper=tuple((slot, b + shift, r) for slot, b, r in self.deeper),
+            deeper_nulls=tuple((slot, p + shift) for slot, p in self.deeper_nulls),
         )
 
 
@@ -137,11 +140,16 @@ def _from_arrays(main, lats, mask, main_r=None, lat_r=None, deeper=()) -> Drawin
     """``deeper``: one ``(curves [K1..Kℓ, T, d], mask [K1..Kℓ], radius or None)`` per level."""
     # In a batch, a root without radius data is padded with radius 0: draw it as unknown.
     known = main_r is not None and (np.any(main_r > 0) or np.any(lat_r[mask] > 0))
-    branches = []
+    branches, null_slots, parent = [], [], np.asarray(mask, bool)
     for curves, m, r in deeper:
         for slot in zip(*np.nonzero(m)):
             slot = tuple(int(k) for k in slot)
             branches.append((slot, curves[slot], r[slot] if known and r is not None else None))
+        # A null under a null parent is no slot the root uses: only a real parent's nulls.
+        for slot in zip(*np.nonzero(~m & parent[..., None])):
+            slot = tuple(int(k) for k in slot)
+            null_slots.append((slot, curves[slot][0]))
+        parent = np.asarray(m, bool)
     return Drawing(
         main=main,
         laterals=tuple((k, lats[k]) for k in range(lats.shape[0]) if mask[k]),
@@ -149,6 +157,7 @@ def _from_arrays(main, lats, mask, main_r=None, lat_r=None, deeper=()) -> Drawin
         main_radius=main_r if known else None,
         lateral_radii=tuple((k, lat_r[k]) for k in range(lats.shape[0]) if mask[k]) if known else (),
         deeper=tuple(branches),
+        deeper_nulls=tuple(null_slots),
     )
 
 
@@ -417,9 +426,10 @@ def draw(
     else:
         # The main root is drawn thicker, as it is in the plant.
         add([drawing.main[:, cols]], [main_color], 1.6 * linewidth, zorder + 0.1, 0)
-    if show_nulls and drawing.nulls:
-        pts = np.stack([p[cols] for _, p in drawing.nulls])
+    if show_nulls and (drawing.nulls or drawing.deeper_nulls):
+        pts = np.stack([p[cols] for _, p in drawing.nulls] + [p[cols] for _, p in drawing.deeper_nulls])
         ncol = [_lateral_color(k, colors, slot_colors) for k, _ in drawing.nulls]
+        ncol += [deeper_color(slot, colors, slot_colors) for slot, _ in drawing.deeper_nulls]
         ax.scatter(
             *pts.T,
             s=(3.5 * linewidth) ** 2,
@@ -468,8 +478,8 @@ def points_of(drawing: Drawing, projection: str, show_nulls: bool) -> np.ndarray
     cols = list(COLUMNS[projection])
     parts = [drawing.main[:, cols]] + [lat[:, cols] for _, lat in drawing.laterals]
     parts += [b[:, cols] for _, b, _ in drawing.deeper]
-    if show_nulls and drawing.nulls:
-        parts.append(np.stack([p[cols] for _, p in drawing.nulls]))
+    if show_nulls and (drawing.nulls or drawing.deeper_nulls):
+        parts.append(np.stack([p[cols] for _, p in drawing.nulls] + [p[cols] for _, p in drawing.deeper_nulls]))
     return np.concatenate(parts, axis=0)
 
 

@@ -79,7 +79,8 @@ def plot_root(
       matplotlib colour for the whole root, or a sequence of colours indexed by lateral slot.
     - `slot_colors`: colour laterals by slot (True) or all in one brown (False).
     - `linewidth`: lateral line width in points; the main root is 1.6 times thicker.
-    - `show_nulls`: mark the padding (null) slots of a `RootTree` as hollow circles.
+    - `show_nulls`: mark the padding (null) slots of a `RootTree` as hollow circles, at every
+      level (the unused child slots of each real branch, at their attachment points).
     - `invert_y`: depth axis pointing down, base of the root at the top (image convention).
     - `projection`: for 3D roots, ``"xz"`` (default: x against depth), ``"yz"``, ``"xy"`` or
       ``"3d"``; 2D roots only take ``"xy"``.
