@@ -107,8 +107,9 @@ def use_all_cores(n: int | None = None) -> int:
     any JAX computation: XLA fixes its devices when it starts.
 
     You do not need it to use every core: by default distance matrices, means and batched curve
-    distances already run their blocks on one worker thread per core, which is faster on a busy
-    machine (a call split over devices waits for its slowest share). Use it for your own
+    distances already run their blocks on one worker thread per core, which is faster (a call
+    split over devices waits for its slowest share): on an idle 2-core machine the default was
+    1.5–3.2× faster for every matrix and mean in BENCHMARKS.md's grid. Use it for your own
     batched computations (`split_over_devices`).
 
     This is the one place where the library changes JAX's global configuration, and only when
