@@ -5,6 +5,7 @@ import os
 import signal
 
 import jax
+import pytest
 
 # Import hypothesis now, not at the end of the session. Its pytest plugin imports the package in
 # its terminal summary; in an xdist worker that ran no hypothesis test that happened after the
@@ -17,6 +18,16 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
         import hypothesis  # noqa: F401
 
 jax.config.update("jax_enable_x64", True)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    # Each compiled XLA:CPU program holds memory maps of its own. A test process that keeps every
+    # program of every module reaches Linux's limit of 65,530 maps per process (vm.max_map_count)
+    # near the end of the suite, and the next compilation dies inside LLVM (segfault or abort:
+    # seen in make test, 64,812 maps in the failing worker). After a module its programs go.
+    yield
+    jax.clear_caches()
 
 
 def pytest_sessionfinish(session):
