@@ -77,7 +77,7 @@ def fmt(x: float, digits: int = 4) -> str:
 def make_weights(args):
     import rootshape_jax as rs
 
-    deeper = tuple(getattr(args, "level_weights", ()) or ())
+    deeper = getattr(args, "level_weights", ())  # commands without the option: none
     if deeper and (getattr(args, "depth", None) or 2) < 3:
         raise CLIError(
             "--level-weights weighs second-order laterals and below, which the analysis keeps "
