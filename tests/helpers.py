@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -483,3 +488,28 @@ def record_bars(monkeypatch) -> list:
 
     monkeypatch.setattr(executor, "tqdm", Bar)
     return made
+
+
+def run_cli(*args, cwd=None, timeout: float = 1800) -> subprocess.CompletedProcess:
+    """Run ``python -m rootshape_jax ARGS`` as a user would (text output captured).
+
+    A run still going after `timeout` seconds is stopped with SIGABRT, which makes Python's
+    faulthandler print every thread's stack, and the test fails with that stack: a hang in CI
+    then says where it hung instead of only that it timed out."""
+    env = {**os.environ, "PYTHONFAULTHANDLER": "1"}
+    cmd = [sys.executable, "-m", "rootshape_jax", *map(str, args)]
+    with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd, env=env) as p:
+        try:
+            out, err = p.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            p.send_signal(signal.SIGABRT)
+            try:
+                out, err = p.communicate(timeout=60)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                out, err = p.communicate()
+            raise AssertionError(
+                f"`{' '.join(cmd[1:])}` still running after {timeout:g} s; its stacks and output:\n"
+                f"{err[-20000:]}\n--- stdout ---\n{out[-3000:]}"
+            ) from None
+    return subprocess.CompletedProcess(cmd, p.returncode, out, err)

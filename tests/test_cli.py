@@ -17,22 +17,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import run_cli
 
 import rootshape_jax as rs
 from rootshape_jax.datasets import synthetic_roots
 from rootshape_jax.io import read_rsml, write_rsml
 
 DATA = Path(__file__).parent / "data" / "rsml"
-
-
-def run_cli(*args, cwd=None, timeout=1800) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "rootshape_jax", *map(str, args)],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        timeout=timeout,
-    )
 
 
 def assert_one_line_error(proc: subprocess.CompletedProcess, *fragments: str) -> str:
@@ -347,7 +338,22 @@ class _Links(HTMLParser):
 def test_demo_tiny_index_links_exist(tmp_path):
     out = tmp_path / "demo"
     proc = run_cli(
-        "demo", "--samples", 6, "--points", 30, "--laterals", 4, "-n", 4, "--max-steps", 5, "--plants", 3, "--out", out
+        "demo",
+        "--samples",
+        6,
+        "--points",
+        30,
+        "--laterals",
+        4,
+        "-n",
+        4,
+        "--max-steps",
+        5,
+        "--plants",
+        3,
+        "--out",
+        out,
+        timeout=900,  # ~150 s on a quiet 2-core machine; a hang fails with its stacks
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "Traceback" not in proc.stderr

@@ -3,19 +3,12 @@
 from __future__ import annotations
 
 import csv
-import subprocess
-import sys
 
 import pytest
+from helpers import run_cli
 
 from rootshape_jax import io
 from rootshape_jax.datasets import synthetic_roots
-
-
-def run_cli(*args) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "rootshape_jax", *map(str, args)], capture_output=True, text=True, timeout=1800
-    )
 
 
 def read_csv(path):

@@ -5,13 +5,12 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
-import subprocess
-import sys
 from pathlib import Path
 
 import matplotlib.colors as mcolors
 import numpy as np
 import pytest
+from helpers import run_cli
 from scipy.cluster import hierarchy
 
 import rootshape_jax as rs
@@ -167,12 +166,6 @@ def test_compare_needs_two_groups(tmp_path, monkeypatch):
 
 # --------------------------------------------------------------------------------------------
 # End to end, on a folder with a bad file (compiles registrations: slow)
-
-
-def run_cli(*args) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "rootshape_jax", *map(str, args)], capture_output=True, text=True, timeout=1800
-    )
 
 
 @pytest.fixture

@@ -11,13 +11,13 @@ from __future__ import annotations
 import csv
 import dataclasses
 import io
-import subprocess
 import sys
 from pathlib import Path
 
 import matplotlib.colors as mcolors
 import numpy as np
 import pytest
+from helpers import run_cli
 
 import rootshape_jax as rs
 from rootshape_jax import plot as P
@@ -166,12 +166,6 @@ def test_geodesic_colours_follow_matched_branches_at_every_level():
 
 # --------------------------------------------------------------------------------------------
 # Command line: --depth and --per
-
-
-def run_cli(*args, timeout=1800) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "rootshape_jax", *map(str, args)], capture_output=True, text=True, timeout=timeout
-    )
 
 
 def read_csv(path: Path) -> list[dict]:
