@@ -15,8 +15,10 @@ $(VENV)/.installed: pyproject.toml
 
 install: $(VENV)/.installed
 
-# Compilation dominates the test run: two workers compile in parallel and share compiled
-# programs through JAX's persistent cache (also used by the tests' subprocesses).
+# Compilation dominates the test run: two workers compile in parallel. JAX's persistent cache
+# (also used by the tests' subprocesses) shares only programs without host callbacks: the
+# registration engine calls scipy's assignment and equinox's runtime checks through callbacks,
+# so its programs are compiled again in every process (51 cache entries after a full run).
 PYTEST := JAX_COMPILATION_CACHE_DIR=$(CURDIR)/.jax_cache $(PY) -m pytest -q -n 2 --dist loadfile
 
 # ruff: lint, import order and formatting (configured in pyproject.toml); part of `make test`.
