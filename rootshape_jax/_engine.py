@@ -22,7 +22,8 @@ projection and the Dask blocks all call `register_pairs`.
 
 Trees of depth D > 2 (docs/design.md §11): a lateral pair's cost also holds the exact
 assignment cost of the two laterals' children (`child_assignment`, the same procedure one
-level down), bounded until computed by `child_lower_bounds`; `child_registrations` gives the
+level down), bounded until computed by `child_lower_bounds` and, for pairs the assignment
+keeps picking, `child_assignment_bounds`; `child_registrations` gives the
 matched children's permutations and warps, and every level enters the rotation's refit.
 """
 
@@ -481,8 +482,9 @@ def child_lower_bounds(p: Prepared, O: Float[Array, "B d d"]) -> Float[Array, "B
     return lax.map(lambda r: _child_bound_one(child_weights(p.weights), *r), rows)
 
 
-def _child_bound_one(weights, cone_a, cone_b, O, La, Lb, sa, sb, ma, mb, own_a, own_b):
-    """`child_lower_bounds` of one pair (no batch axis); layout [i, j, k, l]: lateral i of a,
+def _child_bound_table(weights, cone_a, cone_b, O, La, Lb, sa, sb, ma, mb, own_a, own_b):
+    """Lower bounds of every child pair's cost (an unmatched child: its exact subtree cost) for
+    the lateral pairs of one batch entry (no batch axis); layout [i, j, k, l]: lateral i of a,
     lateral j of b, their children k and l."""
     (ca, ha), (cb, hb) = cone_a, cone_b
     dtype = La.dtype
@@ -503,9 +505,51 @@ def _child_bound_one(weights, cone_a, cone_b, O, La, Lb, sa, sb, ma, mb, own_a, 
     M = jnp.where(
         ma & mb, real_real, jnp.where(ma, own_a[:, None, :, None], jnp.where(mb, own_b[None, :, None, :], 0.0))
     )
+    return M
+
+
+def _child_bound_one(weights, *args):
+    """`child_lower_bounds` of one pair: the larger of the row-minima and column-minima sums
+    of `_child_bound_table` (each assignment picks one entry per row and per column)."""
+    M = _child_bound_table(weights, *args)
     rows = jnp.sum(jnp.min(M, axis=3), axis=2)
     cols = jnp.sum(jnp.min(M, axis=2), axis=2)
     return jnp.maximum(rows, cols)
+
+
+def child_assignment_bounds(p: Prepared, O: Float[Array, "B d d"], lanes: Int[Array, " L"]) -> Float[Array, " L"]:
+    """Depth D > 2: a tighter lower bound of the children's exact assignment cost of the lateral
+    pairs `lanes` (flat indices into ``[B, K, K]``): the optimal assignment of the children's
+    bound matrix (`_child_bound_table`), without any DP.
+
+    Why it is a bound: every entry of that matrix is at most the cost it stands for, so for any
+    assignment the sum of its entries is at most the true cost of that assignment; the
+    minimum over assignments is then at most the true optimum. It is at least the row-minima
+    and column-minima sums of `child_lower_bounds`, so it only tightens them.
+    """
+    B, K = p.La.shape
+    la, lb = p.a.deeper[0], p.b.deeper[0]
+    lam = lateral_weight(p.weights, 2, p.La.dtype)
+    La = l2_norm_squared(la.q) * la.mask
+    Lb = l2_norm_squared(lb.q) * lb.mask
+    sub_a = descendant_norms(p.a.deeper[1:], p.weights, 3)
+    sub_b = descendant_norms(p.b.deeper[1:], p.weights, 3)
+    own_a = lam * La + (0.0 if sub_a is None else sub_a)
+    own_b = lam * Lb + (0.0 if sub_b is None else sub_b)
+    side_a = (p.child_cone_a, La, la.s, la.mask, own_a)
+    side_b = (p.child_cone_b, Lb, lb.s, lb.mask, own_b)
+    weights = child_weights(p.weights)
+
+    def one(lane):
+        bi, rem = jnp.divmod(lane, K * K)
+        i, j = jnp.divmod(rem, K)
+        (cone_a, La_, sa, ma, oa) = jax.tree.map(lambda x: x[bi, i][None], side_a)
+        (cone_b, Lb_, sb, mb, ob) = jax.tree.map(lambda x: x[bi, j][None], side_b)
+        return _child_bound_table(weights, cone_a, cone_b, O[bi], La_, Lb_, sa, sb, ma, mb, oa, ob)[0, 0]
+
+    M = jax.vmap(one)(lanes)
+    perm = jax.vmap(linear_assignment)(M)
+    return jnp.sum(jnp.take_along_axis(M, perm[:, :, None], axis=2)[..., 0], axis=-1)
 
 
 def bound_costs(p: Prepared, energy_bound: Float[Array, "B K K"]) -> Float[Array, "B K K"]:
@@ -625,9 +669,11 @@ def lazy_assignment(
     cost of the two laterals' children at the rotations O (`child_assignment`, the same
     procedure one level down). Until a pair is computed its bound holds `child_bound`
     (`child_lower_bounds`). A pair is made exact in tiers, each only when the assignment picks
-    it again: refined bound, then its own DP (its children still by their bound), then its
-    children's exact assignment. So a nested cost is computed only for pairs that still win
-    with their own DP known, and never where the bound already loses.
+    it again: refined bound, then its own DP (its children still by their bound), then the
+    children's tighter bound (`child_assignment_bounds`: an assignment of bounds, no DP), then
+    its children's exact assignment. So a nested cost is computed only for pairs that still win
+    with their own DP and their children's best bound known, and never where a bound already
+    loses.
     """
     B, K = p.La.shape
     dtype = p.La.dtype
@@ -686,11 +732,12 @@ def lazy_assignment(
             A = jnp.where(direct, alone, A)
         return E, G, A, nested_done | direct
 
-    def costs(E, A, computed, nested_done, bound):
+    def costs(E, A, computed, nested_done, bound, child_bound):
         known = p.lam_lateral * E.reshape(B, K, K) + p.fixed
         unknown = bound_costs(p, bound.reshape(B, K, K))
         if n_below:
-            # Three tiers: bounds; the pair's own DP with its children's bound; all exact.
+            # Bounds; the pair's own DP with its children's bound (row/column minima, then the
+            # assignment of bounds once picked); all exact.
             child = jnp.where(p.both, child_bound, 0.0)
             unknown = unknown + child
             known = jnp.where(nested_done.reshape(B, K, K), known + A.reshape(B, K, K), known + child)
@@ -715,23 +762,51 @@ def lazy_assignment(
         A, counts = children(computed & ~nested_done, A, counts)
         nested_done = computed
 
+    def refine_children(need, child_bound):
+        def step(lanes, cb):
+            safe = jnp.clip(lanes, 0, n_items - 1)
+            new = child_assignment_bounds(p, O, safe)
+            return cb.at[lanes].set(jnp.maximum(cb[safe], new), mode="drop")
+
+        return run_in_slabs(need & nested, step, child_bound, slab=_slab_size(n_items, CHILD_SLAB))
+
     def body(state):
-        E, G, A, counts, computed, nested_done, refined, bound, _, chosen = state
+        E, G, A, counts, computed, nested_done, refined, child_refined, bound, child_bound, _, chosen = state
         # A pair picked for the first time gets its refined bound, then its DP, then (depth
-        # D > 2, when picked with its DP known) its children's exact assignment.
+        # D > 2, when picked with its DP known) its children's tighter bound, then their
+        # exact assignment.
         bound = refine(chosen & ~refined, bound)
         run_dp = chosen & refined & ~computed
         if n_below:
-            A, counts = children(chosen & computed & ~nested_done, A, counts)
-            nested_done = nested_done | (chosen & computed)
+            tighten = chosen & computed & ~child_refined
+            child_bound = refine_children(tighten, child_bound.reshape(-1)).reshape(B, K, K)
+            nest = chosen & computed & child_refined & ~nested_done
+            A, counts = children(nest, A, counts)
+            nested_done = nested_done | nest
+            child_refined = child_refined | (chosen & computed)
         E, G, A, nested_done = exact(run_dp, E, G, A, nested_done)
         computed = computed | run_dp
         refined = refined | chosen
-        perm = solve(costs(E, A, computed, nested_done, bound))
-        return E, G, A, counts, computed, nested_done, refined, bound, perm, picks(perm, nested_done)
+        perm = solve(costs(E, A, computed, nested_done, bound, child_bound))
+        return (
+            E,
+            G,
+            A,
+            counts,
+            computed,
+            nested_done,
+            refined,
+            child_refined,
+            bound,
+            child_bound,
+            perm,
+            picks(perm, nested_done),
+        )
 
     bound = energy_bound.reshape(-1)
-    perm = solve(costs(E, A, computed, nested_done, bound))
+    if child_bound is None:
+        child_bound = jnp.zeros((B, K, K), dtype)
+    perm = solve(costs(E, A, computed, nested_done, bound, child_bound))
     state = (
         E,
         G,
@@ -740,13 +815,23 @@ def lazy_assignment(
         computed,
         nested_done,
         jnp.zeros_like(computed),
+        computed,
         bound,
+        child_bound,
         perm,
         picks(perm, nested_done),
     )
-    E, G, A, counts, computed, nested_done, _, bound, perm, _ = lax.while_loop(lambda s: jnp.any(s[-1]), body, state)
+    E, G, A, counts, computed, nested_done, _, _, bound, child_bound, perm, _ = lax.while_loop(
+        lambda s: jnp.any(s[-1]), body, state
+    )
     below = jnp.sum(counts.reshape(B, K * K, n_below), axis=1, dtype=jnp.int32)
-    return costs(E, A, computed, nested_done, bound), perm, computed.reshape(B, K, K), G.reshape(B, K, K, T), below
+    return (
+        costs(E, A, computed, nested_done, bound, child_bound),
+        perm,
+        computed.reshape(B, K, K),
+        G.reshape(B, K, K, T),
+        below,
+    )
 
 
 def assign_at(p: Prepared, O: Array, rows: Array, options):
