@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._assignment import linear_assignment
+from ._assignment import assignment_cost, linear_assignment
 from ._curves import l2_norm_squared, safe_norm, safe_normalise, safe_sqrt, tiny, trapezoid_weights
 from ._devices import split_over_devices
 from ._metric import (
@@ -458,9 +458,25 @@ def lower_bounds(p: Prepared, O: Float[Array, "B d d"]) -> Float[Array, "B K K"]
     return jnp.maximum(p.La[:, :, None] + p.Lb[:, None, :] - 2 * cos_cap * sqrt_LaLb, 0.0)
 
 
-def child_lower_bounds(p: Prepared, O: Float[Array, "B d d"]) -> Float[Array, "B K K"]:
+def _child_sides(p: Prepared):
+    """Per side, what the children's bounds read: (block cones, squared norms, attachments,
+    mask, the cost of leaving a child unmatched: its own norm and its whole subtree's), each
+    with the layout [B, K, K2, ...]."""
+    lam = lateral_weight(p.weights, 2, p.La.dtype)
+
+    def side(tree, cone):
+        children = tree.deeper[0]
+        L = l2_norm_squared(children.q) * children.mask
+        sub = descendant_norms(tree.deeper[1:], p.weights, 3)
+        own = lam * L + (0.0 if sub is None else sub)
+        return cone, L, children.s, children.mask, own
+
+    return side(p.a, p.child_cone_a), side(p.b, p.child_cone_b)
+
+
+def child_lower_bounds(p: Prepared, O: Float[Array, "B d d"], sides) -> Float[Array, "B K K"]:
     """Depth D > 2: a lower bound of the exact assignment cost of the children of every
-    lateral pair (i, j), without any DP.
+    lateral pair (i, j), without any DP (`sides` from `_child_sides`).
 
     Why it is a bound: each child pair's cost is bounded below as a lateral pair's is
     (`lower_bounds`, the cone bound of its branch energy, plus its exact DP-free terms; the
@@ -468,25 +484,21 @@ def child_lower_bounds(p: Prepared, O: Float[Array, "B d d"]) -> Float[Array, "B
     exact subtree norm. Every assignment picks one entry per row (and per column) of that
     matrix, so its cost is at least the sum of the row minima, and of the column minima.
     """
-    la, lb = p.a.deeper[0], p.b.deeper[0]
-    lam = lateral_weight(p.weights, 2, p.La.dtype)
-    La = l2_norm_squared(la.q) * la.mask
-    Lb = l2_norm_squared(lb.q) * lb.mask
-    sub_a = descendant_norms(p.a.deeper[1:], p.weights, 3)
-    sub_b = descendant_norms(p.b.deeper[1:], p.weights, 3)
-    # What leaving a child unmatched costs: its own norm and its whole subtree's.
-    own_a = lam * La + (0.0 if sub_a is None else sub_a)
-    own_b = lam * Lb + (0.0 if sub_b is None else sub_b)
-    rows = (p.child_cone_a, p.child_cone_b, O, La, Lb, la.s, lb.s, la.mask, lb.mask, own_a, own_b)
+    weights = child_weights(p.weights)
+
+    def one(r):
+        M = _child_bound_table(weights, *r)
+        return jnp.maximum(jnp.sum(jnp.min(M, axis=3), axis=2), jnp.sum(jnp.min(M, axis=2), axis=2))
+
     # One pair at a time: the [K, K, K2, K2] table of a pair is the largest array here.
-    return lax.map(lambda r: _child_bound_one(child_weights(p.weights), *r), rows)
+    return lax.map(one, (*sides, O))
 
 
-def _child_bound_table(weights, cone_a, cone_b, O, La, Lb, sa, sb, ma, mb, own_a, own_b):
+def _child_bound_table(weights, side_a, side_b, O):
     """Lower bounds of every child pair's cost (an unmatched child: its exact subtree cost) for
     the lateral pairs of one batch entry (no batch axis); layout [i, j, k, l]: lateral i of a,
     lateral j of b, their children k and l."""
-    (ca, ha), (cb, hb) = cone_a, cone_b
+    ((ca, ha), La, sa, ma, own_a), ((cb, hb), Lb, sb, mb, own_b) = side_a, side_b
     dtype = La.dtype
     if ca.shape[-1] == O.shape[-1]:
         cos_axes = jnp.einsum("ike,jld,ed->ijkl", ca, cb, O)
@@ -498,58 +510,40 @@ def _child_bound_table(weights, cone_a, cone_b, O, La, Lb, sa, sb, ma, mb, own_a
     La, Lb = La[:, None, :, None], Lb[None, :, None, :]
     energy = jnp.maximum(La + Lb - 2 * cap * jnp.sqrt(La * Lb), 0.0)
     # The terms read only the attachments of the two sides; broadcast to [i, j, k, l].
-    side_a = types.SimpleNamespace(s=sa[:, None, :])
-    side_b = types.SimpleNamespace(s=sb[None, :, :])
-    real_real = pair_lower_bounds(weights, side_a, side_b, energy)
+    real_real = pair_lower_bounds(
+        weights, types.SimpleNamespace(s=sa[:, None, :]), types.SimpleNamespace(s=sb[None, :, :]), energy
+    )
     ma, mb = ma[:, None, :, None], mb[None, :, None, :]
-    M = jnp.where(
+    return jnp.where(
         ma & mb, real_real, jnp.where(ma, own_a[:, None, :, None], jnp.where(mb, own_b[None, :, None, :], 0.0))
     )
-    return M
 
 
-def _child_bound_one(weights, *args):
-    """`child_lower_bounds` of one pair: the larger of the row-minima and column-minima sums
-    of `_child_bound_table` (each assignment picks one entry per row and per column)."""
-    M = _child_bound_table(weights, *args)
-    rows = jnp.sum(jnp.min(M, axis=3), axis=2)
-    cols = jnp.sum(jnp.min(M, axis=2), axis=2)
-    return jnp.maximum(rows, cols)
-
-
-def child_assignment_bounds(p: Prepared, O: Float[Array, "B d d"], lanes: Int[Array, " L"]) -> Float[Array, " L"]:
+def child_assignment_bounds(
+    p: Prepared, O: Float[Array, "B d d"], sides, lanes: Int[Array, " L"], *, method: str
+) -> Float[Array, " L"]:
     """Depth D > 2: a tighter lower bound of the children's exact assignment cost of the lateral
-    pairs `lanes` (flat indices into ``[B, K, K]``): the optimal assignment of the children's
-    bound matrix (`_child_bound_table`), without any DP.
+    pairs `lanes` (flat indices into ``[B, K, K]``): the optimal assignment (`method`, as the
+    registration's) of the children's bound matrix (`_child_bound_table`), without any DP.
 
     Why it is a bound: every entry of that matrix is at most the cost it stands for, so for any
     assignment the sum of its entries is at most the true cost of that assignment; the
     minimum over assignments is then at most the true optimum. It is at least the row-minima
     and column-minima sums of `child_lower_bounds`, so it only tightens them.
     """
-    B, K = p.La.shape
-    la, lb = p.a.deeper[0], p.b.deeper[0]
-    lam = lateral_weight(p.weights, 2, p.La.dtype)
-    La = l2_norm_squared(la.q) * la.mask
-    Lb = l2_norm_squared(lb.q) * lb.mask
-    sub_a = descendant_norms(p.a.deeper[1:], p.weights, 3)
-    sub_b = descendant_norms(p.b.deeper[1:], p.weights, 3)
-    own_a = lam * La + (0.0 if sub_a is None else sub_a)
-    own_b = lam * Lb + (0.0 if sub_b is None else sub_b)
-    side_a = (p.child_cone_a, La, la.s, la.mask, own_a)
-    side_b = (p.child_cone_b, Lb, lb.s, lb.mask, own_b)
+    K = p.La.shape[1]
     weights = child_weights(p.weights)
+    side_a, side_b = sides
 
     def one(lane):
         bi, rem = jnp.divmod(lane, K * K)
         i, j = jnp.divmod(rem, K)
-        (cone_a, La_, sa, ma, oa) = jax.tree.map(lambda x: x[bi, i][None], side_a)
-        (cone_b, Lb_, sb, mb, ob) = jax.tree.map(lambda x: x[bi, j][None], side_b)
-        return _child_bound_table(weights, cone_a, cone_b, O[bi], La_, Lb_, sa, sb, ma, mb, oa, ob)[0, 0]
+        a = jax.tree.map(lambda x: x[bi, i][None], side_a)
+        b = jax.tree.map(lambda x: x[bi, j][None], side_b)
+        M = _child_bound_table(weights, a, b, O[bi])[0, 0]
+        return assignment_cost(M, linear_assignment(M, method=method))
 
-    M = jax.vmap(one)(lanes)
-    perm = jax.vmap(linear_assignment)(M)
-    return jnp.sum(jnp.take_along_axis(M, perm[:, :, None], axis=2)[..., 0], axis=-1)
+    return jax.vmap(one)(lanes)
 
 
 def bound_costs(p: Prepared, energy_bound: Float[Array, "B K K"]) -> Float[Array, "B K K"]:
@@ -653,6 +647,7 @@ def lazy_assignment(
     options,
     O: Array | None = None,
     child_bound: Array | None = None,
+    sides=None,
 ):
     """Exact optimal lateral correspondence at one rotation, running as few DPs as possible.
 
@@ -668,8 +663,8 @@ def lazy_assignment(
     Depth D > 2 (docs/design.md §11): a real–real pair's cost also holds the exact assignment
     cost of the two laterals' children at the rotations O (`child_assignment`, the same
     procedure one level down). Until a pair is computed its bound holds `child_bound`
-    (`child_lower_bounds`). A pair is made exact in tiers, each only when the assignment picks
-    it again: refined bound, then its own DP (its children still by their bound), then the
+    (`child_lower_bounds`; `sides`, from `_child_sides`, is what the children's bounds read). A
+    pair is made exact in tiers, each only when the assignment picks it again: refined bound, then its own DP (its children still by their bound), then the
     children's tighter bound (`child_assignment_bounds`: an assignment of bounds, no DP), then
     its children's exact assignment. So a nested cost is computed only for pairs that still win
     with their own DP and their children's best bound known, and never where a bound already
@@ -765,7 +760,7 @@ def lazy_assignment(
     def refine_children(need, child_bound):
         def step(lanes, cb):
             safe = jnp.clip(lanes, 0, n_items - 1)
-            new = child_assignment_bounds(p, O, safe)
+            new = child_assignment_bounds(p, O, sides, safe, method=options.assignment)
             return cb.at[lanes].set(jnp.maximum(cb[safe], new), mode="drop")
 
         return run_in_slabs(need & nested, step, child_bound, slab=_slab_size(n_items, CHILD_SLAB))
@@ -838,8 +833,9 @@ def assign_at(p: Prepared, O: Array, rows: Array, options):
     """`lazy_assignment` of the prepared pairs at rotations O (b's branches and bounds turned)."""
     qb = rotate_batch(p.b.q, O)
     axes_b = rotate_batch(p.blocks_b[0], O)
-    child_bound = child_lower_bounds(p, O) if p.a.deeper else None
-    return lazy_assignment(p, qb, axes_b, lower_bounds(p, O), rows, options, O, child_bound)
+    sides = _child_sides(p) if p.a.deeper else None
+    child_bound = child_lower_bounds(p, O, sides) if p.a.deeper else None
+    return lazy_assignment(p, qb, axes_b, lower_bounds(p, O), rows, options, O, child_bound, sides)
 
 
 def _assign_children(a: SRVFTree, b: SRVFTree, weights: Weights, O: Array, active: Array, options):
