@@ -194,16 +194,28 @@ def _shifted(x: Array, n: int) -> Array:
 def _edge_terms(q: Array, n_coef: np.ndarray, p_coef: np.ndarray) -> Array:
     """``Σ_r n[m, r]|q[i−r]|² + Σ_r p[m, r] q[i−r]·q[i−r+1]`` for every move m and node i.
 
-    ``q`` has shape (T, B, d) (batch minor); the result has shape (M, T, B).
+    ``q`` has shape (T, B, d) (batch minor); the result has shape (M, T, B). Written as sums
+    of products in a fixed order, not as einsums: XLA computes a contraction differently for
+    different batch sizes, and a pair's DP must give the same bits whether it runs alone or in
+    a block (`_dp_batched` mixes both).
     """
     n = n_coef.shape[1] - 1
-    sq = jnp.sum(q * q, axis=-1)
-    nxt = jnp.sum(q[:-1] * q[1:], axis=-1)
+    sq = _dot_last(q, q)
+    nxt = _dot_last(q[:-1], q[1:])
     nxt = jnp.concatenate([nxt, jnp.zeros_like(nxt[:1])])
+    sq_r, nxt_r = _shifted(sq, n), _shifted(nxt, n)
     dt = q.dtype
-    return jnp.einsum("mr,rtb->mtb", jnp.asarray(n_coef, dt), _shifted(sq, n)) + jnp.einsum(
-        "mr,rtb->mtb", jnp.asarray(p_coef, dt), _shifted(nxt, n)
-    )
+    rows = []
+    for m in range(n_coef.shape[0]):
+        terms = [jnp.asarray(c, dt) * sq_r[r] for r, c in enumerate(n_coef[m]) if c != 0]
+        terms += [jnp.asarray(c, dt) * nxt_r[r] for r, c in enumerate(p_coef[m]) if c != 0]
+        rows.append(functools.reduce(jnp.add, terms) if terms else jnp.zeros_like(sq))
+    return jnp.stack(rows)
+
+
+def _dot_last(x: Array, y: Array) -> Array:
+    """``Σ_c x[..., c] y[..., c]``, summed left to right (see `_edge_terms`)."""
+    return functools.reduce(jnp.add, [x[..., c] * y[..., c] for c in range(x.shape[-1])])
 
 
 # Cross terms per fused loop. LLVM stopped vectorising the loop beyond ~600 terms (55 moves);
@@ -240,7 +252,7 @@ def _forward(q1: Array, q2: Array, n: int):
     q2t = jnp.swapaxes(q2, 0, 1)
     r1 = _edge_terms(q1t, st.n1, st.p1)
     r2 = _edge_terms(q2t, st.n2, st.p2)
-    gram = jnp.einsum("ibd,jbd->ijb", q1t, q2t)
+    gram = _dot_last(q1t[:, None], q2t[None, :])  # (T, T, B), same bits at any B (`_edge_terms`)
     gpad = jnp.pad(gram, ((n, 0), (n, 0), (0, 0)))
     r1_rows = jnp.moveaxis(r1, 1, 0)  # (T, M, B), scanned over
     # −2·kern: the cross term's factor folded into the coefficients (exact: a power of two),
@@ -299,7 +311,9 @@ def _backtrack(table: Array, gram: Array, r1: Array, r2: Array, n: int) -> Array
     st = _stencil(n, size)
     a_of = jnp.asarray(st.moves[:, 0], jnp.int32)
     b_of = jnp.asarray(st.moves[:, 1], jnp.int32)
-    kern = jnp.asarray(st.kern, dtype)  # (M, U)
+    # The cross term as sums of products in a fixed order, not a matrix product: the same bits
+    # whether this pair runs alone or in a block (see `_edge_terms`).
+    kern = [[(u, np.dtype(dtype).type(st.kern[m, u])) for u in np.flatnonzero(st.kern[m])] for m in range(len(st.kern))]
     wr = jnp.asarray(n - st.pairs[:, 0])
     wo = jnp.asarray(n - st.pairs[:, 1])
     gpad = jnp.pad(gram, ((n, 0), (n, 0)))
@@ -307,7 +321,10 @@ def _backtrack(table: Array, gram: Array, r1: Array, r2: Array, n: int) -> Array
     def best_move(k, l):
         gwin = jax.lax.dynamic_slice(gpad, (k, l), (n + 1, n + 1))  # Gram[k−n..k, l−n..l]
         ewin = jax.lax.dynamic_slice(table, (k, l), (n + 1, n + 1))  # cost[k−n..k, l−n..l]
-        cand = ewin[n - a_of, n - b_of] + r1[:, k] + r2[:, l] - 2 * (kern @ gwin[wr, wo])
+        g = gwin[wr, wo]
+        zero = jnp.zeros((), dtype)
+        cross = jnp.stack([functools.reduce(jnp.add, [c * g[u] for u, c in t], zero) for t in kern])
+        cand = ewin[n - a_of, n - b_of] + r1[:, k] + r2[:, l] - 2 * cross
         return jnp.argmin(cand)
 
     # Walk the path's vertices only (about a third of the rows on typical curves), then
@@ -343,6 +360,9 @@ def _dp_block(q1: Array, q2: Array, n: int):
 #: A remainder of fewer active pairs than this is solved pair by pair (`_dp_batched`): on an
 #: AMD EPYC at T = 100 one pair alone takes 0.25-0.4 ms and a 16-pair block 2.6-4.0 ms.
 _SINGLES_BELOW = 12
+#: Blocks narrower than this vectorise badly (a 2-pair block costs more than 2 pairs alone):
+#: a batch that small is solved pair by pair.
+_MIN_BLOCK = 8
 
 
 def _block_size(size: int) -> int:
@@ -365,6 +385,8 @@ def _dp_batched(q1: Array, q2: Array, active: Array, n: int):
     """
     batch, size, _ = q1.shape
     block = min(_block_size(size), batch)
+    if block < _MIN_BLOCK:
+        block = 1
     if batch == 1:
         gamma, cost = _dp_block(q1, q2, n)
         identity = jnp.linspace(0, 1, size, dtype=q1.dtype)

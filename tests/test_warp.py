@@ -234,9 +234,34 @@ def test_vmap_and_batch_equal_a_python_loop():
     np.testing.assert_array_equal(np.asarray(one[2]), np.asarray(dp_warp(q1s[2], q2s[0])))
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("n_active", [1, 4, 8, 11, 13, 21])
+def test_each_pair_gives_the_same_bits_alone_in_a_block_or_in_the_remainder(monkeypatch, n_active, dtype):
+    # Blocks of 8, a remainder of 5 or more as a block, fewer pair by pair: every active pair's
+    # warp and DP minimum equal, bit for bit, what it gives alone (the engine's results must
+    # not depend on how many DPs a loop step happens to have).
+    monkeypatch.setattr(_warp, "_block_size", lambda size: 8)
+    monkeypatch.setattr(_warp, "_SINGLES_BELOW", 5)
+    q1s, q2s = (x.astype(dtype) for x in _batch(40 + n_active, 24, 17, d=3))
+    active = np.zeros(24, bool)
+    active[np.random.default_rng(n_active).permutation(24)[:n_active]] = True
+    fn = jax.jit(jax.vmap(lambda a, b, m: _warp.dp_warp_if(a, b, m, neighbourhood=7)))
+    gammas, costs = fn(q1s, q2s, active)
+    for i in range(24):
+        if active[i]:
+            g, c = dp_warp_and_energy(q1s[i], q2s[i])
+            np.testing.assert_array_equal(np.asarray(gammas[i]), np.asarray(g))
+            np.testing.assert_array_equal(np.asarray(costs[i]), np.asarray(c))
+        else:
+            np.testing.assert_array_equal(np.asarray(gammas[i]), np.linspace(0, 1, 17, dtype=dtype))
+
+
 def test_blocked_and_masked_batches_equal_a_python_loop(monkeypatch):
-    # Small blocks so that a small test batch spans several (packed) blocks.
+    # Small blocks so that a small test batch spans several (packed) blocks; a remainder of
+    # fewer than `_SINGLES_BELOW` pairs runs pair by pair.
     monkeypatch.setattr(_warp, "_block_size", lambda size: 3)
+    monkeypatch.setattr(_warp, "_SINGLES_BELOW", 2)
+    monkeypatch.setattr(_warp, "_MIN_BLOCK", 2)
     q1s, q2s = _batch(30, 8, 13)
     active = np.array([True, False, True, True, False, True, True, False])
     loop = [dp_warp_and_energy(a, b) for a, b in zip(q1s, q2s)]
