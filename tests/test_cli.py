@@ -824,3 +824,25 @@ def test_heartbeat_redraws_a_bar_that_gets_no_update():
             assert bar.disable
         with ticking(SimpleNamespace(quiet=False), "working") as bar:
             assert not bar.disable and bar.total is None
+
+
+def test_a_run_that_fails_midway_says_what_it_left_in_out(tmp_path, monkeypatch, capsys):
+    # A step failing after traits.csv was written: the error line, then which complete files
+    # the folder holds and that a rerun needs --overwrite (a plain rerun is refused).
+    from rootshape_jax._cli import _commands, main
+
+    def fail(*args, **kwargs):
+        raise ValueError("simulated failure after the traits were written")
+
+    monkeypatch.setattr(_commands, "_finish", fail)
+    out = tmp_path / "o"
+    assert main(["traits", "--synthetic", "2", "--quiet", "--out", str(out)]) == 1
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert lines[0] == "rootshape: error: simulated failure after the traits were written", lines
+    assert len(lines) == 2 and str(out) in lines[1] and "traits.csv" in lines[1], lines
+    assert "--overwrite" in lines[1] and "stopped before its end" in lines[1], lines
+    assert (out / "traits.csv").exists()
+    monkeypatch.undo()
+    assert main(["traits", "--synthetic", "2", "--quiet", "--out", str(out)]) == 1
+    assert "--overwrite" in capsys.readouterr().err
+    assert main(["traits", "--synthetic", "2", "--quiet", "--overwrite", "--out", str(out)]) == 0

@@ -19,7 +19,7 @@ from collections.abc import Sequence
 
 from ._common import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, PROG, CLIError, heartbeat
 from ._parser import build_parser
-from ._report import remove_pending
+from ._report import OPENED, remove_pending, unfinished_note
 
 
 def configure_jax(*, devices: int | None, float64: bool) -> None:
@@ -88,7 +88,14 @@ def _on_sigint(signum, frame) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not interrupt the exit
     remove_pending()
     print(f"\n{PROG}: interrupted; every file written so far is complete.", file=sys.stderr)
+    _print_unfinished()
     _end_process(EXIT_INTERRUPTED)
+
+
+def _print_unfinished() -> None:
+    note = unfinished_note()
+    if note:
+        print(f"{PROG}: {note}.", file=sys.stderr)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -104,6 +111,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as e:  # --help, --version, or a usage error (already printed)
         return int(e.code) if isinstance(e.code, int) else EXIT_USAGE
     configure_jax(devices=getattr(args, "devices", None), float64=getattr(args, "float64", False))
+    OPENED.clear()
     if argv is None:  # the program: Ctrl-C ends the process (`_on_sigint`)
         with contextlib.suppress(ValueError):  # not the main thread: keep KeyboardInterrupt
             signal.signal(signal.SIGINT, _on_sigint)
@@ -112,10 +120,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.func(args)
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted; every file written so far is complete.", file=sys.stderr)
+        _print_unfinished()
         if argv is None:
             _end_process(EXIT_INTERRUPTED)
         return EXIT_INTERRUPTED
-    except Exception as e:  # noqa: BLE001 - every failure becomes one line unless --debug
+    except Exception as e:  # noqa: BLE001 - every failure becomes one line (and what it left in --out) unless --debug
         if args.debug:
             raise
         import rootshape_jax as rs
@@ -129,5 +138,6 @@ def main(argv: Sequence[str] | None = None) -> int:
                 "run again with --debug and report the traceback)",
                 file=sys.stderr,
             )
+        _print_unfinished()
         return EXIT_ERROR
     return EXIT_OK

@@ -103,6 +103,7 @@ class Output:
         except OSError as e:
             raise CLIError(f"--out {folder}: cannot create the output folder ({e.strerror}).") from None
         self.args = args
+        OPENED.append(self)
         self.sections: list[Section] = []
         self.written: set[str] = set()
         self.log: list[str] = []
@@ -201,6 +202,26 @@ class Output:
 
 # Temporary files being written, removed by the Ctrl-C handler before it ends the process.
 PENDING: set[str] = set()
+# The output folders of the running command, for the message when it stops early.
+OPENED: list[Output] = []
+
+
+def unfinished_note() -> str | None:
+    """What a command that stopped early (error, Ctrl-C) leaves in its output folders: the
+    files it wrote are complete (atomic writes), the rest is missing, and a plain rerun into
+    the same folder is refused (`Output`), so say so."""
+    notes = []
+    for out in OPENED:
+        names = sorted(out.written)
+        if not names:
+            continue
+        shown = ", ".join(names[:6]) + (f" and {len(names) - 6} more" if len(names) > 6 else "")
+        notes.append(
+            f"the run stopped before its end: {out.folder} holds only the {len(names)} "
+            f"file{'s' if len(names) > 1 else ''} written before ({shown}); run again with "
+            "--overwrite to replace them"
+        )
+    return "; ".join(notes) or None
 
 
 def remove_pending() -> None:
