@@ -194,27 +194,26 @@ def _shifted(x: Array, n: int) -> Array:
 def _edge_terms(q: Array, n_coef: np.ndarray, p_coef: np.ndarray) -> Array:
     """``Σ_r n[m, r]|q[i−r]|² + Σ_r p[m, r] q[i−r]·q[i−r+1]`` for every move m and node i.
 
-    ``q`` has shape (T, B, d) (batch minor); the result has shape (M, T, B). Written as sums
-    of products in a fixed order, not as einsums: XLA computes a contraction differently for
-    different batch sizes, and a pair's DP must give the same bits whether it runs alone or in
-    a block (`_dp_batched` mixes both).
+    ``q`` has shape (T, B, d) (batch minor); the result has shape (M, T, B). Products and
+    reductions rather than einsums: XLA computes a contraction differently for different batch
+    sizes (a one-pair contraction becomes a matrix product), and a pair's DP should find the
+    same warp whether it runs alone or in a block (`_dp_batched` mixes both). The values may
+    still differ in the last bit (vectorised along the batch or along the curve); unrolled sums
+    would remove that too, but tripled the kernel's compile time.
     """
     n = n_coef.shape[1] - 1
     sq = _dot_last(q, q)
     nxt = _dot_last(q[:-1], q[1:])
     nxt = jnp.concatenate([nxt, jnp.zeros_like(nxt[:1])])
-    sq_r, nxt_r = _shifted(sq, n), _shifted(nxt, n)
     dt = q.dtype
-    rows = []
-    for m in range(n_coef.shape[0]):
-        terms = [jnp.asarray(c, dt) * sq_r[r] for r, c in enumerate(n_coef[m]) if c != 0]
-        terms += [jnp.asarray(c, dt) * nxt_r[r] for r, c in enumerate(p_coef[m]) if c != 0]
-        rows.append(functools.reduce(jnp.add, terms) if terms else jnp.zeros_like(sq))
-    return jnp.stack(rows)
+    # (M, n+1, 1, 1) coefficients times (1, n+1, T, B) shifted values, summed over the shifts.
+    n_part = jnp.asarray(n_coef, dt)[:, :, None, None] * _shifted(sq, n)[None]
+    p_part = jnp.asarray(p_coef, dt)[:, :, None, None] * _shifted(nxt, n)[None]
+    return jnp.sum(n_part, axis=1) + jnp.sum(p_part, axis=1)
 
 
 def _dot_last(x: Array, y: Array) -> Array:
-    """``Σ_c x[..., c] y[..., c]``, summed left to right (see `_edge_terms`)."""
+    """``Σ_c x[..., c] y[..., c]``, summed left to right, not a contraction (see `_edge_terms`)."""
     return functools.reduce(jnp.add, [x[..., c] * y[..., c] for c in range(x.shape[-1])])
 
 
@@ -252,7 +251,7 @@ def _forward(q1: Array, q2: Array, n: int):
     q2t = jnp.swapaxes(q2, 0, 1)
     r1 = _edge_terms(q1t, st.n1, st.p1)
     r2 = _edge_terms(q2t, st.n2, st.p2)
-    gram = _dot_last(q1t[:, None], q2t[None, :])  # (T, T, B), same bits at any B (`_edge_terms`)
+    gram = _dot_last(q1t[:, None], q2t[None, :])  # (T, T, B), not a contraction (`_edge_terms`)
     gpad = jnp.pad(gram, ((n, 0), (n, 0), (0, 0)))
     r1_rows = jnp.moveaxis(r1, 1, 0)  # (T, M, B), scanned over
     # −2·kern: the cross term's factor folded into the coefficients (exact: a power of two),
@@ -311,9 +310,8 @@ def _backtrack(table: Array, gram: Array, r1: Array, r2: Array, n: int) -> Array
     st = _stencil(n, size)
     a_of = jnp.asarray(st.moves[:, 0], jnp.int32)
     b_of = jnp.asarray(st.moves[:, 1], jnp.int32)
-    # The cross term as sums of products in a fixed order, not a matrix product: the same bits
-    # whether this pair runs alone or in a block (see `_edge_terms`).
-    kern = [[(u, np.dtype(dtype).type(st.kern[m, u])) for u in np.flatnonzero(st.kern[m])] for m in range(len(st.kern))]
+    # The cross term as a product and a reduction, not a matrix product (see `_edge_terms`).
+    kern = jnp.asarray(st.kern, dtype)
     wr = jnp.asarray(n - st.pairs[:, 0])
     wo = jnp.asarray(n - st.pairs[:, 1])
     gpad = jnp.pad(gram, ((n, 0), (n, 0)))
@@ -321,9 +319,7 @@ def _backtrack(table: Array, gram: Array, r1: Array, r2: Array, n: int) -> Array
     def best_move(k, l):
         gwin = jax.lax.dynamic_slice(gpad, (k, l), (n + 1, n + 1))  # Gram[k−n..k, l−n..l]
         ewin = jax.lax.dynamic_slice(table, (k, l), (n + 1, n + 1))  # cost[k−n..k, l−n..l]
-        g = gwin[wr, wo]
-        zero = jnp.zeros((), dtype)
-        cross = jnp.stack([functools.reduce(jnp.add, [c * g[u] for u, c in t], zero) for t in kern])
+        cross = jnp.sum(kern * gwin[wr, wo], axis=1)
         cand = ewin[n - a_of, n - b_of] + r1[:, k] + r2[:, l] - 2 * cross
         return jnp.argmin(cand)
 
