@@ -194,27 +194,16 @@ def _shifted(x: Array, n: int) -> Array:
 def _edge_terms(q: Array, n_coef: np.ndarray, p_coef: np.ndarray) -> Array:
     """``Σ_r n[m, r]|q[i−r]|² + Σ_r p[m, r] q[i−r]·q[i−r+1]`` for every move m and node i.
 
-    ``q`` has shape (T, B, d) (batch minor); the result has shape (M, T, B). Products and
-    reductions rather than einsums: XLA computes a contraction differently for different batch
-    sizes (a one-pair contraction becomes a matrix product), and a pair's DP should find the
-    same warp whether it runs alone or in a block (`_dp_batched` mixes both). The values may
-    still differ in the last bit (vectorised along the batch or along the curve); unrolled sums
-    would remove that too, but tripled the kernel's compile time.
+    ``q`` has shape (T, B, d) (batch minor); the result has shape (M, T, B).
     """
     n = n_coef.shape[1] - 1
-    sq = _dot_last(q, q)
-    nxt = _dot_last(q[:-1], q[1:])
+    sq = jnp.sum(q * q, axis=-1)
+    nxt = jnp.sum(q[:-1] * q[1:], axis=-1)
     nxt = jnp.concatenate([nxt, jnp.zeros_like(nxt[:1])])
     dt = q.dtype
-    # (M, n+1, 1, 1) coefficients times (1, n+1, T, B) shifted values, summed over the shifts.
-    n_part = jnp.asarray(n_coef, dt)[:, :, None, None] * _shifted(sq, n)[None]
-    p_part = jnp.asarray(p_coef, dt)[:, :, None, None] * _shifted(nxt, n)[None]
-    return jnp.sum(n_part, axis=1) + jnp.sum(p_part, axis=1)
-
-
-def _dot_last(x: Array, y: Array) -> Array:
-    """``Σ_c x[..., c] y[..., c]``, summed left to right, not a contraction (see `_edge_terms`)."""
-    return functools.reduce(jnp.add, [x[..., c] * y[..., c] for c in range(x.shape[-1])])
+    return jnp.einsum("mr,rtb->mtb", jnp.asarray(n_coef, dt), _shifted(sq, n)) + jnp.einsum(
+        "mr,rtb->mtb", jnp.asarray(p_coef, dt), _shifted(nxt, n)
+    )
 
 
 # Cross terms per fused loop. LLVM stopped vectorising the loop beyond ~600 terms (55 moves);
@@ -251,7 +240,7 @@ def _forward(q1: Array, q2: Array, n: int):
     q2t = jnp.swapaxes(q2, 0, 1)
     r1 = _edge_terms(q1t, st.n1, st.p1)
     r2 = _edge_terms(q2t, st.n2, st.p2)
-    gram = _dot_last(q1t[:, None], q2t[None, :])  # (T, T, B), not a contraction (`_edge_terms`)
+    gram = jnp.einsum("ibd,jbd->ijb", q1t, q2t)
     gpad = jnp.pad(gram, ((n, 0), (n, 0), (0, 0)))
     r1_rows = jnp.moveaxis(r1, 1, 0)  # (T, M, B), scanned over
     # −2·kern: the cross term's factor folded into the coefficients (exact: a power of two),
@@ -310,8 +299,7 @@ def _backtrack(table: Array, gram: Array, r1: Array, r2: Array, n: int) -> Array
     st = _stencil(n, size)
     a_of = jnp.asarray(st.moves[:, 0], jnp.int32)
     b_of = jnp.asarray(st.moves[:, 1], jnp.int32)
-    # The cross term as a product and a reduction, not a matrix product (see `_edge_terms`).
-    kern = jnp.asarray(st.kern, dtype)
+    kern = jnp.asarray(st.kern, dtype)  # (M, U)
     wr = jnp.asarray(n - st.pairs[:, 0])
     wo = jnp.asarray(n - st.pairs[:, 1])
     gpad = jnp.pad(gram, ((n, 0), (n, 0)))
@@ -319,8 +307,7 @@ def _backtrack(table: Array, gram: Array, r1: Array, r2: Array, n: int) -> Array
     def best_move(k, l):
         gwin = jax.lax.dynamic_slice(gpad, (k, l), (n + 1, n + 1))  # Gram[k−n..k, l−n..l]
         ewin = jax.lax.dynamic_slice(table, (k, l), (n + 1, n + 1))  # cost[k−n..k, l−n..l]
-        cross = jnp.sum(kern * gwin[wr, wo], axis=1)
-        cand = ewin[n - a_of, n - b_of] + r1[:, k] + r2[:, l] - 2 * cross
+        cand = ewin[n - a_of, n - b_of] + r1[:, k] + r2[:, l] - 2 * (kern @ gwin[wr, wo])
         return jnp.argmin(cand)
 
     # Walk the path's vertices only (about a third of the rows on typical curves), then
@@ -377,7 +364,9 @@ def _dp_batched(q1: Array, q2: Array, active: Array, n: int):
     `fori_loop`, bounding memory. A remainder of fewer than `_SINGLES_BELOW` active pairs is
     solved one pair at a time: a one-pair block vectorises along the curve instead of the
     batch and costs about a tenth of a 16-pair block, which matters in the engine's lazy
-    assignments, where a loop step often has one to a few DPs to run.
+    assignments, where a loop step often has one to a few DPs to run. A pair gets the same
+    warp either way (the DP minimum may differ in the last bits: XLA rounds a one-pair
+    contraction differently; the engine uses the warps).
     """
     batch, size, _ = q1.shape
     block = min(_block_size(size), batch)
