@@ -212,7 +212,8 @@ def unfinished_note() -> str | None:
     the same folder is refused (`Output`), so say so."""
     notes = []
     for out in OPENED:
-        names = sorted(out.written)
+        # The log of skipped files is not a result: it explains the error, so it is kept.
+        names = sorted(n for n in out.written if n != LOG_NAME)
         if not names:
             continue
         shown = ", ".join(names[:6]) + (f" and {len(names) - 6} more" if len(names) > 6 else "")
