@@ -664,9 +664,10 @@ def lazy_assignment(
     cost of the two laterals' children at the rotations O (`child_assignment`, the same
     procedure one level down). Until a pair is computed its bound holds `child_bound`
     (`child_lower_bounds`; `sides`, from `_child_sides`, is what the children's bounds read). A
-    pair is made exact in tiers, each only when the assignment picks it again: refined bound, then its own DP (its children still by their bound), then the
-    children's tighter bound (`child_assignment_bounds`: an assignment of bounds, no DP), then
-    its children's exact assignment. So a nested cost is computed only for pairs that still win
+    pair is made exact in tiers, each only when the assignment picks it again: refined bound,
+    then its own DP (its children still by their bound), then the children's tighter bound
+    (`child_assignment_bounds`: an assignment of bounds, no DP), then its children's exact
+    assignment. So a nested cost is computed only for pairs that still win
     with their own DP and their children's best bound known, and never where a bound already
     loses.
     """

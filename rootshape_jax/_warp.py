@@ -387,30 +387,28 @@ def _dp_batched(q1: Array, q2: Array, active: Array, n: int):
     rest = n_active - n_blocks * block
     n_blocks = n_blocks + (rest >= min(_SINGLES_BELOW, block)).astype(jnp.int32)
 
-    def run(s, out):
-        gamma_out, cost_out = out
-        x = jax.lax.dynamic_slice_in_dim(q1p, s * block, block)
-        y = jax.lax.dynamic_slice_in_dim(q2p, s * block, block)
-        gamma, cost = _dp_block(x, y, n)
-        return (
-            jax.lax.dynamic_update_slice_in_dim(gamma_out, gamma, s * block, axis=0),
-            jax.lax.dynamic_update_slice_in_dim(cost_out, cost, s * block, axis=0),
-        )
+    def solve(width):
+        """Loop body: the `width` packed pairs from slot ``s * width`` on."""
 
-    def run_one(s, out):
-        gamma_out, cost_out = out
-        gamma, cost = _dp_block(q1p[s][None], q2p[s][None], n)
-        return (
-            jax.lax.dynamic_update_slice_in_dim(gamma_out, gamma, s, axis=0),
-            jax.lax.dynamic_update_slice_in_dim(cost_out, cost, s, axis=0),
-        )
+        def body(s, out):
+            gamma_out, cost_out = out
+            x = jax.lax.dynamic_slice_in_dim(q1p, s * width, width)
+            y = jax.lax.dynamic_slice_in_dim(q2p, s * width, width)
+            gamma, cost = _dp_block(x, y, n)
+            return (
+                jax.lax.dynamic_update_slice_in_dim(gamma_out, gamma, s * width, axis=0),
+                jax.lax.dynamic_update_slice_in_dim(cost_out, cost, s * width, axis=0),
+            )
+
+        return body
 
     identity = jnp.linspace(0, 1, size, dtype=q1.dtype)
     gamma0 = jnp.broadcast_to(identity, (n_slots, size))
     cost0 = jnp.zeros((n_slots,), q1.dtype)
-    gamma_p, cost_p = jax.lax.fori_loop(0, n_blocks, run, (gamma0, cost0))
-    # The active pairs after the whole blocks (none when the last block took them).
-    gamma_p, cost_p = jax.lax.fori_loop(n_blocks * block, n_active, run_one, (gamma_p, cost_p))
+    gamma_p, cost_p = jax.lax.fori_loop(0, n_blocks, solve(block), (gamma0, cost0))
+    if block > 1:
+        # The active pairs after the whole blocks (none when the last block took them).
+        gamma_p, cost_p = jax.lax.fori_loop(n_blocks * block, n_active, solve(1), (gamma_p, cost_p))
     inverse = jnp.argsort(order)
     gamma, cost = gamma_p[inverse], cost_p[inverse]
     return jnp.where(active[:, None], gamma, identity), jnp.where(active, cost, 0)
