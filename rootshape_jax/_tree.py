@@ -404,6 +404,17 @@ def _point_at_fraction(main: np.ndarray, fraction: float) -> np.ndarray:
     return np.array([np.interp(target, cum, main[:, k]) for k in range(main.shape[1])])
 
 
+def normalising_length(root: Root, n_points: int) -> float:
+    """The length `batch(normalise_scale=True)` divides `root` by: its main root's, resampled at
+    `n_points` (so the padded tree's main root has length 1). A plant's virtual main root
+    (several axes, docs/design.md §11) has length 0: its longest axis sets the scale, as the one
+    axis of a taproot system would. 0 when the root has no length at all."""
+    length = polyline_length(resample_polyline(root.main.astype(np.float64), n_points))
+    if length <= 0 and root.n_laterals:
+        length = max(polyline_length(resample_polyline(lat.astype(np.float64), n_points)) for lat in root.laterals)
+    return length
+
+
 def root_to_arrays(
     root: Root, *, n_points: int, capacity: int, normalise_scale: bool = False, dtype=np.float64
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -444,12 +455,7 @@ def root_to_level_arrays(
     main = root.main.astype(np.float64)
     scale = 1.0
     if normalise_scale:
-        # The length of the resampled main root, so that the padded tree's main root has length 1.
-        length = polyline_length(resample_polyline(main, n_points))
-        if length <= 0 and root.n_laterals:
-            # A plant's virtual main root (several axes, docs/design.md §11) has zero length:
-            # its longest axis sets the scale, as the one axis of a taproot system would.
-            length = max(polyline_length(resample_polyline(lat.astype(np.float64), n_points)) for lat in root.laterals)
+        length = normalising_length(root, n_points)
         if length <= 0:
             raise InvalidRootError(f"root {root.name!r}: main root has zero length; cannot normalise scale.")
         scale = 1.0 / length
@@ -1079,6 +1085,16 @@ def to_curves(tree: SRVFTree | RootTree) -> RootTree:
         return tree
     if not isinstance(tree, SRVFTree):
         raise TypeError(f"expected an SRVFTree, got {type(tree).__name__}.")
+    return _curves_of(tree)
+
+
+# One compiled program per shape instead of ~100 one-op programs: eager dispatch compiles each
+# jnp call at each new shape (0.03-0.05 s apiece), most of a small job's first call. `to_srvf`
+# stays eager on purpose: an eager op rounds each element the same whatever the batch shape, so
+# a plant's one axis (a lateral slot) gets bit for bit its taproot's main-root SRVF; compiled,
+# XLA's shape-dependent code changed the last bits, and a Karcher mean then took one more step.
+@eqx.filter_jit
+def _curves_of(tree: SRVFTree) -> RootTree:
     fn = _to_curves_single
     for _ in tree.batch_shape:
         fn = jax.vmap(fn)

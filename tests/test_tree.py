@@ -82,6 +82,24 @@ def test_normalise_scale():
     assert tree_allclose(t, big, atol=1e-12)
 
 
+@pytest.mark.parametrize("plant", [False, True])
+def test_normalising_length_takes_a_normalised_tree_back_to_the_input(plant):
+    # The CLI writes normalised results back in the input's units by this length (a coarse
+    # resampling makes it differ from the polyline's own length, so the two must be one rule).
+    from rootshape_jax._tree import normalising_length
+    from rootshape_jax.io import plant_system
+
+    rng = np.random.default_rng(3)
+    r = random_root(rng, n_laterals=3, main_length=7.0)
+    if plant:
+        r = plant_system([r, random_root(rng, n_laterals=2, main_length=9.0)])
+    kw = dict(n_points=12, dtype=np.float64, depth=3 if plant else 2)
+    length = normalising_length(r, 12)
+    assert length < (9.0 if plant else 7.0) - 1e-3  # 12 points cut the corners
+    back = rs.scale_tree(rs.batch(r, normalise_scale=True, **kw), length)
+    assert tree_allclose(back, rs.batch(r, **kw), atol=1e-9)
+
+
 def test_srvf_curves_round_trip_and_to_roots():
     rng = np.random.default_rng(2)
     roots = [random_root(rng, n_laterals=n) for n in (1, 4)]

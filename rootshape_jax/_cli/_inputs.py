@@ -11,6 +11,7 @@ import numpy as np
 
 import rootshape_jax as rs
 from rootshape_jax import io
+from rootshape_jax._tree import normalising_length
 
 from ._common import PAPER_TRAITS, CLIError, warn
 
@@ -161,14 +162,6 @@ class Population:
         return self.mean_length if self.normalised else 1.0
 
 
-def scale_length(root) -> float:
-    """The length `batch(normalise_scale=True)` divides a root by: its main root's, or for a
-    plant's system (a virtual main root of length 0) its longest axis'."""
-    if root.main_length > 0 or not root.n_laterals:
-        return root.main_length
-    return float(np.max(root.lateral_lengths))
-
-
 def prepare(roots: list, args, *, min_roots: int = 1, samples: int | None = None) -> Population:
     """Subsample (--samples), keep the longest laterals (--laterals), resample and pad."""
     roots = subsample(roots, samples)
@@ -186,7 +179,7 @@ def prepare(roots: list, args, *, min_roots: int = 1, samples: int | None = None
         names=[r.name for r in roots],
         normalised=normalised,
         unit=common_unit(roots),
-        mean_length=float(np.mean([scale_length(r) for r in roots])),
+        mean_length=float(np.mean([normalising_length(r, args.points) for r in roots])),
         conditions=conditions if all(c is not None for c in conditions) else None,
         label_name=by or "condition",
         labels=label_columns(roots),

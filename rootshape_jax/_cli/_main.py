@@ -87,12 +87,18 @@ def _on_sigint(signum, frame) -> None:
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not interrupt the exit
     remove_pending()
-    print(f"\n{PROG}: interrupted; every file written so far is complete.", file=sys.stderr)
-    _print_unfinished()
+    print(file=sys.stderr)  # end the line of the progress bar
+    _say_interrupted()
     _end_process(EXIT_INTERRUPTED)
 
 
+def _say_interrupted() -> None:
+    print(f"{PROG}: interrupted; every file written so far is complete.", file=sys.stderr)
+    _print_unfinished()
+
+
 def _print_unfinished() -> None:
+    """Say which complete files a run that stopped early left in --out (and how to rerun)."""
     note = unfinished_note()
     if note:
         print(f"{PROG}: {note}.", file=sys.stderr)
@@ -119,8 +125,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         with _plain_warnings(), heartbeat():
             args.func(args)
     except KeyboardInterrupt:
-        print(f"{PROG}: interrupted; every file written so far is complete.", file=sys.stderr)
-        _print_unfinished()
+        _say_interrupted()
         if argv is None:
             _end_process(EXIT_INTERRUPTED)
         return EXIT_INTERRUPTED
