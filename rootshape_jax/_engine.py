@@ -648,6 +648,7 @@ def lazy_assignment(
     O: Array | None = None,
     child_bound: Array | None = None,
     sides=None,
+    main: tuple | None = None,
 ):
     """Exact optimal lateral correspondence at one rotation, running as few DPs as possible.
 
@@ -670,18 +671,30 @@ def lazy_assignment(
     assignment. So a nested cost is computed only for pairs that still win
     with their own DP and their children's best bound known, and never where a bound already
     loses.
+
+    `main`: the (q1, q2) of the B main-root pairs at this rotation, or None. Their DPs (for the
+    `rows`) are run at the same call site as the laterals', in the loop's first pass, and
+    their energies and warps are returned last (else None, None): each DP call site is a
+    kernel of its own to compile (~1 s), so the engine has as few as it can.
     """
     B, K = p.La.shape
     dtype = p.La.dtype
     n_items = B * K * K
+    n_main = 0 if main is None else B
     n_below = len(p.a.deeper)
     solve = jax.vmap(lambda c: linear_assignment(c, method=options.assignment))
     slabs = functools.partial(run_dp_slabs, neighbourhood=options.neighbourhood, dp_batch_size=options.dp_batch_size)
 
-    def lateral_pair(lanes):
-        bi, rem = jnp.divmod(lanes, K * K)
+    def branch_pair(lanes):
+        # Items 0 … n_items − 1 are the lateral pairs (b, i, j), then the main-root pairs.
+        bi, rem = jnp.divmod(jnp.minimum(lanes, n_items - 1), K * K)
         i, j = jnp.divmod(rem, K)
-        return p.a.q[bi, i], qb[bi, j]
+        q1, q2 = p.a.q[bi, i], qb[bi, j]
+        if n_main:
+            is_main = (lanes >= n_items)[:, None, None]
+            m = jnp.clip(lanes - n_items, 0, B - 1)
+            q1, q2 = jnp.where(is_main, main[0][m], q1), jnp.where(is_main, main[1][m], q2)
+        return q1, q2
 
     def refine(need, bound):
         def step(lanes, bound):
@@ -719,17 +732,19 @@ def lazy_assignment(
 
         return run_in_slabs(need & nested, step, (A, counts), slab=_slab_size(n_items, CHILD_SLAB))
 
-    def exact(need, E, G, A, nested_done):
-        """The DPs of the pairs `need`. A pair with no children's assignment to do (no deeper
-        levels, or one side childless) is then exact: its children's cost is known."""
-        E, G = slabs(need, lateral_pair, E, G)
+    def exact(need, E, G, A, nested_done, main_need=None):
+        """The DPs of the pairs `need` (and of the main roots `main_need`). A pair with no
+        children's assignment to do (no deeper levels, or one side childless) is then exact:
+        its children's cost is known."""
+        need_all = need if main_need is None else jnp.concatenate([need, main_need])
+        E, G = slabs(need_all, branch_pair, E, G)
         direct = need & ~nested if n_below else need
         if n_below:
             A = jnp.where(direct, alone, A)
         return E, G, A, nested_done | direct
 
     def costs(E, A, computed, nested_done, bound, child_bound):
-        known = p.lam_lateral * E.reshape(B, K, K) + p.fixed
+        known = p.lam_lateral * E[:n_items].reshape(B, K, K) + p.fixed
         unknown = bound_costs(p, bound.reshape(B, K, K))
         if n_below:
             # Bounds; the pair's own DP with its children's bound (row/column minima, then the
@@ -743,20 +758,25 @@ def lazy_assignment(
         chosen = jax.nn.one_hot(perm, K, dtype=bool)
         return (chosen & p.both & ~done.reshape(B, K, K) & rows[:, None, None]).reshape(-1)
 
-    computed = p.both & rows[:, None, None] if not options.prune else jnp.zeros_like(p.both)
-    computed = computed.reshape(-1)
     T = qb.shape[-2]
-    E, G, A, nested_done = exact(
-        computed,
-        jnp.zeros((n_items,), dtype),
-        jnp.zeros((n_items, T), dtype),
-        jnp.zeros((n_items,), dtype),
-        jnp.zeros_like(computed),
-    )
+    E = jnp.zeros((n_items + n_main,), dtype)
+    G = jnp.broadcast_to(_identity_grid(T, dtype), (n_items + n_main, T))
+    A = jnp.zeros((n_items,), dtype)
     counts = jnp.zeros((n_items, n_below), jnp.int32)
-    if n_below:
-        A, counts = children(computed & ~nested_done, A, counts)
+    # Main-root DPs still to run (in the loop's first pass).
+    pending = rows if n_main else jnp.zeros((0,), bool)
+    if options.prune:
+        # Nothing is computed up front. (Not traced at all: each DP call site is its own
+        # compiled kernel, and a no-op call would still be compiled.)
+        computed = jnp.zeros((n_items,), bool)
         nested_done = computed
+    else:
+        computed = (p.both & rows[:, None, None]).reshape(-1)
+        E, G, A, nested_done = exact(computed, E, G, A, jnp.zeros_like(computed), pending if n_main else None)
+        pending = jnp.zeros_like(pending)
+        if n_below:
+            A, counts = children(computed & ~nested_done, A, counts)
+            nested_done = computed
 
     def refine_children(need, child_bound):
         def step(lanes, cb):
@@ -767,7 +787,7 @@ def lazy_assignment(
         return run_in_slabs(need & nested, step, child_bound, slab=_slab_size(n_items, CHILD_SLAB))
 
     def body(state):
-        E, G, A, counts, computed, nested_done, refined, child_refined, bound, child_bound, _, chosen = state
+        E, G, A, counts, computed, nested_done, refined, child_refined, bound, child_bound, pending, _, chosen = state
         # A pair picked for the first time gets its refined bound, then its DP, then (depth
         # D > 2, when picked with its DP known) its children's tighter bound, then their
         # exact assignment.
@@ -780,7 +800,7 @@ def lazy_assignment(
             A, counts = children(nest, A, counts)
             nested_done = nested_done | nest
             child_refined = child_refined | (chosen & computed)
-        E, G, A, nested_done = exact(run_dp, E, G, A, nested_done)
+        E, G, A, nested_done = exact(run_dp, E, G, A, nested_done, pending if n_main else None)
         computed = computed | run_dp
         refined = refined | chosen
         perm = solve(costs(E, A, computed, nested_done, bound, child_bound))
@@ -795,6 +815,7 @@ def lazy_assignment(
             child_refined,
             bound,
             child_bound,
+            jnp.zeros_like(pending),
             perm,
             picks(perm, nested_done),
         )
@@ -814,29 +835,34 @@ def lazy_assignment(
         computed,
         bound,
         child_bound,
+        pending,
         perm,
         picks(perm, nested_done),
     )
-    E, G, A, counts, computed, nested_done, _, _, bound, child_bound, perm, _ = lax.while_loop(
-        lambda s: jnp.any(s[-1]), body, state
+    E, G, A, counts, computed, nested_done, _, _, bound, child_bound, _, perm, _ = lax.while_loop(
+        lambda s: jnp.any(s[-1]) | jnp.any(s[-3]), body, state
     )
     below = jnp.sum(counts.reshape(B, K * K, n_below), axis=1, dtype=jnp.int32)
     return (
         costs(E, A, computed, nested_done, bound, child_bound),
         perm,
         computed.reshape(B, K, K),
-        G.reshape(B, K, K, T),
+        G[:n_items].reshape(B, K, K, T),
         below,
+        E[n_items:] if n_main else None,
+        G[n_items:] if n_main else None,
     )
 
 
-def assign_at(p: Prepared, O: Array, rows: Array, options):
-    """`lazy_assignment` of the prepared pairs at rotations O (b's branches and bounds turned)."""
+def assign_at(p: Prepared, O: Array, rows: Array, options, *, with_main: bool = False):
+    """`lazy_assignment` of the prepared pairs at rotations O (b's branches and bounds turned);
+    `with_main`: also the main roots' DPs."""
     qb = rotate_batch(p.b.q, O)
     axes_b = rotate_batch(p.blocks_b[0], O)
     sides = _child_sides(p) if p.a.deeper else None
     child_bound = child_lower_bounds(p, O, sides) if p.a.deeper else None
-    return lazy_assignment(p, qb, axes_b, lower_bounds(p, O), rows, options, O, child_bound, sides)
+    main = (p.a.q0, rotate_batch(p.b.q0, O)) if with_main else None
+    return lazy_assignment(p, qb, axes_b, lower_bounds(p, O), rows, options, O, child_bound, sides, main)
 
 
 def _assign_children(a: SRVFTree, b: SRVFTree, weights: Weights, O: Array, active: Array, options):
@@ -848,7 +874,7 @@ def _assign_children(a: SRVFTree, b: SRVFTree, weights: Weights, O: Array, activ
 def child_assignment(a: SRVFTree, b: SRVFTree, weights: Weights, O: Array, active: Array, options):
     """Exact assignment cost of a batch of children sets (`children_of`) at rotations O, and
     the DPs it ran per level ``[S, levels below a's top level + 1]``."""
-    p, (C, perm, computed, _, below) = _assign_children(a, b, weights, O, active, options)
+    p, (C, perm, computed, _, below, _, _) = _assign_children(a, b, weights, O, active, options)
     total = jnp.sum(jnp.take_along_axis(C, perm[:, :, None], axis=2)[:, :, 0], axis=1)
     n_dp = jnp.sum(computed.reshape(computed.shape[0], -1), axis=1, dtype=jnp.int32)
     return jnp.where(active, total, 0.0), jnp.concatenate([n_dp[:, None], below], axis=1)
@@ -878,7 +904,9 @@ def child_registrations(p: Prepared, O: Array, perm: Array, matched: Array, opti
         bi, i = jnp.divmod(safe, K)
         a_c, b_c = children_of(p.a, bi, i), children_of(p.b, bi, perm[bi, i])
         active = lanes < n_items
-        pc, (_, perm_c, computed, G, _) = _assign_children(a_c, b_c, child_weights(p.weights), O[bi], active, options)
+        pc, (_, perm_c, computed, G, _, _, _) = _assign_children(
+            a_c, b_c, child_weights(p.weights), O[bi], active, options
+        )
         S, K2 = perm_c.shape
         both = jnp.any(jax.nn.one_hot(perm_c, K2, dtype=bool) & pc.both, axis=2) & active[:, None]
         gam = jnp.take_along_axis(G, perm_c[:, :, None, None], axis=2)[:, :, 0]
@@ -908,15 +936,14 @@ def evaluate(p: Prepared, O: Array, rows: Array, options: RegistrationOptions):
     """Energy, permutation and warps of every pair at rotations O (rows: pairs to do).
 
     The lateral warps of the matching are those the assignment's DPs found (`lazy_assignment`
-    keeps them); the main roots' DPs are run here. Depth D > 2: also the children's
+    keeps them), and so are the main roots' (run at the same DP call site). Depth D > 2: also the children's
     registrations under every matched lateral pair (`child_registrations`) and the DPs run
     per deeper level.
     """
     a, b = p.a, p.b
     B, K, T, _ = b.q.shape
     dtype = a.q0.dtype
-    qb0 = rotate_batch(b.q0, O)
-    C, perm, computed, G, below_dp = assign_at(p, O, rows, options)
+    C, perm, computed, G, below_dp, Em, g0 = assign_at(p, O, rows, options, with_main=True)
     lap = jnp.sum(jnp.take_along_axis(C, perm[:, :, None], axis=2)[:, :, 0], axis=1)
 
     # Matched real-real slots take their DP's warp; every other slot the identity.
@@ -924,14 +951,6 @@ def evaluate(p: Prepared, O: Array, rows: Array, options: RegistrationOptions):
     matched = jnp.any(jax.nn.one_hot(perm, K, dtype=bool) & p.both, axis=2) & rows[:, None]
     gam = jnp.take_along_axis(G, perm[:, :, None, None], axis=2)[:, :, 0]
     gam = jnp.where(matched[..., None], gam, identity)
-    Em, g0 = run_dp_slabs(
-        rows,
-        lambda lanes: (a.q0[lanes], qb0[lanes]),
-        jnp.zeros((B,), dtype),
-        jnp.broadcast_to(identity, (B, T)),
-        neighbourhood=options.neighbourhood,
-        dp_batch_size=options.dp_batch_size,
-    )
     n_dp = jnp.sum(computed.reshape(B, K * K), axis=1, dtype=jnp.int32)
     children = []
     if a.deeper:
