@@ -611,27 +611,24 @@ def run_in_slabs(need, step, carry, *, slab: int):
     return lax.fori_loop(0, (jnp.sum(need) + slab - 1) // slab, body, carry)
 
 
-def run_dp_slabs(need, pair_of, E, G=None, *, neighbourhood: int, dp_batch_size: int):
+def run_dp_slabs(need, pair_of, store, carry, *, neighbourhood: int, dp_batch_size: int):
     """Solve the DPs of the items flagged in `need` in slabs (`run_in_slabs`).
 
-    `pair_of(lanes)` gives the (q1, q2) of each item. Returns the energies ``||q1 − w||²``
-    (and warps, when G is given) scattered into E (and G).
+    `pair_of(lanes)` gives the (q1, q2) of each item; ``store(lanes, energies, warps, carry)``
+    puts each item's energy ``||q1 − w||²`` and warp into the carry (padding lanes hold index
+    ``len(need)``: drop them).
     """
     n_items = need.shape[0]
     dp = jax.vmap(functools.partial(dp_warp_if, neighbourhood=neighbourhood))
 
     def step(lanes, carry):
-        E, G = carry
         q1, q2 = pair_of(jnp.clip(lanes, 0, n_items - 1))
         # Padding lanes are skipped by the DP kernel (it packs the active lanes into blocks).
         g, _ = dp(q1, q2, lanes < n_items)
         w = jax.vmap(warp_preserving_norm)(q2, g)
-        E = E.at[lanes].set(l2_norm_squared(q1 - w), mode="drop")
-        if G is not None:
-            G = G.at[lanes].set(g, mode="drop")
-        return E, G
+        return store(lanes, l2_norm_squared(q1 - w), g, carry)
 
-    return run_in_slabs(need, step, (E, G), slab=_slab_size(n_items, dp_batch_size))
+    return run_in_slabs(need, step, carry, slab=_slab_size(n_items, dp_batch_size))
 
 
 #: Children sets per slab of the nested assignments (depth D > 2).
@@ -674,8 +671,8 @@ def lazy_assignment(
 
     `main`: the (q1, q2) of the B main-root pairs at this rotation, or None. Their DPs (for the
     `rows`) are run at the same call site as the laterals', in the loop's first pass, and
-    their energies and warps are returned last (else None, None): each DP call site is a
-    kernel of its own to compile (~1 s), so the engine has as few as it can.
+    their energies and warps are returned last (else zeros and identity warps): each DP call
+    site is a kernel of its own to compile (~1 s), so the engine has as few as it can.
     """
     B, K = p.La.shape
     dtype = p.La.dtype
@@ -732,19 +729,27 @@ def lazy_assignment(
 
         return run_in_slabs(need & nested, step, (A, counts), slab=_slab_size(n_items, CHILD_SLAB))
 
-    def exact(need, E, G, A, nested_done, main_need=None):
-        """The DPs of the pairs `need` (and of the main roots `main_need`). A pair with no
+    def store(lanes, e, g, carry):
+        E, G, Em, Gm = carry
+        # Lanes past the laterals (main roots, padding) are dropped here, and below from Em.
+        E, G = E.at[lanes].set(e, mode="drop"), G.at[lanes].set(g, mode="drop")
+        if n_main:
+            m = jnp.where(lanes >= n_items, lanes - n_items, n_main)
+            Em, Gm = Em.at[m].set(e, mode="drop"), Gm.at[m].set(g, mode="drop")
+        return E, G, Em, Gm
+
+    def exact(need, E, G, A, nested_done, main_need, Em, Gm):
+        """The DPs of the pairs `need` and of the main roots `main_need`. A pair with no
         children's assignment to do (no deeper levels, or one side childless) is then exact:
         its children's cost is known."""
-        need_all = need if main_need is None else jnp.concatenate([need, main_need])
-        E, G = slabs(need_all, branch_pair, E, G)
+        E, G, Em, Gm = slabs(jnp.concatenate([need, main_need]), branch_pair, store, (E, G, Em, Gm))
         direct = need & ~nested if n_below else need
         if n_below:
             A = jnp.where(direct, alone, A)
-        return E, G, A, nested_done | direct
+        return E, G, A, nested_done | direct, Em, Gm
 
     def costs(E, A, computed, nested_done, bound, child_bound):
-        known = p.lam_lateral * E[:n_items].reshape(B, K, K) + p.fixed
+        known = p.lam_lateral * E.reshape(B, K, K) + p.fixed
         unknown = bound_costs(p, bound.reshape(B, K, K))
         if n_below:
             # Bounds; the pair's own DP with its children's bound (row/column minima, then the
@@ -759,8 +764,10 @@ def lazy_assignment(
         return (chosen & p.both & ~done.reshape(B, K, K) & rows[:, None, None]).reshape(-1)
 
     T = qb.shape[-2]
-    E = jnp.zeros((n_items + n_main,), dtype)
-    G = jnp.broadcast_to(_identity_grid(T, dtype), (n_items + n_main, T))
+    E = jnp.zeros((n_items,), dtype)
+    G = jnp.zeros((n_items, T), dtype)
+    Em = jnp.zeros((n_main,), dtype)
+    Gm = jnp.broadcast_to(_identity_grid(T, dtype), (n_main, T))
     A = jnp.zeros((n_items,), dtype)
     counts = jnp.zeros((n_items, n_below), jnp.int32)
     # Main-root DPs still to run (in the loop's first pass).
@@ -772,7 +779,7 @@ def lazy_assignment(
         nested_done = computed
     else:
         computed = (p.both & rows[:, None, None]).reshape(-1)
-        E, G, A, nested_done = exact(computed, E, G, A, jnp.zeros_like(computed), pending if n_main else None)
+        E, G, A, nested_done, Em, Gm = exact(computed, E, G, A, jnp.zeros_like(computed), pending, Em, Gm)
         pending = jnp.zeros_like(pending)
         if n_below:
             A, counts = children(computed & ~nested_done, A, counts)
@@ -787,7 +794,23 @@ def lazy_assignment(
         return run_in_slabs(need & nested, step, child_bound, slab=_slab_size(n_items, CHILD_SLAB))
 
     def body(state):
-        E, G, A, counts, computed, nested_done, refined, child_refined, bound, child_bound, pending, _, chosen = state
+        (
+            E,
+            G,
+            Em,
+            Gm,
+            A,
+            counts,
+            computed,
+            nested_done,
+            refined,
+            child_refined,
+            bound,
+            child_bound,
+            pending,
+            _,
+            chosen,
+        ) = state
         # A pair picked for the first time gets its refined bound, then its DP, then (depth
         # D > 2, when picked with its DP known) its children's tighter bound, then their
         # exact assignment.
@@ -800,13 +823,15 @@ def lazy_assignment(
             A, counts = children(nest, A, counts)
             nested_done = nested_done | nest
             child_refined = child_refined | (chosen & computed)
-        E, G, A, nested_done = exact(run_dp, E, G, A, nested_done, pending if n_main else None)
+        E, G, A, nested_done, Em, Gm = exact(run_dp, E, G, A, nested_done, pending, Em, Gm)
         computed = computed | run_dp
         refined = refined | chosen
         perm = solve(costs(E, A, computed, nested_done, bound, child_bound))
         return (
             E,
             G,
+            Em,
+            Gm,
             A,
             counts,
             computed,
@@ -827,6 +852,8 @@ def lazy_assignment(
     state = (
         E,
         G,
+        Em,
+        Gm,
         A,
         counts,
         computed,
@@ -839,7 +866,7 @@ def lazy_assignment(
         perm,
         picks(perm, nested_done),
     )
-    E, G, A, counts, computed, nested_done, _, _, bound, child_bound, _, perm, _ = lax.while_loop(
+    E, G, Em, Gm, A, counts, computed, nested_done, _, _, bound, child_bound, _, perm, _ = lax.while_loop(
         lambda s: jnp.any(s[-1]) | jnp.any(s[-3]), body, state
     )
     below = jnp.sum(counts.reshape(B, K * K, n_below), axis=1, dtype=jnp.int32)
@@ -847,10 +874,10 @@ def lazy_assignment(
         costs(E, A, computed, nested_done, bound, child_bound),
         perm,
         computed.reshape(B, K, K),
-        G[:n_items].reshape(B, K, K, T),
+        G.reshape(B, K, K, T),
         below,
-        E[n_items:] if n_main else None,
-        G[n_items:] if n_main else None,
+        Em,
+        Gm,
     )
 
 
