@@ -1,0 +1,95 @@
+"""First-call time of the public calls a user's script makes, in a fresh process each.
+
+    python benchmarks/bench_first_call.py [--population rootnav] [--roots 8]
+        [--baseline /path/to/old/checkout] [--rounds 2]
+
+A new Python process pays for compilation on every first call at new shapes: XLA compiles
+each jitted program, and each eager `jnp` operation is compiled as its own one-op program at
+each new shape. This measures, on roots we did not design (CPlantBox pea by default, the `sim`
+extra; ``--population rootnav`` for the real tracings, whose 63 laterals per root make the
+run, not the compilation, dominate), T = 100, Python defaults: `to_srvf`, `to_curves`,
+`pairwise_distances` of 4 roots and `karcher_mean` of `--roots` roots, each first call and then the same call again (warm),
+with `block_until_ready`. With ``--baseline`` every child run is repeated with that checkout,
+interleaved, and the JSON gives the ratios. Results: benchmarks/results/first_call.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))
+import _common  # noqa: E402
+from _common import machine, write_json  # noqa: E402
+
+CHILD = r"""
+import json, sys, time
+import jax
+import rootshape_jax as rs
+__POPULATION__
+spec = json.loads(sys.argv[1])
+roots = population(spec["population"], spec.get("shared"))[: spec["roots"]]
+tree = rs.batch(roots)
+
+def twice(name, fn):
+    for label in ("first", "warm"):
+        t = time.perf_counter()
+        value = jax.block_until_ready(fn())
+        out[f"{name}_{label}_s"] = time.perf_counter() - t
+    return value
+
+out = {}
+s = twice("to_srvf", lambda: rs.to_srvf(tree))
+twice("to_curves", lambda: rs.to_curves(s))
+D = twice("pairwise_distances_4", lambda: rs.pairwise_distances(rs.batch(roots[:4]), progress=False))
+km = twice("karcher_mean", lambda: rs.karcher_mean(tree, progress=False))
+out.update(checksum_distances=float(D.sum()), mean_energy=float(km.energy), mean_steps=int(km.steps))
+print("RESULT " + json.dumps(out))
+"""
+
+
+def run_child(spec: dict, package: Path | None) -> dict:
+    env = dict(os.environ)
+    # Run from the checkout itself: `python -c` puts the working directory first on sys.path.
+    package = Path(package) if package is not None else Path(__file__).resolve().parents[1]
+    env["PYTHONPATH"] = str(package)
+    child = CHILD.replace("__POPULATION__", inspect.getsource(_common.population))
+    proc = subprocess.run(
+        [sys.executable, "-c", child, json.dumps(spec)], capture_output=True, text=True, env=env, cwd=package
+    )
+    for line in proc.stdout.splitlines():
+        if line.startswith("RESULT "):
+            return json.loads(line[7:])
+    raise RuntimeError(f"child failed ({spec}):\n{proc.stderr[-3000:]}")
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--population", default="pea", choices=_common.POPULATIONS)
+    p.add_argument("--roots", type=int, default=8)
+    p.add_argument("--baseline", type=Path, default=None, help="checkout of the package to compare with")
+    p.add_argument("--rounds", type=int, default=2)
+    args = p.parse_args(argv)
+    shared = Path(__file__).resolve().parents[2] / "shared" / "data"
+    spec = {"population": args.population, "roots": args.roots, "shared": str(shared)}
+    versions = [("new", None)] if args.baseline is None else [("baseline", args.baseline), ("new", None)]
+    runs = {name: [] for name, _ in versions}
+    for r in range(args.rounds):
+        for name, package in versions:
+            runs[name].append(run_child(spec, package))
+            print(f"round {r} {name}: {json.dumps(runs[name][-1])}", flush=True)
+    best = {name: {k: min(run[k] for run in rs_) for k in rs_[0] if k.endswith("_s")} for name, rs_ in runs.items()}
+    payload = {"machine": machine(), "spec": spec, "runs": runs, "best": best}
+    if args.baseline is not None:
+        payload["baseline_over_new"] = {k: best["baseline"][k] / best["new"][k] for k in best["new"]}
+    print(json.dumps(payload.get("baseline_over_new", best), indent=1))
+    print(write_json("first_call", payload))
+
+
+if __name__ == "__main__":
+    main()
