@@ -7,10 +7,12 @@ calls with `block_until_ready`, and reports compile time separately.
 
 from __future__ import annotations
 
+import inspect
 import json
 import os
 import platform
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -59,6 +61,25 @@ def population(name: str, shared: str | None = None) -> list:
             roots += read_rsml(f)
         return roots
     raise ValueError(f"unknown population {name!r}; choose synthetic, pea or rootnav")
+
+
+def run_child(child: str, spec: dict, package: Path | None = None) -> dict:
+    """Run the script `child` in a fresh Python process with the package checkout `package`
+    (default: this one) and return the dict it prints on its ``RESULT `` line. The child gets
+    `population`'s source where it says ``__POPULATION__`` and `spec` (JSON) as ``argv[1]``."""
+    env = dict(os.environ)
+    # Run from the checkout itself: `python -c` puts the working directory first on sys.path,
+    # ahead of PYTHONPATH and of the editable install.
+    package = Path(package) if package is not None else Path(__file__).resolve().parents[1]
+    env["PYTHONPATH"] = str(package)
+    source = child.replace("__POPULATION__", inspect.getsource(population))
+    proc = subprocess.run(
+        [sys.executable, "-c", source, json.dumps(spec)], capture_output=True, text=True, env=env, cwd=package
+    )
+    for line in proc.stdout.splitlines():
+        if line.startswith("RESULT "):
+            return json.loads(line[7:])
+    raise RuntimeError(f"child failed ({spec}):\n{proc.stderr[-3000:]}")
 
 
 def setup_jax(n_devices: int | None = None, *, x64: bool = False):

@@ -16,10 +16,7 @@ interleaved, and the JSON gives the ratios. Results: benchmarks/results/first_ca
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
-import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -54,18 +51,7 @@ print("RESULT " + json.dumps(out))
 
 
 def run_child(spec: dict, package: Path | None) -> dict:
-    env = dict(os.environ)
-    # Run from the checkout itself: `python -c` puts the working directory first on sys.path.
-    package = Path(package) if package is not None else Path(__file__).resolve().parents[1]
-    env["PYTHONPATH"] = str(package)
-    child = CHILD.replace("__POPULATION__", inspect.getsource(_common.population))
-    proc = subprocess.run(
-        [sys.executable, "-c", child, json.dumps(spec)], capture_output=True, text=True, env=env, cwd=package
-    )
-    for line in proc.stdout.splitlines():
-        if line.startswith("RESULT "):
-            return json.loads(line[7:])
-    raise RuntimeError(f"child failed ({spec}):\n{proc.stderr[-3000:]}")
+    return _common.run_child(CHILD, spec, package)
 
 
 def main(argv=None):

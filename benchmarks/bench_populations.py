@@ -27,13 +27,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
-import inspect  # noqa: E402
 
 import _common  # noqa: E402
 from _common import machine, write_json  # noqa: E402
@@ -106,27 +103,7 @@ print("RESULT " + json.dumps(out))
 
 
 def run_child(spec: dict, package: Path | None) -> dict:
-    env = dict(os.environ)
-    # Run from the checkout itself: `python -c` puts the working directory first on sys.path,
-    # ahead of PYTHONPATH and of the editable install.
-    package = Path(package) if package is not None else Path(__file__).resolve().parents[1]
-    env["PYTHONPATH"] = str(package)
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-c",
-            CHILD.replace("__POPULATION__", inspect.getsource(_common.population)),
-            json.dumps(spec),
-        ],
-        capture_output=True,
-        text=True,
-        env=env,
-        cwd=package,
-    )
-    for line in proc.stdout.splitlines():
-        if line.startswith("RESULT "):
-            return json.loads(line[7:])
-    raise RuntimeError(f"child failed ({spec}):\n{proc.stderr[-3000:]}")
+    return _common.run_child(CHILD, spec, package)
 
 
 def main(argv=None):
