@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import functools
 import types
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -631,6 +632,27 @@ def run_dp_slabs(need, pair_of, store, carry, *, neighbourhood: int, dp_batch_si
     return run_in_slabs(need, step, carry, slab=_slab_size(n_items, dp_batch_size))
 
 
+class _LazyState(NamedTuple):
+    """The loop state of `lazy_assignment` (flat item arrays over the B·K·K lateral pairs;
+    Em, Gm and pending over the B main-root pairs)."""
+
+    E: Array  # lateral DP energies
+    G: Array  # their warps
+    Em: Array  # main-root DP energies
+    Gm: Array  # their warps
+    A: Array  # children's exact assignment costs (depth D > 2)
+    counts: Array  # DPs the children's assignments ran, per deeper level
+    computed: Array  # the pair's own DP is done
+    nested_done: Array  # its children's cost is exact
+    refined: Array  # its refined bound is in `bound`
+    child_refined: Array  # its children's tighter bound is in `child_bound`
+    bound: Array
+    child_bound: Array
+    pending: Array  # main-root DPs still to run (the first pass)
+    perm: Array
+    chosen: Array  # pairs the last assignment picked that are not exact yet
+
+
 #: Children sets per slab of the nested assignments (depth D > 2).
 CHILD_SLAB = 32
 
@@ -793,29 +815,15 @@ def lazy_assignment(
 
         return run_in_slabs(need & nested, step, child_bound, slab=_slab_size(n_items, CHILD_SLAB))
 
-    def body(state):
-        (
-            E,
-            G,
-            Em,
-            Gm,
-            A,
-            counts,
-            computed,
-            nested_done,
-            refined,
-            child_refined,
-            bound,
-            child_bound,
-            pending,
-            _,
-            chosen,
-        ) = state
+    def body(st: _LazyState) -> _LazyState:
+        E, G, Em, Gm, A, counts = st.E, st.G, st.Em, st.Gm, st.A, st.counts
+        computed, nested_done, chosen = st.computed, st.nested_done, st.chosen
+        child_refined, child_bound = st.child_refined, st.child_bound
         # A pair picked for the first time gets its refined bound, then its DP, then (depth
         # D > 2, when picked with its DP known) its children's tighter bound, then their
         # exact assignment.
-        bound = refine(chosen & ~refined, bound)
-        run_dp = chosen & refined & ~computed
+        bound = refine(chosen & ~st.refined, st.bound)
+        run_dp = chosen & st.refined & ~computed
         if n_below:
             tighten = chosen & computed & ~child_refined
             child_bound = refine_children(tighten, child_bound.reshape(-1)).reshape(B, K, K)
@@ -823,61 +831,58 @@ def lazy_assignment(
             A, counts = children(nest, A, counts)
             nested_done = nested_done | nest
             child_refined = child_refined | (chosen & computed)
-        E, G, A, nested_done, Em, Gm = exact(run_dp, E, G, A, nested_done, pending, Em, Gm)
+        E, G, A, nested_done, Em, Gm = exact(run_dp, E, G, A, nested_done, st.pending, Em, Gm)
         computed = computed | run_dp
-        refined = refined | chosen
         perm = solve(costs(E, A, computed, nested_done, bound, child_bound))
-        return (
-            E,
-            G,
-            Em,
-            Gm,
-            A,
-            counts,
-            computed,
-            nested_done,
-            refined,
-            child_refined,
-            bound,
-            child_bound,
-            jnp.zeros_like(pending),
-            perm,
-            picks(perm, nested_done),
+        return _LazyState(
+            E=E,
+            G=G,
+            Em=Em,
+            Gm=Gm,
+            A=A,
+            counts=counts,
+            computed=computed,
+            nested_done=nested_done,
+            refined=st.refined | chosen,
+            child_refined=child_refined,
+            bound=bound,
+            child_bound=child_bound,
+            pending=jnp.zeros_like(st.pending),
+            perm=perm,
+            chosen=picks(perm, nested_done),
         )
 
     bound = energy_bound.reshape(-1)
     if child_bound is None:
         child_bound = jnp.zeros((B, K, K), dtype)
     perm = solve(costs(E, A, computed, nested_done, bound, child_bound))
-    state = (
-        E,
-        G,
-        Em,
-        Gm,
-        A,
-        counts,
-        computed,
-        nested_done,
-        jnp.zeros_like(computed),
-        computed,
-        bound,
-        child_bound,
-        pending,
-        perm,
-        picks(perm, nested_done),
+    st = _LazyState(
+        E=E,
+        G=G,
+        Em=Em,
+        Gm=Gm,
+        A=A,
+        counts=counts,
+        computed=computed,
+        nested_done=nested_done,
+        refined=jnp.zeros_like(computed),
+        child_refined=computed,
+        bound=bound,
+        child_bound=child_bound,
+        pending=pending,
+        perm=perm,
+        chosen=picks(perm, nested_done),
     )
-    E, G, Em, Gm, A, counts, computed, nested_done, _, _, bound, child_bound, _, perm, _ = lax.while_loop(
-        lambda s: jnp.any(s[-1]) | jnp.any(s[-3]), body, state
-    )
-    below = jnp.sum(counts.reshape(B, K * K, n_below), axis=1, dtype=jnp.int32)
+    st = lax.while_loop(lambda st: jnp.any(st.chosen) | jnp.any(st.pending), body, st)
+    below = jnp.sum(st.counts.reshape(B, K * K, n_below), axis=1, dtype=jnp.int32)
     return (
-        costs(E, A, computed, nested_done, bound, child_bound),
-        perm,
-        computed.reshape(B, K, K),
-        G.reshape(B, K, K, T),
+        costs(st.E, st.A, st.computed, st.nested_done, st.bound, st.child_bound),
+        st.perm,
+        st.computed.reshape(B, K, K),
+        st.G.reshape(B, K, K, T),
         below,
-        Em,
-        Gm,
+        st.Em,
+        st.Gm,
     )
 
 
