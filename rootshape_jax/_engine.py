@@ -649,6 +649,7 @@ class _LazyState(NamedTuple):
     bound: Array
     child_bound: Array
     pending: Array  # main-root DPs still to run (the first pass)
+    child_perm: Array  # the children's optimal assignment of each pair with nested_done (D > 2)
     perm: Array
     chosen: Array  # pairs the last assignment picked that are not exact yet
 
@@ -678,7 +679,9 @@ def lazy_assignment(
     its bound (`lower_bounds`). With ``prune=False`` every real–real DP is run up front (the
     reference behaviour). Returns (cost matrix, permutation, pairs computed, their warps
     ``[B, K, K, T]``: kept, so the matched pairs' DPs are not solved twice, DPs run per deeper
-    level ``[B, D − 2]``).
+    level ``[B, D − 2]``, the main roots' energies and warps (see `main`), and the children's
+    optimal assignment of every pair whose nested cost was computed ``[B, K, K, K2]``: kept
+    for the same reason; K2 = 0 at depth 2).
 
     Depth D > 2 (docs/design.md §11): a real–real pair's cost also holds the exact assignment
     cost of the two laterals' children at the rotations O (`child_assignment`, the same
@@ -731,15 +734,15 @@ def lazy_assignment(
         nested = (has_a[:, :, None] & has_b[:, None, :]).reshape(-1)
         alone = (p.sub_a[:, :, None] + p.sub_b[:, None, :]).reshape(-1)
 
-    def children(need, A, counts):
+    def children(need, A, counts, child_perm):
         """The exact assignment cost of the children of the pairs `need` (both have children)."""
 
         def step(lanes, carry):
-            A, counts = carry
+            A, counts, child_perm = carry
             safe = jnp.clip(lanes, 0, n_items - 1)
             bi, rem = jnp.divmod(safe, K * K)
             i, j = jnp.divmod(rem, K)
-            total, n_dp = child_assignment(
+            total, n_dp, perm_c = child_assignment(
                 children_of(p.a, bi, i),
                 children_of(p.b, bi, j),
                 child_weights(p.weights),
@@ -747,9 +750,13 @@ def lazy_assignment(
                 lanes < n_items,
                 options,
             )
-            return A.at[lanes].set(total, mode="drop"), counts.at[lanes].set(n_dp, mode="drop")
+            return (
+                A.at[lanes].set(total, mode="drop"),
+                counts.at[lanes].set(n_dp, mode="drop"),
+                child_perm.at[lanes].set(perm_c.astype(child_perm.dtype), mode="drop"),
+            )
 
-        return run_in_slabs(need & nested, step, (A, counts), slab=_slab_size(n_items, CHILD_SLAB))
+        return run_in_slabs(need & nested, step, (A, counts, child_perm), slab=_slab_size(n_items, CHILD_SLAB))
 
     def store(lanes, e, g, carry):
         E, G, Em, Gm = carry
@@ -792,6 +799,10 @@ def lazy_assignment(
     Gm = jnp.broadcast_to(_identity_grid(T, dtype), (n_main, T))
     A = jnp.zeros((n_items,), dtype)
     counts = jnp.zeros((n_items, n_below), jnp.int32)
+    # The children's assignments are kept (they are the registration of a matched pair's
+    # children, which `child_registrations` would otherwise solve again).
+    K2 = p.a.deeper[0].mask.shape[-1] if n_below else 0
+    child_perm = jnp.zeros((n_items, K2), jnp.int8 if K2 <= 127 else jnp.int32)
     # Main-root DPs still to run (in the loop's first pass).
     pending = rows if n_main else jnp.zeros((0,), bool)
     if options.prune:
@@ -804,7 +815,7 @@ def lazy_assignment(
         E, G, A, nested_done, Em, Gm = exact(computed, E, G, A, jnp.zeros_like(computed), pending, Em, Gm)
         pending = jnp.zeros_like(pending)
         if n_below:
-            A, counts = children(computed & ~nested_done, A, counts)
+            A, counts, child_perm = children(computed & ~nested_done, A, counts, child_perm)
             nested_done = computed
 
     def refine_children(need, child_bound):
@@ -816,7 +827,7 @@ def lazy_assignment(
         return run_in_slabs(need & nested, step, child_bound, slab=_slab_size(n_items, CHILD_SLAB))
 
     def body(st: _LazyState) -> _LazyState:
-        E, G, Em, Gm, A, counts = st.E, st.G, st.Em, st.Gm, st.A, st.counts
+        E, G, Em, Gm, A, counts, child_perm = st.E, st.G, st.Em, st.Gm, st.A, st.counts, st.child_perm
         computed, nested_done, chosen = st.computed, st.nested_done, st.chosen
         child_refined, child_bound = st.child_refined, st.child_bound
         # A pair picked for the first time gets its refined bound, then its DP, then (depth
@@ -828,7 +839,7 @@ def lazy_assignment(
             tighten = chosen & computed & ~child_refined
             child_bound = refine_children(tighten, child_bound.reshape(-1)).reshape(B, K, K)
             nest = chosen & computed & child_refined & ~nested_done
-            A, counts = children(nest, A, counts)
+            A, counts, child_perm = children(nest, A, counts, child_perm)
             nested_done = nested_done | nest
             child_refined = child_refined | (chosen & computed)
         E, G, A, nested_done, Em, Gm = exact(run_dp, E, G, A, nested_done, st.pending, Em, Gm)
@@ -848,6 +859,7 @@ def lazy_assignment(
             bound=bound,
             child_bound=child_bound,
             pending=jnp.zeros_like(st.pending),
+            child_perm=child_perm,
             perm=perm,
             chosen=picks(perm, nested_done),
         )
@@ -870,6 +882,7 @@ def lazy_assignment(
         bound=bound,
         child_bound=child_bound,
         pending=pending,
+        child_perm=child_perm,
         perm=perm,
         chosen=picks(perm, nested_done),
     )
@@ -883,6 +896,7 @@ def lazy_assignment(
         below,
         st.Em,
         st.Gm,
+        st.child_perm.astype(jnp.int32).reshape(B, K, K, K2),
     )
 
 
@@ -904,20 +918,28 @@ def _assign_children(a: SRVFTree, b: SRVFTree, weights: Weights, O: Array, activ
 
 
 def child_assignment(a: SRVFTree, b: SRVFTree, weights: Weights, O: Array, active: Array, options):
-    """Exact assignment cost of a batch of children sets (`children_of`) at rotations O, and
-    the DPs it ran per level ``[S, levels below a's top level + 1]``."""
-    p, (C, perm, computed, _, below, _, _) = _assign_children(a, b, weights, O, active, options)
+    """Exact assignment cost of a batch of children sets (`children_of`) at rotations O, the
+    DPs it ran per level ``[S, levels below a's top level + 1]``, and the optimal assignment
+    ``[S, K2]``."""
+    p, (C, perm, computed, _, below, _, _, _) = _assign_children(a, b, weights, O, active, options)
     total = jnp.sum(jnp.take_along_axis(C, perm[:, :, None], axis=2)[:, :, 0], axis=1)
     n_dp = jnp.sum(computed.reshape(computed.shape[0], -1), axis=1, dtype=jnp.int32)
-    return jnp.where(active, total, 0.0), jnp.concatenate([n_dp[:, None], below], axis=1)
+    return jnp.where(active, total, 0.0), jnp.concatenate([n_dp[:, None], below], axis=1), perm
 
 
-def child_registrations(p: Prepared, O: Array, perm: Array, matched: Array, options) -> tuple[list, Array]:
+def child_registrations(
+    p: Prepared, O: Array, perm: Array, matched: Array, options, child_perm: Array | None = None
+) -> tuple[list, Array]:
     """Depth D > 2: the children's registrations under every matched real–real lateral pair
     (lateral i of a with ``perm[i]`` of b): one ``(permutation, warps)`` per deeper level,
     shaped ``[B, K, K2, …]`` and ``[B, K, K2, …, T]`` (identity where not matched), and the
-    DPs run per deeper level ``[B, D − 2]``. Solving the matched pairs' children again costs a
-    few DPs and keeps no warps of unmatched pairs in memory."""
+    DPs run per deeper level ``[B, D − 2]``.
+
+    `child_perm` ``[B, K, K, K2]``: the children's optimal assignment of every lateral pair
+    whose nested cost the lateral assignment computed (`lazy_assignment` keeps them; every
+    matched pair is one). Then only the DPs of the matched children pairs are run, for their
+    warps; the levels further down, and every level without `child_perm`, are solved again
+    (a lazy assignment per children set). No warps of unmatched pairs are kept in memory."""
     B, K = perm.shape
     n_items = B * K
     T = p.a.q.shape[-2]
@@ -936,15 +958,23 @@ def child_registrations(p: Prepared, O: Array, perm: Array, matched: Array, opti
         bi, i = jnp.divmod(safe, K)
         a_c, b_c = children_of(p.a, bi, i), children_of(p.b, bi, perm[bi, i])
         active = lanes < n_items
-        pc, (_, perm_c, computed, G, _, _, _) = _assign_children(
-            a_c, b_c, child_weights(p.weights), O[bi], active, options
-        )
+        if child_perm is None:
+            pc, (_, perm_c, computed, G, _, _, _, _) = _assign_children(
+                a_c, b_c, child_weights(p.weights), O[bi], active, options
+            )
+        else:
+            pc = prepare(a_c, b_c, child_weights(p.weights))
+            perm_c = child_perm[bi, i, perm[bi, i]]
         S, K2 = perm_c.shape
         both = jnp.any(jax.nn.one_hot(perm_c, K2, dtype=bool) & pc.both, axis=2) & active[:, None]
-        gam = jnp.take_along_axis(G, perm_c[:, :, None, None], axis=2)[:, :, 0]
+        if child_perm is None:
+            gam = jnp.take_along_axis(G, perm_c[:, :, None, None], axis=2)[:, :, 0]
+            n_dp = jnp.sum(computed.reshape(S, -1), axis=1, dtype=jnp.int32)[:, None]
+        else:
+            gam = _matched_warps(pc, O[bi], perm_c, both, options)
+            n_dp = jnp.sum(both, axis=1, dtype=jnp.int32)[:, None]
         gam = jnp.where(both[..., None], gam, _identity_grid(T, dtype))
         new = [(perm_c, gam)]
-        n_dp = jnp.sum(computed.reshape(S, -1), axis=1, dtype=jnp.int32)[:, None]
         if a_c.deeper:
             below, below_dp = child_registrations(pc, O[bi], perm_c, both, options)
             new += [(pm.reshape((S, K2) + pm.shape[2:]), gm.reshape((S, K2) + gm.shape[2:])) for pm, gm in below]
@@ -964,6 +994,31 @@ def child_registrations(p: Prepared, O: Array, perm: Array, matched: Array, opti
     return regs, jnp.sum(counts.reshape(B, K, -1), axis=1, dtype=jnp.int32)
 
 
+def _matched_warps(p: Prepared, O: Array, perm: Array, matched: Array, options) -> Array:
+    """The DP warps ``[B, K, T]`` of the pairs (i, perm[i]) flagged in `matched` (b's branches
+    turned by O, as the assignment saw them); other slots hold zeros."""
+    B, K, T, _ = p.a.q.shape
+    qb = rotate_batch(p.b.q, O)
+
+    def pair_of(lanes):
+        bi, i = jnp.divmod(lanes, K)
+        return p.a.q[bi, i], qb[bi, perm[bi, i]]
+
+    def store(lanes, e, g, G):
+        return G.at[lanes].set(g, mode="drop")
+
+    G = jnp.zeros((B * K, T), p.La.dtype)
+    G = run_dp_slabs(
+        matched.reshape(-1),
+        pair_of,
+        store,
+        G,
+        neighbourhood=options.neighbourhood,
+        dp_batch_size=options.dp_batch_size,
+    )
+    return G.reshape(B, K, T)
+
+
 def evaluate(p: Prepared, O: Array, rows: Array, options: RegistrationOptions):
     """Energy, permutation and warps of every pair at rotations O (rows: pairs to do).
 
@@ -975,7 +1030,7 @@ def evaluate(p: Prepared, O: Array, rows: Array, options: RegistrationOptions):
     a, b = p.a, p.b
     B, K, T, _ = b.q.shape
     dtype = a.q0.dtype
-    C, perm, computed, G, below_dp, Em, g0 = assign_at(p, O, rows, options, with_main=True)
+    C, perm, computed, G, below_dp, Em, g0, child_perm = assign_at(p, O, rows, options, with_main=True)
     lap = jnp.sum(jnp.take_along_axis(C, perm[:, :, None], axis=2)[:, :, 0], axis=1)
 
     # Matched real-real slots take their DP's warp; every other slot the identity.
@@ -986,7 +1041,7 @@ def evaluate(p: Prepared, O: Array, rows: Array, options: RegistrationOptions):
     n_dp = jnp.sum(computed.reshape(B, K * K), axis=1, dtype=jnp.int32)
     children = []
     if a.deeper:
-        children, again = child_registrations(p, O, perm, matched, options)
+        children, again = child_registrations(p, O, perm, matched, options, child_perm)
         below_dp = below_dp + again
     return p.lam_main * Em + lap, perm, g0, gam, n_dp, children, below_dp
 

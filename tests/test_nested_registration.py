@@ -163,3 +163,43 @@ def test_geodesic_at_depth_three_runs_between_the_systems(systems):
         want = np.asarray(tree.deeper[0].curves)[np.asarray(tree.deeper[0].mask)]
         assert got.shape == want.shape
         assert _deviation(got.reshape(-1, 2), want) < 0.05 * scale
+
+
+@pytest.mark.parametrize("pair", [(1, 2), (2, 3)])
+def test_kept_children_assignments_equal_solving_the_children_again(systems, pair):
+    # The lateral assignment keeps each nested children's assignment; the matched pairs'
+    # children registrations are built from them (only their DPs run again). Solving each
+    # matched pair's children again must give the same real-real matches, with warps of the
+    # same energy (a null slot's partner may differ: those are ties of equal cost).
+    import jax.numpy as jnp
+
+    from rootshape_jax import _engine
+    from rootshape_jax._warp import warp_energy
+
+    a, b = rs.unstack(rs.to_srvf(_batch([systems[i] for i in pair])))
+    a, b = (jax.tree.map(lambda x: x[None], t) for t in (a, b))
+    options = rs.RegistrationOptions(neighbourhood=NB)
+    p = _engine.prepare(a, b, W)
+    O = _engine.starting_rotation(p.a, p.b)
+    rows = jnp.ones((1,), bool)
+    _, perm, _, _, _, _, _, kept = _engine.assign_at(p, O, rows, options, with_main=True)
+    matched = jnp.any(jax.nn.one_hot(perm, perm.shape[1], dtype=bool) & p.both, axis=2)
+    ((new_perm, new_warp),) = _engine.child_registrations(p, O, perm, matched, options, kept)[0]
+    ((old_perm, old_warp),) = _engine.child_registrations(p, O, perm, matched, options)[0]
+    ma, mb = np.asarray(p.a.deeper[0].mask[0]), np.asarray(p.b.deeper[0].mask[0])
+    n_real_real = 0
+    for i in np.flatnonzero(np.asarray(matched[0])):
+        j = int(perm[0, i])
+        for k in np.flatnonzero(ma[i]):
+            new_l, old_l = int(new_perm[0, i, k]), int(old_perm[0, i, k])
+            assert mb[j, new_l] == mb[j, old_l]
+            if not mb[j, new_l]:
+                continue
+            assert new_l == old_l
+            n_real_real += 1
+            qa = p.a.deeper[0].q[0, i, k]
+            qb = _engine.rotate_srvf(p.b.deeper[0].q[0, j, new_l], O[0])
+            e_new = warp_energy(qa, qb, new_warp[0, i, k])
+            e_old = warp_energy(qa, qb, old_warp[0, i, k])
+            assert abs(float(e_new) - float(e_old)) < 1e-12
+    assert n_real_real > 0  # the pair has matched second-order laterals
