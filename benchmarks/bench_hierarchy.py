@@ -9,7 +9,7 @@ normalised, Python defaults (one XLA device, blocks on worker threads, default r
 options). Reports one pair (first call and warm), the n-root distance matrix at depth 3 and 2
 (compile excluded: a 2-root call of the same chunk shape first), DPs run per level, and the
 unpruned nested evaluation on the first `--unpruned-roots` roots (same run, ratio of time and
-DPs, largest distance difference). Writes results/hierarchy.json.
+DPs, largest distance difference). Writes results/hierarchy.json (`--out` names another).
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ def main(argv=None):
     p.add_argument("--days", type=int, default=20)
     p.add_argument("--n-points", type=int, default=100)
     p.add_argument("--unpruned-roots", type=int, default=8)
+    p.add_argument("--out", default="hierarchy", help="results/<out>.json")
     args = p.parse_args(argv)
     import jax
     import numpy as np
@@ -137,7 +138,7 @@ def main(argv=None):
         "matches_full_matrix": float(np.max(np.abs(Dp - D3[:m, :m]))),
     }
     print(f"unpruned nested evaluation: {out['unpruned']}", flush=True)
-    path = write_json("hierarchy", out)
+    path = write_json(args.out, out)
     print("wrote", path)
 
 
