@@ -962,17 +962,17 @@ def child_registrations(
             pc, (_, perm_c, computed, G, _, _, _, _) = _assign_children(
                 a_c, b_c, child_weights(p.weights), O[bi], active, options
             )
+            both = matched_slots(pc, perm_c, active)
+            gam = jnp.take_along_axis(G, perm_c[:, :, None, None], axis=2)[:, :, 0]
+            n_dp = jnp.sum(computed.reshape(computed.shape[0], -1), axis=1, dtype=jnp.int32)
         else:
             pc = prepare(a_c, b_c, child_weights(p.weights))
             perm_c = child_perm[bi, i, perm[bi, i]]
-        S, K2 = perm_c.shape
-        both = jnp.any(jax.nn.one_hot(perm_c, K2, dtype=bool) & pc.both, axis=2) & active[:, None]
-        if child_perm is None:
-            gam = jnp.take_along_axis(G, perm_c[:, :, None, None], axis=2)[:, :, 0]
-            n_dp = jnp.sum(computed.reshape(S, -1), axis=1, dtype=jnp.int32)[:, None]
-        else:
+            both = matched_slots(pc, perm_c, active)
             gam = _matched_warps(pc, O[bi], perm_c, both, options)
-            n_dp = jnp.sum(both, axis=1, dtype=jnp.int32)[:, None]
+            n_dp = jnp.sum(both, axis=1, dtype=jnp.int32)
+        S, K2 = perm_c.shape
+        n_dp = n_dp[:, None]
         gam = jnp.where(both[..., None], gam, _identity_grid(T, dtype))
         new = [(perm_c, gam)]
         if a_c.deeper:
@@ -992,6 +992,12 @@ def child_registrations(
     regs, counts = run_in_slabs(need, step, (regs, counts), slab=_slab_size(n_items, CHILD_SLAB))
     regs = [(pm.reshape((B, K) + pm.shape[1:]), gm.reshape((B, K) + gm.shape[1:])) for pm, gm in regs]
     return regs, jnp.sum(counts.reshape(B, K, -1), axis=1, dtype=jnp.int32)
+
+
+def matched_slots(p: Prepared, perm: Array, rows: Array) -> Array:
+    """``[B, K]``: slot i of a is real and matched with a real slot ``perm[i]`` of b (pairs
+    `rows` only)."""
+    return jnp.any(jax.nn.one_hot(perm, perm.shape[-1], dtype=bool) & p.both, axis=2) & rows[:, None]
 
 
 def _matched_warps(p: Prepared, O: Array, perm: Array, matched: Array, options) -> Array:
@@ -1035,7 +1041,7 @@ def evaluate(p: Prepared, O: Array, rows: Array, options: RegistrationOptions):
 
     # Matched real-real slots take their DP's warp; every other slot the identity.
     identity = _identity_grid(T, dtype)
-    matched = jnp.any(jax.nn.one_hot(perm, K, dtype=bool) & p.both, axis=2) & rows[:, None]
+    matched = matched_slots(p, perm, rows)
     gam = jnp.take_along_axis(G, perm[:, :, None, None], axis=2)[:, :, 0]
     gam = jnp.where(matched[..., None], gam, identity)
     n_dp = jnp.sum(computed.reshape(B, K * K), axis=1, dtype=jnp.int32)

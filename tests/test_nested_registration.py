@@ -183,7 +183,7 @@ def test_kept_children_assignments_equal_solving_the_children_again(systems, pai
     O = _engine.starting_rotation(p.a, p.b)
     rows = jnp.ones((1,), bool)
     _, perm, _, _, _, _, _, kept = _engine.assign_at(p, O, rows, options, with_main=True)
-    matched = jnp.any(jax.nn.one_hot(perm, perm.shape[1], dtype=bool) & p.both, axis=2)
+    matched = _engine.matched_slots(p, perm, rows)
     ((new_perm, new_warp),) = _engine.child_registrations(p, O, perm, matched, options, kept)[0]
     ((old_perm, old_warp),) = _engine.child_registrations(p, O, perm, matched, options)[0]
     ma, mb = np.asarray(p.a.deeper[0].mask[0]), np.asarray(p.b.deeper[0].mask[0])
