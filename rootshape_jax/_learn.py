@@ -12,7 +12,13 @@ labelled set gives an exact, cheap objective in λ:
   The temperature is relative, ``τ = softness · mean_{i<j} d²_ij``, so the loss does not
   depend on the overall scale of λ. (A free τ is degenerate: on training classes that some λ
   separates, the loss falls to 0 as τ → 0 and λ stops moving.)
-- **Parameters**: ``log λ_t`` of the learned terms. The overall scale of λ is fixed by holding
+- **Parameters**: ``log λ_t`` of the learned terms: ``λ_main``, ``λ_position``, ``λ_thickness``
+  where radii are present, and, for whole root systems, the (λs, λp) of each entry of
+  `Weights.deeper` that the starting weights give (without that entry, every order shares the
+  first-order laterals' λs and λp, and so does the learned model). At depth D > 2 the squared
+  distance stays linear: each level's lateral and position energies are separate columns
+  (`_metric.unit_energies_by_level`), weighted as the trees' levels use λ (a plant's system
+  weighs its axes by λ_main). The overall scale of λ is fixed by holding
   ``λ_lateral`` at its starting value (1 for the paper's weights): without thickness, 1-NN and
   class-mean decisions and the loss depend only on the ratios of λ. A weak quadratic penalty
   ``regularisation · Σ (log λ_t − log λ_t⁰)²`` keeps a term that the data do not constrain
@@ -51,11 +57,8 @@ from tqdm.auto import tqdm
 from ._engine import RegistrationOptions, apply_registration, canonical_pairs, register_pairs, registration_options
 from ._errors import LabelError
 from ._executor import LocalExecutor, executor_for
-from ._metric import Weights, preshape_terms
+from ._metric import Weights, preshape_terms, unit_energies_by_level, weights_by_level
 from ._tree import RootTree, SRVFTree, batch_size, to_srvf
-
-LINEAR_TERMS = ("main", "lateral", "position")
-
 
 # --------------------------------------------------------------------------------------------
 # Labels
@@ -131,8 +134,12 @@ def nca_loss(d2: Float[Array, "N N"], same: Array, temperature) -> Float[Array, 
 class PairRegistrations(eqx.Module):
     """Registrations of a list of pairs of a batch, each in the engine's canonical order: root
     `second[k]` registered onto root `first[k]` (indices into the batch); `energy` is the
-    minimised d² at the weights used, `unit_energies` its main/lateral/position energies at
-    λ = 1 (so ``d²(λ) = unit_energies @ λ`` with the registrations fixed, without thickness)."""
+    minimised d² at the weights used, `unit_energies` its unweighted energies level by level
+    (`_metric.unit_energies_by_level`: main, then lateral and position per branch level), so
+    that ``d²(λ) = unit_energies @ weights_by_level(λ)`` with the registrations fixed, without
+    thickness. At depth D > 2, `child_permutations` holds the deeper levels' correspondences
+    (one ``[P, K1, …, Kℓ]`` array per level) and `child_warps` their warps, kept only where
+    the thickness weight is learned (it rebuilds the SRVFs; the warps are the bulky part)."""
 
     first: np.ndarray
     second: np.ndarray
@@ -141,27 +148,38 @@ class PairRegistrations(eqx.Module):
     main_warp: np.ndarray
     lateral_warps: np.ndarray
     energy: np.ndarray
-    unit_energies: np.ndarray  # (P, 3): E_main, E_lateral, E_position at λ = 1 (no thickness)
+    unit_energies: np.ndarray  # (P, 2D − 1): E_main, then E_lateral, E_position per branch level
+    child_permutations: tuple = ()
+    child_warps: tuple = ()
 
     def take(self, k: np.ndarray) -> PairRegistrations:
         return jax.tree.map(lambda x: x[k], self)
 
 
 @eqx.filter_jit
-def _register_chunk(a: SRVFTree, b: SRVFTree, active, weights: Weights, options: RegistrationOptions):
+def _register_chunk(a: SRVFTree, b: SRVFTree, active, weights: Weights, options: RegistrationOptions, keep_warps):
     ac, bc = canonical_pairs(a, b)
     # canonical_pairs puts b first where it swaps; read the swap off the content.
     swap = jnp.any(ac.q0 != a.q0, axis=(1, 2)) | jnp.any(ac.q != a.q, axis=(1, 2, 3)) | jnp.any(ac.s != a.s, axis=1)
     reg = register_pairs(ac, bc, weights, options, active)
-    unit = preshape_terms(ac, reg.registered, Weights(main=1.0, lateral=1.0, position=1.0, thickness=0.0))
-    E = jnp.stack([unit[n] for n in LINEAR_TERMS], axis=-1)
-    return swap, reg.permutation, reg.rotation, reg.main_warp, reg.lateral_warps, reg.energy, E
+    E = unit_energies_by_level(ac, reg.registered)
+    warps = reg.child_warps if keep_warps else ()
+    return (swap, reg.permutation, reg.rotation, reg.main_warp, reg.lateral_warps, reg.energy, E), (
+        reg.child_permutations,
+        warps,
+    )
 
 
-def register_block(I, J, s: SRVFTree, weights: Weights, options: RegistrationOptions, chunk_size: int) -> dict:
+_KEYS = ("swap", "permutation", "rotation", "main_warp", "lateral_warps", "energy", "unit_energies")
+
+
+def register_block(
+    I, J, s: SRVFTree, weights: Weights, options: RegistrationOptions, chunk_size: int, keep_warps: bool = False
+) -> dict:
     """The block function: register the pairs (s[I[k]], s[J[k]]) of one block, `chunk_size`
     per compiled call (one program for every chunk), keeping the registrations (not only the
-    energies). Module-level and pure, so an executor can run it on a thread or a Dask worker."""
+    energies; the deeper levels' warps only with `keep_warps`). Module-level and pure, so an
+    executor can run it on a thread or a Dask worker."""
     I = np.asarray(I, np.int64)
     J = np.asarray(J, np.int64)
     n = len(I)
@@ -174,9 +192,12 @@ def register_block(I, J, s: SRVFTree, weights: Weights, options: RegistrationOpt
         jj[:m] = J[start : start + m]
         a = jax.tree.map(lambda x: x[ii], s)
         b = jax.tree.map(lambda x: x[jj], s)
-        out = _register_chunk(a, b, jnp.asarray(np.arange(chunk_size) < m), weights, options)
-        parts.append([np.asarray(x)[:m] for x in out])
-    keys = ("swap", "permutation", "rotation", "main_warp", "lateral_warps", "energy", "unit_energies")
+        out, (child_perms, child_warps) = _register_chunk(
+            a, b, jnp.asarray(np.arange(chunk_size) < m), weights, options, keep_warps
+        )
+        parts.append([np.asarray(x)[:m] for x in (*out, *child_perms, *child_warps)])
+    keys = _KEYS + tuple(f"child_permutation{k}" for k in range(len(child_perms)))
+    keys += tuple(f"child_warp{k}" for k in range(len(child_warps)))
     return {k: np.concatenate(v) for k, v in zip(keys, zip(*parts))}
 
 
@@ -192,12 +213,13 @@ def register_pair_list(
     desc: str,
     client=None,
     block_size: int | None = None,
+    keep_warps: bool = False,
 ) -> PairRegistrations:
     """Register the pairs (s[I[k]], s[J[k]]) through the package's executor: blocks of
     `block_size` pairs (default one chunk here, ``8 × chunk_size`` on a cluster) mapped by
     `register_block`, on worker threads here or on Dask with `client=`, with a progress bar.
     Every block starts on a chunk boundary, so the registrations do not depend on where the
-    blocks run."""
+    blocks run. `keep_warps`: keep the deeper levels' warps (`PairRegistrations`)."""
     I = np.asarray(I, np.int64)
     J = np.asarray(J, np.int64)
     n = len(I)
@@ -215,7 +237,7 @@ def register_pair_list(
     results, _ = executor.map_blocks(
         register_block,
         [(I[a:z], J[a:z]) for a, z in spans],
-        shared=(s, weights, options, chunk_size),
+        shared=(s, weights, options, chunk_size, keep_warps),
         sizes=[z - a for a, z in spans],
         progress=progress,
         desc=desc,
@@ -232,6 +254,8 @@ def register_pair_list(
         lateral_warps=r["lateral_warps"],
         energy=r["energy"],
         unit_energies=r["unit_energies"],
+        child_permutations=tuple(r[f"child_permutation{k}"] for k in range(s.depth - 2)),
+        child_warps=tuple(r[f"child_warp{k}"] for k in range(s.depth - 2) if keep_warps),
     )
 
 
@@ -295,10 +319,12 @@ def _regularisation_candidates(regularisation) -> tuple[float, ...]:
 
 
 class _Problem(eqx.Module):
-    """What the inner solve needs: which terms are learned, the fixed registrations."""
+    """What the inner solve needs: which weights are learned (`names`: a term's name, or
+    ``("deeper", entry, 0 for λs / 1 for λp)``), the starting weights (the others stay at
+    their values), the labels' pair structure and the trees' depth."""
 
-    names: tuple[str, ...] = eqx.field(static=True)
-    fixed: dict
+    names: tuple = eqx.field(static=True)
+    start: Weights
     log0: Array
     local_i: Array
     local_j: Array
@@ -306,18 +332,35 @@ class _Problem(eqx.Module):
     n: int = eqx.field(static=True)
     regularisation: Array  # a traced scalar: one compiled solve serves every candidate value
     softness: float = eqx.field(static=True)
+    depth: int = eqx.field(static=True, default=2)
+    virtual_main: bool = eqx.field(static=True, default=False)
 
 
-def _weights_of(names, log_lam, fixed) -> Weights:
-    values = dict(fixed)
+def _weights_of(names, log_lam, start: Weights) -> Weights:
+    """`start` with the learned weights `names` set to ``exp(log_lam)``."""
+    values = dict(start.items())
+    deeper = [list(pair) for pair in start.deeper]
     for k, name in enumerate(names):
-        values[name] = jnp.exp(log_lam[k])
-    return Weights(**values)
+        if isinstance(name, str):
+            values[name] = jnp.exp(log_lam[k])
+        else:
+            _, entry, which = name
+            deeper[entry][which] = jnp.exp(log_lam[k])
+    return Weights(**values, deeper=deeper)
 
 
-def pair_d2_linear(lam_linear: Array, E: Array) -> Array:
-    """Squared distances of registered pairs at λ (registrations fixed): Σ_t λ_t E_t."""
-    return E @ lam_linear
+def _as_floats(weights: Weights) -> Weights:
+    """Concrete weights (Python floats), deeper levels included."""
+    return Weights(
+        **{k: float(v) for k, v in weights.items()},
+        deeper=tuple((float(ls), float(lp)) for ls, lp in weights.deeper),
+    )
+
+
+def pair_d2_linear(lam_by_level: Array, E: Array) -> Array:
+    """Squared distances of registered pairs at λ (registrations fixed): ``E @ λ``, with `E`
+    the unit energies by level and `lam_by_level` their weights (`weights_by_level`)."""
+    return E @ lam_by_level
 
 
 def _d2_thickness(weights: Weights, tree: RootTree, regs: PairRegistrations) -> Array:
@@ -325,7 +368,10 @@ def _d2_thickness(weights: Weights, tree: RootTree, regs: PairRegistrations) -> 
     s = to_srvf(tree, weights=weights)
     a = jax.tree.map(lambda x: x[regs.first], s)
     b = jax.tree.map(lambda x: x[regs.second], s)
-    registered = jax.vmap(apply_registration)(a, b, regs.rotation, regs.permutation, regs.main_warp, regs.lateral_warps)
+    children = tuple(zip(regs.child_permutations, regs.child_warps))
+    registered = jax.vmap(apply_registration)(
+        a, b, regs.rotation, regs.permutation, regs.main_warp, regs.lateral_warps, children
+    )
     return preshape_terms(a, registered, weights).total
 
 
@@ -336,10 +382,10 @@ def _matrix(d2_pairs, li, lj, n):
 
 def _pair_d2(theta, problem, tree, regs):
     """Squared distances of the registered pairs at ``log λ = theta``, registrations fixed."""
-    W = _weights_of(problem.names, theta[: len(problem.names)], problem.fixed)
+    W = _weights_of(problem.names, theta[: len(problem.names)], problem.start)
     if tree is None:
-        lam = jnp.stack([jnp.asarray(W[n], theta.dtype) for n in LINEAR_TERMS])
-        return pair_d2_linear(lam, jnp.asarray(regs.unit_energies))
+        lam = weights_by_level(W, depth=problem.depth, virtual_main=problem.virtual_main)
+        return pair_d2_linear(lam.astype(theta.dtype), jnp.asarray(regs.unit_energies))
     return _d2_thickness(W, tree, regs)
 
 
@@ -357,42 +403,67 @@ def learn_loss(theta, problem, tree, regs):
     return _objective(theta, (problem, tree, regs))
 
 
-def correspondence_changed(old: PairRegistrations, new: PairRegistrations, mask) -> np.ndarray:
-    """Per pair, whether the lateral correspondence differs: which real lateral of the first
-    root is matched to which real lateral of the second. Which null slot a deleted or inserted
-    lateral sits in is not a correspondence (a real-vs-null slot costs ``λ_lateral ||q||²``
-    wherever it sits, docs/design.md §4), so it is ignored. `mask`: (n, K) real-lateral flags
-    of the batch. A pair whose canonical order flipped counts as changed."""
+def correspondence_changed(old: PairRegistrations, new: PairRegistrations, masks) -> np.ndarray:
+    """Per pair, whether the branch correspondence differs: which real lateral of the first
+    root is matched to which real lateral of the second, at every level kept. Which null slot
+    a deleted or inserted branch sits in is not a correspondence (a real-vs-null slot costs
+    its whole weighted norm wherever it sits, docs/design.md §4), so it is ignored. `masks`:
+    the batch's real-branch flags, ``(n, K1)`` for the laterals, or one array per level
+    ``(n, K1, …, Kℓ)`` (deeper levels are compared where `PairRegistrations.child_permutations`
+    holds them). A pair whose canonical order flipped counts as changed."""
+    masks = (masks,) if isinstance(masks, np.ndarray) else tuple(masks)
 
-    def matched(r):
-        perm = np.asarray(r.permutation)
-        ma = mask[r.first]
-        mb = np.take_along_axis(mask[r.second], perm, axis=1)
-        return np.where(ma & mb, perm, -1)
+    def partners(r):
+        # Per level, the flat index of b's partner of each slot of a, -1 unless both are real.
+        perms = (np.asarray(r.permutation),) + tuple(np.asarray(p) for p in r.child_permutations)
+        out, index = [], None
+        for mask, perm in zip(masks, perms):
+            ma, mb = mask[r.first], mask[r.second]
+            n_slots = mb.shape[-1]
+            # b's level in a's slot order: parents first (their children follow them), then
+            # the children's own permutation.
+            if index is not None:
+                mb = np.take_along_axis(mb.reshape(mb.shape[0], -1, n_slots), index.reshape(index.shape[0], -1, 1), 1)
+                mb = mb.reshape(perm.shape)
+                flat_parent = index
+            else:
+                flat_parent = np.zeros(perm.shape[:-1], np.int64)
+            mb = np.take_along_axis(mb, perm, axis=-1)
+            index = flat_parent[..., None] * n_slots + perm
+            out.append(np.where(ma & mb, index, -1).reshape(len(perm), -1))
+        return np.concatenate(out, axis=1)
 
     flipped = np.asarray(old.first) != np.asarray(new.first)
-    return flipped | np.any(matched(old) != matched(new), axis=1)
+    return flipped | np.any(partners(old) != partners(new), axis=1)
 
 
 # The inner solve's λ is the same as the last one (log scale): re-registering would repeat it.
 _THETA_ATOL = 1e-8
 
 
-def _learned_names(learn_thickness: bool) -> tuple[str, ...]:
+def _learned_names(learn_thickness: bool, n_deeper: int = 0) -> tuple:
+    """The learned weights: λm and λp, each `Weights.deeper` entry's λs and λp, and λr with
+    radii (λs of the first-order laterals fixes the scale)."""
     names = ["main", "position"]
+    names += [("deeper", e, which) for e in range(n_deeper) for which in (0, 1)]
     if learn_thickness:
         names.append("thickness")
     return tuple(names)
 
 
+def _start_value(weights: Weights, name) -> float:
+    return float(weights[name]) if isinstance(name, str) else float(weights.deeper[name[1]][name[2]])
+
+
 def _prepare(trees, weights, registration, options):
     weights = Weights() if weights is None else weights
-    if weights.deeper:
-        # The learned model has one lateral and one position weight for every order; separate
-        # weights of deeper orders would be silently dropped by it.
+    zero = [e + 2 for e, pair in enumerate(weights.deeper) if min(float(v) for v in pair) <= 0]
+    if zero:
+        # λ is learned on a log scale, and a zero weight means "leave this order out".
         raise ValueError(
-            "learn_weights: weights with per-level values (Weights(..., deeper=...)) cannot be learned "
-            "yet (one λs and λp are learned for every order); pass weights without deeper=."
+            f"learn_weights: the weights of order(s) {zero} in Weights.deeper are 0; a learned weight "
+            "starts from a positive value. Give positive starting values, or batch the trees at a "
+            "depth that leaves those orders out."
         )
     opts = registration_options(registration, **options)
     if not isinstance(trees, (RootTree, SRVFTree)):
@@ -407,7 +478,7 @@ def _start_weights(weights: Weights, radii: bool) -> Weights:
     """Starting λ: the given weights, with λr = 1 where radii are learned from a zero start
     (a log-parameter cannot start at 0)."""
     if radii and float(weights.thickness) <= 0:
-        return Weights(**{**dict(weights.items()), "thickness": 1.0})
+        return Weights(**{**dict(weights.items()), "thickness": 1.0}, deeper=weights.deeper)
     return weights
 
 
@@ -442,7 +513,10 @@ class _Fitter:
         self.rtol = float(rtol)
         self.start = _start_weights(weights, radii)
         self.client = client
-        self.mask = None if trees is None else np.asarray(trees.mask)  # (n, K) real laterals
+        # Real-branch flags per level: (n, K1), then (n, K1, K2), ...
+        self.masks = (
+            () if trees is None else (np.asarray(trees.mask),) + tuple(np.asarray(lv.mask) for lv in trees.deeper)
+        )
 
     def srvf(self, weights):
         return to_srvf(self.trees, weights=weights)
@@ -458,6 +532,7 @@ class _Fitter:
             progress=self.progress,
             desc=desc,
             client=self.client,
+            keep_warps=self.radii,
         )
 
     def solve(self, problem, regs, theta0):
@@ -474,18 +549,20 @@ class _Fitter:
     def problem(self, y, regularisation) -> _Problem:
         n = len(y)
         li, lj = np.triu_indices(n, 1)
-        names = _learned_names(self.radii)
+        names = _learned_names(self.radii, len(self.start.deeper))
         dtype = self.dtype()
         return _Problem(
             names=names,
-            fixed={k: v for k, v in self.start.items() if k not in names},
-            log0=jnp.log(jnp.asarray([float(self.start[k]) for k in names], dtype)),
+            start=self.start,
+            log0=jnp.log(jnp.asarray([_start_value(self.start, k) for k in names], dtype)),
             local_i=jnp.asarray(li),
             local_j=jnp.asarray(lj),
             same=jnp.asarray((y[:, None] == y[None, :]) & ~np.eye(n, dtype=bool)),
             n=n,
             regularisation=jnp.asarray(regularisation, dtype),
             softness=self.softness,
+            depth=self.trees.depth if self.trees is not None else 2,
+            virtual_main=bool(getattr(self.trees, "virtual_main", False)),
         )
 
     def choose_regularisation(self, y, regs, *, n_inner: int = 3) -> tuple[float, np.ndarray]:
@@ -528,7 +605,6 @@ class _Fitter:
         n = len(idx)
         li, lj = np.triu_indices(n, 1)
         I, J = idx[li], idx[lj]
-        names = _learned_names(self.radii)
         dtype = self.dtype()
         weights = self.start
         if regs is None:
@@ -538,14 +614,13 @@ class _Fitter:
         if len(self.candidates) > 1:
             regularisation, scores = self.choose_regularisation(y, regs)
         problem = self.problem(y, regularisation)
-        fixed, log0 = problem.fixed, problem.log0
+        names, log0 = problem.names, problem.log0
         theta = log0
         tree = self.trees if self.radii else None
         loss_trace = [float(_objective(theta, (problem, tree, regs)))]
         inner, steps, n_rereg, status = [], 0, 0, "max_reregistrations"
         changed_trace, gain_trace = [], []
         best = (loss_trace[0], weights, regs)
-        mask = np.asarray(self.mask)
         bar = tqdm(total=max_reregistrations, desc="learning λ", unit="re-registration", disable=not self.progress)
         try:
             while n_rereg < max_reregistrations:
@@ -557,15 +632,14 @@ class _Fitter:
                     # λ did not move, so registering again would give the same registrations.
                     status = "converged"
                     break
-                weights = _weights_of(names, theta[: len(names)], fixed)
-                weights = Weights(**{name: float(v) for name, v in weights.items()})
+                weights = _as_floats(_weights_of(names, theta[: len(names)], problem.start))
                 new = self.register(weights, I, J, f"re-registering ({n_rereg + 1})")
                 n_rereg += 1
                 bar.update(1)
                 # d² of the old registrations at the new λ: what re-registering improves on.
                 old_d2 = np.asarray(_pair_d2(theta, problem, tree, regs))
                 gain_trace.append(float((old_d2.sum() - new.energy.sum()) / max(old_d2.sum(), 1e-300)))
-                changed_trace.append(int(np.sum(correspondence_changed(regs, new, mask))))
+                changed_trace.append(int(np.sum(correspondence_changed(regs, new, self.masks))))
                 loss_trace.append(float(_objective(theta, (problem, tree, new))))
                 regs = new
                 if loss_trace[-1] < best[0]:
@@ -621,7 +695,9 @@ def learn_weights(
 
     Minimises the soft nearest-neighbour (NCA) loss of the distance matrix over
     ``log λ_main``, ``log λ_position`` (and ``log λ_thickness`` when `trees` is a `RootTree`
-    with radii), with ``λ_lateral`` held at its starting value (the overall scale of λ is
+    with radii; and each order's ``(λs, λp)`` when the starting weights give
+    ``Weights(..., deeper=...)`` for trees batched at depth 3 or 4), with ``λ_lateral`` held at
+    its starting value (the overall scale of λ is
     fixed; see the module docstring) and the temperature ``τ = softness · mean d²``. The registrations are held fixed
     during each BFGS solve (then d² is linear in λ), and every pair is registered again at the
     new λ, until no lateral correspondence (real lateral to real lateral) changes, the loss at
@@ -697,7 +773,7 @@ class CVAccuracy(eqx.Module):
     - `learned_nn`, `learned_mean`: per outer fold, 1-NN and nearest-class-mean accuracy with
       λ learned on that fold's training roots.
     - `paper_nn`, `paper_mean`: the same folds at the starting λ (the paper's by default).
-    - `weights`: per fold, the learned λ as a dict; `folds`: the test indices of each fold.
+    - `weights`: per fold, the learned λ as a dict (`Weights.to_dict`); `folds`: the test indices of each fold.
     - `n_reregistrations`, `status`: per fold, from `learn_weights`.
     - `seconds_learning`: wall time of each fold's learning (registrations included).
     - `regularisation`: per fold, the penalty used (chosen on the training roots when several
@@ -826,7 +902,7 @@ def nested_cv_accuracy(
         l_nn, l_mean = fold_predictions(D_tt, np.asarray(res.distances, np.float64), y[train])
         out["lnn"].append(np.mean(l_nn == y[test]))
         out["lmean"].append(np.mean(l_mean == y[test]))
-        out["w"].append({k: float(v) for k, v in res.weights.items()})
+        out["w"].append(res.weights.to_dict())
         out["folds"].append(test)
         out["rereg"].append(res.n_reregistrations)
         out["status"].append(res.status)

@@ -112,6 +112,16 @@ class Weights(_ByTerm):
             return self.values["lateral"], self.values["position"]
         return self.deeper[min(level - 2, len(self.deeper) - 1)]
 
+    def to_dict(self) -> dict[str, float]:
+        """The weights as a flat dict of floats: the terms, then ``lateral_order{ℓ}`` and
+        ``position_order{ℓ}`` for each entry of `deeper` (ℓ = 2, 3, …; the last entry also
+        weighs the orders below it)."""
+        out = {k: float(v) for k, v in self.items()}
+        for e, (ls, lp) in enumerate(self.deeper):
+            out[f"lateral_order{e + 2}"] = float(ls)
+            out[f"position_order{e + 2}"] = float(lp)
+        return out
+
 
 def lateral_weight(weights: Weights, level: int, dtype) -> Array:
     """λs of `level` (`Weights.at_level`) as a `dtype` array."""
@@ -137,10 +147,56 @@ def system_weights(weights: Weights, tree) -> Weights:
     level ℓ − 1. One axis per plant then gives exactly the taproot distances. Any other tree:
     `weights` as given.
     """
-    if not getattr(tree, "virtual_main", False):
-        return weights
+    return _axes_as_main(weights) if getattr(tree, "virtual_main", False) else weights
+
+
+def _axes_as_main(weights: Weights) -> Weights:
     values = {**dict(weights.items()), "lateral": weights.main, "position": jnp.zeros_like(weights.position)}
     return Weights(**values, deeper=((weights.lateral, weights.position),) + weights.deeper)
+
+
+# The terms whose energy is linear in their weight for fixed SRVFs (thickness is not: its
+# weight scales a channel of the extended SRVF itself).
+LINEAR_TERM_NAMES = ("main", "lateral", "position")
+
+
+def unit_energies_by_level(a: SRVFTree, b: SRVFTree) -> Float[Array, "*B C"]:
+    """The unweighted energies of the linear terms, level by level, slot by slot (no
+    registration): column 0 the main root's ``||q0a − q0b||²``, then for each branch level
+    ℓ = 1 … D − 1 its lateral ``Σ ||qa − qb||²`` and position ``Σ (sa − sb)²`` energies, so
+    ``C = 2D − 1``. For weights without thickness,
+    ``preshape_terms(a, b, w).total == unit_energies_by_level(a, b) @ weights_by_level(w, ...)``:
+    with the registrations fixed, d² is linear in λ (`learn_weights`). Each column is its
+    term's own `energy` at λ = 1 on that level and 0 elsewhere."""
+    n_levels = 1 + len(a.deeper)
+
+    def indicator(level: int) -> Weights:  # λ = 1 on one level (0 = the main root), 0 elsewhere
+        def on(ell):
+            return float(ell == level)
+
+        return Weights(
+            main=on(0),
+            lateral=on(1),
+            position=on(1),
+            thickness=0.0,
+            deeper=tuple((on(ell), on(ell)) for ell in range(2, n_levels + 1)),
+        )
+
+    term = {t.name: t for t in TERMS}
+    columns = [term["main"].energy(indicator(0), a, b)]
+    for ell in range(1, n_levels + 1):
+        w = indicator(ell)
+        columns += [term["lateral"].energy(w, a, b), term["position"].energy(w, a, b)]
+    return jnp.stack([jnp.asarray(c, a.q0.dtype) for c in columns], axis=-1)
+
+
+def weights_by_level(weights: Weights, *, depth: int, virtual_main: bool = False) -> Float[Array, " C"]:
+    """The weights of the columns of `unit_energies_by_level` for trees of `depth` levels:
+    ``[λm, λs(1), λp(1), …, λs(D − 1), λp(D − 1)]`` as the trees' levels use them
+    (`Weights.at_level`; a plant's system weighs its axes as main roots, `system_weights`)."""
+    w = _axes_as_main(weights) if virtual_main else weights
+    lam = [w.main] + [x for ell in range(1, depth) for x in w.at_level(ell)]
+    return jnp.stack([jnp.asarray(x) for x in lam])
 
 
 class MetricTerms(_ByTerm):

@@ -70,3 +70,30 @@ def test_bad_regularisation_is_a_usage_error(labelled_folder, tmp_path, bad):
     )
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert "--regularisation" in proc.stderr and "non-negative numbers" in proc.stderr, proc.stderr
+
+
+@pytest.mark.slow
+def test_learn_weights_per_order_at_depth_3(tmp_path):
+    """--depth 3 --level-weights: the second order's (λs, λp) are learned and reported, in
+    weights.csv and in each fold's row of the cross-validation table."""
+    d = tmp_path / "roots"
+    d.mkdir()
+    conds = ["control"] * 3 + ["drought"] * 3
+    for i, c in enumerate(conds):
+        io.write_rsml(synthetic_roots(1, condition=c, seed=40 + i, depth=3), d / f"p{i}.rsml")
+    table = tmp_path / "labels.csv"
+    table.write_text("file,condition\n" + "".join(f"p{i},{c}\n" for i, c in enumerate(conds)))
+    out = tmp_path / "o"
+    proc = run_cli(
+        "learn-weights", d, "--labels", table, "--by", "condition", "--out", out, "--points", "12",
+        "--laterals", "3", "--depth", "3", "--level-weights", "2,0.5", "--folds", "3",
+        "--reregistrations", "1", "--quiet",
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    w = {r["term"]: r for r in read_csv(out / "weights.csv")}
+    assert set(w) == {"main", "lateral", "position", "thickness", "lateral_order2", "position_order2"}
+    assert float(w["lateral_order2"]["start"]) == 2.0 and float(w["position_order2"]["start"]) == 0.5
+    assert float(w["lateral_order2"]["learned"]) > 0 and float(w["lateral"]["learned"]) == 1.0
+    assert "--level-weights" in proc.stdout
+    cv = read_csv(out / "cross_validation.csv")
+    assert all(float(r["lambda_position_order2"]) > 0 for r in cv[:3])

@@ -40,7 +40,7 @@ def fake_problem(rng, n=9, n_classes=3, signal="position"):
     # that the loss has a finite optimum (separable classes send τ to 0).
     E = np.abs(rng.normal(size=(P, 3))) * np.array([100.0, 0.2, 0.2])
     between = y[li] != y[lj]
-    col = learn.LINEAR_TERMS.index(signal)
+    col = ("main", "lateral", "position").index(signal)  # the columns at depth 2
     E[:, col] = np.where(between, 1.0, 0.3) + 0.5 * np.abs(rng.normal(size=P))
     regs = PairRegistrations(
         first=li,
@@ -55,7 +55,7 @@ def fake_problem(rng, n=9, n_classes=3, signal="position"):
     same = (y[:, None] == y[None, :]) & ~np.eye(n, dtype=bool)
     problem = learn._Problem(
         names=("main", "position"),
-        fixed={"lateral": jnp.asarray(1.0), "thickness": jnp.asarray(0.0)},
+        start=Weights(main=0.02, lateral=1.0, position=1.0, thickness=0.0),
         log0=jnp.log(jnp.asarray([0.02, 1.0])),
         local_i=jnp.asarray(li),
         local_j=jnp.asarray(lj),
@@ -190,7 +190,7 @@ def test_thickness_path_gradient_and_agreement_with_linear_path():
     same = (y[:, None] == y[None, :]) & ~np.eye(4, dtype=bool)
     problem = learn._Problem(
         names=("main", "position", "thickness"),
-        fixed={"lateral": jnp.asarray(1.0)},
+        start=W,
         log0=jnp.log(jnp.asarray([0.05, 0.5, 2.0])),
         local_i=jnp.asarray(I),
         local_j=jnp.asarray(J),
@@ -432,12 +432,12 @@ def test_nested_cv_needs_n_folds_members_per_class(no_registration):
         rs.nested_cv_accuracy(trees, ["a"] * 3 + ["b"] * 3, n_folds=5, progress=False)
 
 
-def test_per_level_weights_are_refused_before_registering(no_registration):
-    # The model learns one λs and λp for every order: per-level values would be dropped silently.
+def test_zero_per_order_start_weight_is_refused_before_registering(no_registration):
+    # Per-order weights are learned on a log scale (test_learn_depth): a zero start cannot move.
     roots, _ = position_signal_roots(n_per_class=3)
     trees = rs.batch(roots, n_points=12, dtype=np.float64)
-    w = rs.Weights(deeper=((2.0, 0.5),))
-    with pytest.raises(ValueError, match="deeper="):
+    w = rs.Weights(deeper=((2.0, 0.0),))
+    with pytest.raises(ValueError, match=r"order\(s\) \[2\].*positive"):
         rs.learn_weights(trees, ["a"] * 3 + ["b"] * 3, weights=w, progress=False)
-    with pytest.raises(ValueError, match="deeper="):
+    with pytest.raises(ValueError, match=r"order\(s\) \[2\].*positive"):
         rs.nested_cv_accuracy(trees, ["a"] * 3 + ["b"] * 3, weights=w, progress=False)

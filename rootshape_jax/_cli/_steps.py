@@ -631,7 +631,9 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
                 regularisation=_penalty(args.regularisation),
                 progress=not args.quiet,
             )
-        rows = [[name, float(start[name]), float(v)] for name, v in res.weights.items()]
+        # The terms, then (λs, λp) per order from the second where --level-weights gave them.
+        learned, given = res.weights.to_dict(), start.to_dict()
+        rows = [[name, given[name], v] for name, v in learned.items()]
         header = ["term", "start", "learned"]
         out.csv(
             sec,
@@ -639,7 +641,7 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
             header,
             rows,
             "metric weights: the starting (given) values and the learned ones (lateral held fixed: "
-            "only ratios matter); use them with --weights",
+            "only ratios matter); use them with --weights (and the *_order rows with --level-weights)",
             table_html=html_table(header, rows),
         )
         fig, ax = plt.subplots(figsize=(4.5, 3.2))
@@ -650,8 +652,14 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
         fig.tight_layout()
         out.figure(sec, fig, "loss_trace.png", "loss at the registered distances after each re-registration")
         w = ",".join(f"{float(v):.4g}" for _, v in res.weights.items())
+        levels = ";".join(f"{float(ls):.4g},{float(lp):.4g}" for ls, lp in res.weights.deeper)
+        w += (
+            f" (main, lateral, position, thickness), --level-weights {levels}"
+            if levels
+            else " (main, lateral, position, thickness)"
+        )
         sec.notes.append(
-            f"learned weights {w} (main, lateral, position, thickness); status {res.status} after "
+            f"learned weights {w}; status {res.status} after "
             f"{res.n_reregistrations} re-registrations and {res.steps} optimiser steps (regularisation "
             f"{res.regularisation:g}). Accuracy on "
             "these same roots would flatter the weights: see the cross-validation below."
@@ -673,20 +681,22 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
                 sec.notes.append(f"cross-validation skipped: {e}")
                 return
             header = ["fold", "held_out", "learned_1nn", "learned_class_mean", "start_1nn", "start_class_mean"]
-            header += [f"lambda_{k}" for k in ("main", "position", "thickness")]
+            # The learned weights (lateral is held fixed), every order's where they are learned.
+            names = [k for k in cv.weights[0] if k != "lateral"]
+            header += [f"lambda_{k}" for k in names]
             cv_rows = [
                 [f + 1, len(cv.folds[f]), cv.learned_nn[f], cv.learned_mean[f], cv.paper_nn[f], cv.paper_mean[f]]
-                + [cv.weights[f][k] for k in ("main", "position", "thickness")]
+                + [cv.weights[f][k] for k in names]
                 for f in range(len(cv.folds))
             ]
             s = cv.summary()
             cv_rows.append(
                 ["mean", sum(len(f) for f in cv.folds)]
                 + [s[k][0] for k in ("learned_nn", "learned_mean", "paper_nn", "paper_mean")]
-                + ["", "", ""]
+                + [""] * len(names)
             )
             cv_rows.append(["sd", ""] + [s[k][1] for k in ("learned_nn", "learned_mean", "paper_nn", "paper_mean")])
-            cv_rows[-1] += ["", "", ""]
+            cv_rows[-1] += [""] * len(names)
             out.csv(
                 sec,
                 "cross_validation.csv",
