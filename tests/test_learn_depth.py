@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import itertools
 import warnings
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -20,7 +21,9 @@ import rootshape_jax as rs
 import rootshape_jax._learn as learn
 from rootshape_jax import Root, Weights
 from rootshape_jax._metric import preshape_terms, unit_energies_by_level, weights_by_level
-from rootshape_jax.io import plant_system
+from rootshape_jax.io import plant_system, read_rsml
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 SHARED = Weights(main=0.05, lateral=1.3, position=0.7)
 ONE_LEVEL = Weights(main=0.05, lateral=1.3, position=0.7, deeper=((2.0, 0.4),))
@@ -238,3 +241,27 @@ def test_learning_per_order_weights_finds_the_second_order_signal():
     D = np.asarray(rs.pairwise_distances(trees, weights=w, progress=False))
     np.testing.assert_allclose(res.distances, D, rtol=1e-10, atol=1e-12)
     assert w.to_dict()["position_order2"] == float(w.deeper[0][1])
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (SHARED_DATA / "rsml" / "arabidopsis_plate").is_dir(), reason="shared data absent")
+def test_real_plate_one_axis_plants_learn_the_taproots_weights():
+    """Real seedlings (Arabidopsis plate, label = date): read per plant, each plant is a system
+    of one axis, which must learn exactly the weights its taproot learns at one level less."""
+    taproots, plants, labels = [], [], []
+    for f in sorted((SHARED_DATA / "rsml" / "arabidopsis_plate").glob("*.rsml"))[:2]:
+        taproots += read_rsml(f)[:4]
+        plants += read_rsml(f, by="plant")[:4]
+        labels += [f.name[:16]] * 4
+    t = rs.batch(taproots, n_points=16, dtype=np.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # deeper orders than kept: none here, but say nothing
+        p = rs.batch(plants, n_points=16, depth=3, max_children=(1, t.mask.shape[1]), dtype=np.float64)
+    assert p.virtual_main
+    a = rs.learn_weights(t, labels, progress=False, max_reregistrations=2)
+    b = rs.learn_weights(p, labels, progress=False, max_reregistrations=2)
+    for k in ("main", "position"):
+        assert float(b.weights[k]) == pytest.approx(float(a.weights[k]), rel=1e-6)
+    assert float(a.weights.main) != pytest.approx(0.02, rel=1e-3)  # something was learned
+    np.testing.assert_allclose(b.loss_trace, a.loss_trace, rtol=1e-8)
+    np.testing.assert_allclose(b.distances, a.distances, rtol=1e-8, atol=1e-10)
