@@ -416,21 +416,17 @@ def correspondence_changed(old: PairRegistrations, new: PairRegistrations, masks
     def partners(r):
         # Per level, the flat index of b's partner of each slot of a, -1 unless both are real.
         perms = (np.asarray(r.permutation),) + tuple(np.asarray(p) for p in r.child_permutations)
-        out, index = [], None
+        out = []
+        parent = np.zeros(len(r.first), np.int64)  # the main root: one parent of level 1
         for mask, perm in zip(masks, perms):
             ma, mb = mask[r.first], mask[r.second]
             n_slots = mb.shape[-1]
-            # b's level in a's slot order: parents first (their children follow them), then
-            # the children's own permutation.
-            if index is not None:
-                mb = np.take_along_axis(mb.reshape(mb.shape[0], -1, n_slots), index.reshape(index.shape[0], -1, 1), 1)
-                mb = mb.reshape(perm.shape)
-                flat_parent = index
-            else:
-                flat_parent = np.zeros(perm.shape[:-1], np.int64)
-            mb = np.take_along_axis(mb, perm, axis=-1)
-            index = flat_parent[..., None] * n_slots + perm
-            out.append(np.where(ma & mb, index, -1).reshape(len(perm), -1))
+            # b's level in a's slot order: under each parent's partner, then the children's own
+            # permutation.
+            mb = np.take_along_axis(mb.reshape(len(perm), -1, n_slots), parent.reshape(len(perm), -1, 1), axis=1)
+            mb = np.take_along_axis(mb.reshape(perm.shape), perm, axis=-1)
+            parent = parent[..., None] * n_slots + perm  # flat index into b's level
+            out.append(np.where(ma & mb, parent, -1).reshape(len(perm), -1))
         return np.concatenate(out, axis=1)
 
     flipped = np.asarray(old.first) != np.asarray(new.first)

@@ -155,11 +155,6 @@ def _axes_as_main(weights: Weights) -> Weights:
     return Weights(**values, deeper=((weights.lateral, weights.position),) + weights.deeper)
 
 
-# The terms whose energy is linear in their weight for fixed SRVFs (thickness is not: its
-# weight scales a channel of the extended SRVF itself).
-LINEAR_TERM_NAMES = ("main", "lateral", "position")
-
-
 def unit_energies_by_level(a: SRVFTree, b: SRVFTree) -> Float[Array, "*B C"]:
     """The unweighted energies of the linear terms, level by level, slot by slot (no
     registration): column 0 the main root's ``||q0a − q0b||²``, then for each branch level

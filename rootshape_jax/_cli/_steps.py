@@ -651,13 +651,9 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
         ax.set_title("learning the weights")
         fig.tight_layout()
         out.figure(sec, fig, "loss_trace.png", "loss at the registered distances after each re-registration")
-        w = ",".join(f"{float(v):.4g}" for _, v in res.weights.items())
-        levels = ";".join(f"{float(ls):.4g},{float(lp):.4g}" for ls, lp in res.weights.deeper)
-        w += (
-            f" (main, lateral, position, thickness), --level-weights {levels}"
-            if levels
-            else " (main, lateral, position, thickness)"
-        )
+        w = ",".join(f"{float(v):.4g}" for _, v in res.weights.items()) + " (main, lateral, position, thickness)"
+        if res.weights.deeper:
+            w += ", --level-weights " + ";".join(f"{float(ls):.4g},{float(lp):.4g}" for ls, lp in res.weights.deeper)
         sec.notes.append(
             f"learned weights {w}; status {res.status} after "
             f"{res.n_reregistrations} re-registrations and {res.steps} optimiser steps (regularisation "
