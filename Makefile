@@ -33,7 +33,7 @@ test: lint
 	$(PYTEST) -m "not slow"
 
 test-slow: $(VENV)/.installed
-	$(PYTEST) -m slow || [ $$? -eq 5 ]  # 5: no slow test selected
+	$(PYTEST) -rs -m slow || [ $$? -eq 5 ]  # 5: no slow test selected
 
 demo: $(VENV)/.installed
 	$(PY) -m rootshape_jax demo --out $(OUT) --overwrite  # make demo regenerates its folder

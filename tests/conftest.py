@@ -3,6 +3,7 @@
 import contextlib
 import os
 import signal
+import time
 
 import jax
 import pytest
@@ -37,3 +38,28 @@ def pytest_sessionfinish(session):
     # still ends it 10 s later with os._exit.
     if hasattr(session.config, "workerinput"):
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+#: Slow tests CI always runs, first: the notebooks must execute in CI.
+ALWAYS_IN_CI = ("test_notebooks.py",)
+
+
+def _always_in_ci(item) -> bool:
+    return item.path.name in ALWAYS_IN_CI
+
+
+def pytest_collection_modifyitems(config, items):
+    # Scheduled first (xdist hands out files in this order), so the time budget below never
+    # reaches them.
+    items.sort(key=lambda item: not _always_in_ci(item))
+
+
+def pytest_runtest_setup(item):
+    # CI's time budget for the slow tests (`.ci/run` sets RS_SLOW_TESTS_UNTIL, a Unix time): a
+    # slow test that would start after it is skipped, named, so CI ends well within its limit
+    # on a slow day. Fast tests and the notebooks always run; `make test-slow` without the
+    # variable runs every slow test.
+    until = os.environ.get("RS_SLOW_TESTS_UNTIL")
+    slow = item.get_closest_marker("slow") is not None
+    if until and slow and not _always_in_ci(item) and time.time() > float(until):
+        pytest.skip(f"{item.nodeid}: CI time budget for the slow tests is spent; run `make test-slow`")
