@@ -654,8 +654,15 @@ class _LazyState(NamedTuple):
     chosen: Array  # pairs the last assignment picked that are not exact yet
 
 
-#: Children sets per slab of the nested assignments (depth D > 2).
-CHILD_SLAB = 32
+#: Children sets per slab of the nested assignments (depth D > 2). A slab costs about the same
+#: whatever number of its lanes are active (its bounds, assignments and bookkeeping run at full
+#: width), and a lazy-assignment step usually needs only one to a few sets: one set in a slab of
+#: 32 took 36-50 ms, in a slab of 8 15-23 ms (20-day pea pair, T = 100).
+CHILD_SLAB = 8
+#: Lateral pairs per slab of the refined bounds. Each step refines only the pairs the
+#: assignment just picked (1-60 at a time); one refined bound costs ~12 µs, so a narrow slab
+#: wastes least: 1-16 pairs took 0.5-0.7 ms in slabs of 8 against 1.7-2.8 ms in slabs of 128.
+REFINE_SLAB = 8
 
 
 def lazy_assignment(
@@ -724,7 +731,7 @@ def lazy_assignment(
             new = refined_energy_bounds(p, axes_b, safe)
             return bound.at[lanes].set(jnp.maximum(bound[safe], new), mode="drop")
 
-        return run_in_slabs(need, step, bound, slab=_slab_size(n_items, 128))
+        return run_in_slabs(need, step, bound, slab=REFINE_SLAB)
 
     if n_below:
         # Pairs where one lateral has no children need no nested assignment: every child of
