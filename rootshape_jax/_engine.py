@@ -763,7 +763,7 @@ def lazy_assignment(
                 child_perm.at[lanes].set(perm_c.astype(child_perm.dtype), mode="drop"),
             )
 
-        return run_in_slabs(need & nested, step, (A, counts, child_perm), slab=_slab_size(n_items, CHILD_SLAB))
+        return run_in_slabs(need & nested, step, (A, counts, child_perm), slab=CHILD_SLAB)
 
     def store(lanes, e, g, carry):
         E, G, Em, Gm = carry
@@ -831,7 +831,7 @@ def lazy_assignment(
             new = child_assignment_bounds(p, O, sides, safe, method=options.assignment)
             return cb.at[lanes].set(jnp.maximum(cb[safe], new), mode="drop")
 
-        return run_in_slabs(need & nested, step, child_bound, slab=_slab_size(n_items, CHILD_SLAB))
+        return run_in_slabs(need & nested, step, child_bound, slab=CHILD_SLAB)
 
     def body(st: _LazyState) -> _LazyState:
         E, G, Em, Gm, A, counts, child_perm = st.E, st.G, st.Em, st.Gm, st.A, st.counts, st.child_perm
@@ -996,7 +996,7 @@ def child_registrations(
     has_a = jnp.any(p.a.deeper[0].mask, axis=-1)
     has_b = jnp.take_along_axis(jnp.any(p.b.deeper[0].mask, axis=-1), perm, axis=1)
     need = (matched & has_a & has_b).reshape(-1)
-    regs, counts = run_in_slabs(need, step, (regs, counts), slab=_slab_size(n_items, CHILD_SLAB))
+    regs, counts = run_in_slabs(need, step, (regs, counts), slab=CHILD_SLAB)
     regs = [(pm.reshape((B, K) + pm.shape[1:]), gm.reshape((B, K) + gm.shape[1:])) for pm, gm in regs]
     return regs, jnp.sum(counts.reshape(B, K, -1), axis=1, dtype=jnp.int32)
 
