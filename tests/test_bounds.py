@@ -10,14 +10,18 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from helpers import random_root, rotation_matrix, smooth_curve
+from test_hierarchy import deep_root
 
 import rootshape_jax as rs
 from rootshape_jax._curves import l2_norm_squared, srvf
 from rootshape_jax._engine import (
     N_BLOCKS,
+    _cone_cap,
     block_cones,
+    children_of,
     lower_bounds,
     prepare,
+    refined_child_energy_bounds,
     refined_energy_bounds,
     rotate_batch,
     warp_preserving_norm,
@@ -58,6 +62,60 @@ def test_block_cones_hold_every_interpolated_direction():
                 u = v / np.linalg.norm(v)
                 angle = np.arccos(np.clip(float(u @ axes[j]), -1, 1))
                 assert angle <= float(half[j]) + 1e-9
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_cone_cap_is_above_the_exact_cap_of_the_true_angle(dtype):
+    # Unit directions and cone half-angles drawn in float64 (the truth), the cap computed from
+    # their rounded cosine in `dtype`, as the engine does; many nearly parallel and
+    # antiparallel pairs, where the cosine carries the most error.
+    rng = np.random.default_rng(5)
+    n = 200_000
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    tilt = np.concatenate(
+        [rng.uniform(0, np.pi, n // 2), rng.uniform(0, 1e-3, n // 4), np.pi - rng.uniform(0, 1e-3, n // 4)]
+    )
+    v = np.cos(tilt)[:, None] * u + np.sin(tilt)[:, None] * np.cross(u, rng.normal(size=(n, 3)))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    half = np.concatenate([rng.uniform(0, 1.5, n - n // 8), rng.uniform(0, 1e-4, n // 8)])
+    true_angle = np.arccos(np.clip(np.sum(u * v, axis=1), -1, 1))
+    exact = np.maximum(np.cos(np.maximum(true_angle - half, 0.0)), 0.0)  # a cap of cosines ≥ 0
+    ur, vr = u.astype(dtype), v.astype(dtype)
+    cos_rounded = jnp.sum(jnp.asarray(ur) * jnp.asarray(vr), axis=1)
+    cap = np.asarray(_cone_cap(cos_rounded, jnp.asarray(half.astype(dtype)), dtype), np.float64)
+    assert np.all(cap >= exact)
+    # ... and not much above it: the safety margins are a few √ε.
+    assert np.max(cap - exact) <= 8 * np.sqrt(np.finfo(dtype).eps)
+
+
+@pytest.mark.parametrize("seed", [4, 5])
+def test_refined_child_bounds_equal_the_refined_bounds_of_the_children_and_stay_below_their_warp_energies(seed):
+    rng = np.random.default_rng(seed)
+    roots = [deep_root(rng, n_laterals=4, max_sub=3) for _ in range(2)]
+    trees = rs.to_srvf(rs.batch(roots, n_points=T, depth=3, max_children=(8, 6), dtype=np.float64))
+    a, b = (jax.tree.map(lambda x, k=k: x[k : k + 1], trees) for k in range(2))
+    p = prepare(a, b, rs.Weights())
+    O = jnp.asarray(rotation_matrix(rng, 2))[None]
+    K = p.La.shape[1]
+    lanes = jnp.arange(K * K)
+    got = np.asarray(refined_child_energy_bounds(p, O, lanes))  # [K·K, K2, K2]
+    zero = jnp.zeros_like(lanes)
+    ca, cb = children_of(p.a, zero, lanes // K), children_of(p.b, zero, lanes % K)
+    pc = prepare(ca, cb, rs.Weights())
+    K2 = pc.La.shape[1]
+    Os = jnp.broadcast_to(O, (K * K, 2, 2))
+    want = np.asarray(refined_energy_bounds(pc, rotate_batch(pc.blocks_b[0], Os), jnp.arange(K * K * K2 * K2)))
+    real = np.asarray(pc.both)
+    np.testing.assert_allclose(got[real], want.reshape(real.shape)[real], rtol=1e-12, atol=1e-14)
+    assert np.all(got[~real] == 0)
+    assert real.sum() > 20  # the roots have children pairs to bound
+    qb = rotate_batch(cb.q, Os)
+    for s, k, m in zip(*np.nonzero(real)):
+        q1, q2 = ca.q[s, k], qb[s, m]
+        warps = [_random_warp(rng, T) for _ in range(5)] + [np.asarray(dp_warp(q1, q2))]
+        energy = min(float(l2_norm_squared(q1 - warp_preserving_norm(q2, jnp.asarray(g)))) for g in warps)
+        assert got[s, k, m] <= energy + 1e-10
 
 
 @pytest.mark.parametrize("d,seed", list(itertools.product([2, 3], [1, 2, 3])))
