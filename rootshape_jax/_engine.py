@@ -584,7 +584,7 @@ def refined_child_energy_bounds(p: Prepared, O: Float[Array, "B d d"], lanes: In
     """`refined_energy_bounds` of the branch energy of every real–real pair of children under
     the lateral pairs `lanes` (flat indices into ``[B, K, K]``) at rotations O, shaped
     ``[L, K2, K2]`` (0 where a child slot is null). Only the real pairs are computed, in slabs
-    of `REFINE_SLAB` · 4 lanes: a children set holds far fewer real pairs than slots."""
+    of `REFINE_SLAB` lanes: a children set holds far fewer real pairs than slots."""
     K = p.La.shape[1]
     bi, rem = jnp.divmod(lanes, K * K)
     i, j = jnp.divmod(rem, K)
@@ -607,7 +607,7 @@ def refined_child_energy_bounds(p: Prepared, O: Float[Array, "B d d"], lanes: In
         new = _refined_bound(dir_a[s, k], mass_a[s, k], axes_b[s, m], half_b[s, m], La[s, k], Lb[s, m])
         return bound.at[flat].set(new, mode="drop")
 
-    bound = run_in_slabs(need, step, jnp.zeros((n_pairs,), dtype), slab=4 * REFINE_SLAB)
+    bound = run_in_slabs(need, step, jnp.zeros((n_pairs,), dtype), slab=REFINE_SLAB)
     return bound.reshape(L, K2, K2)
 
 
@@ -712,9 +712,7 @@ class _LazyState(NamedTuple):
     counts: Array  # DPs the children's assignments ran, per deeper level
     computed: Array  # the pair's own DP is done
     nested_done: Array  # its children's cost is exact
-    refined: Array  # its refined bound is in `bound`
     child_refined: Array  # its children's tighter bound is in `child_bound`
-    bound: Array
     child_bound: Array
     pending: Array  # main-root DPs still to run (the first pass)
     child_perm: Array  # the children's optimal assignment of each pair with nested_done (D > 2)
@@ -727,10 +725,10 @@ class _LazyState(NamedTuple):
 #: width), and a lazy-assignment step usually needs only one to a few sets: one set in a slab of
 #: 32 took 36-50 ms, in a slab of 8 15-23 ms (20-day pea pair, T = 100).
 CHILD_SLAB = 8
-#: Lateral pairs per slab of the refined bounds. Each step refines only the pairs the
-#: assignment just picked (1-60 at a time); one refined bound costs ~12 µs, so a narrow slab
-#: wastes least: 1-16 pairs took 0.5-0.7 ms in slabs of 8 against 1.7-2.8 ms in slabs of 128.
-REFINE_SLAB = 8
+#: Lateral pairs per slab of the refined bounds (`refined_energy_bounds`), computed for every
+#: real–real pair before the first assignment: wide slabs are efficient there (8-lane slabs,
+#: right when a loop step refined only the 1-60 pairs it picked, were slower up front).
+REFINE_SLAB = 64
 
 
 def lazy_assignment(
@@ -747,11 +745,13 @@ def lazy_assignment(
 ):
     """Exact optimal lateral correspondence at one rotation, running as few DPs as possible.
 
-    The assignment is solved with lower bounds in place of the lateral costs not computed yet.
-    A real–real pair it picks first gets its tighter bound (`refined_energy_bounds`, cheap);
-    picked again, its DP is run. The assignment is solved again until it picks only computed
-    pairs: it is then optimal for the true costs too, since every uncomputed cost is at least
-    its bound (`lower_bounds`). With ``prune=False`` every real–real DP is run up front (the
+    The assignment is solved with lower bounds in place of the lateral costs not computed yet:
+    every real–real pair starts at its refined bound (`refined_energy_bounds`, the larger of
+    it and `lower_bounds`, all computed before the first assignment: a few µs a pair, where
+    refining only the pairs an assignment picks took a loop step of its own for each), and a
+    pair the assignment picks gets its DP. The assignment is solved again until it picks only
+    computed pairs: it is then optimal for the true costs too, since every uncomputed cost is
+    at least its bound. With ``prune=False`` every real–real DP is run up front (the
     reference behaviour). Returns (cost matrix, permutation, pairs computed, their warps
     ``[B, K, K, T]``: kept, so the matched pairs' DPs are not solved twice, DPs run per deeper
     level ``[B, D − 2]``, the main roots' energies and warps (see `main`), and the children's
@@ -762,8 +762,8 @@ def lazy_assignment(
     cost of the two laterals' children at the rotations O (`child_assignment`, the same
     procedure one level down). Until a pair is computed its bound holds `child_bound`
     (`child_lower_bounds`; `sides`, from `_child_sides`, is what the children's bounds read). A
-    pair is made exact in tiers, each only when the assignment picks it again: refined bound,
-    then its own DP (its children still by their bound), then the children's tighter bound
+    pair is made exact in tiers, each only when the assignment picks it again: its own DP (its
+    children still by their bound), then the children's tighter bound
     (`child_assignment_bounds`: an assignment of bounds, no DP), then its children's exact
     assignment. So a nested cost is computed only for pairs that still win
     with their own DP and their children's best bound known, and never where a bound already
@@ -901,15 +901,18 @@ def lazy_assignment(
 
         return run_in_slabs(need & nested, step, child_bound, slab=CHILD_SLAB)
 
+    # Every real–real pair's refined bound, before the first assignment (loop-invariant).
+    bound = energy_bound.reshape(-1)
+    if options.prune:
+        bound = refine((p.both & rows[:, None, None]).reshape(-1), bound)
+
     def body(st: _LazyState) -> _LazyState:
         E, G, Em, Gm, A, counts, child_perm = st.E, st.G, st.Em, st.Gm, st.A, st.counts, st.child_perm
         computed, nested_done, chosen = st.computed, st.nested_done, st.chosen
         child_refined, child_bound = st.child_refined, st.child_bound
-        # A pair picked for the first time gets its refined bound, then its DP, then (depth
-        # D > 2, when picked with its DP known) its children's tighter bound, then their
-        # exact assignment.
-        bound = refine(chosen & ~st.refined, st.bound)
-        run_dp = chosen & st.refined & ~computed
+        # A pair picked for the first time gets its DP, then (depth D > 2, when picked with
+        # its DP known) its children's tighter bound, then their exact assignment.
+        run_dp = chosen & ~computed
         if n_below:
             tighten = chosen & computed & ~child_refined
             child_bound = refine_children(tighten, child_bound.reshape(-1)).reshape(B, K, K)
@@ -929,9 +932,7 @@ def lazy_assignment(
             counts=counts,
             computed=computed,
             nested_done=nested_done,
-            refined=st.refined | chosen,
             child_refined=child_refined,
-            bound=bound,
             child_bound=child_bound,
             pending=jnp.zeros_like(st.pending),
             child_perm=child_perm,
@@ -939,7 +940,6 @@ def lazy_assignment(
             chosen=picks(perm, nested_done),
         )
 
-    bound = energy_bound.reshape(-1)
     if child_bound is None:
         child_bound = jnp.zeros((B, K, K), dtype)
     perm = solve(costs(E, A, computed, nested_done, bound, child_bound))
@@ -952,9 +952,7 @@ def lazy_assignment(
         counts=counts,
         computed=computed,
         nested_done=nested_done,
-        refined=jnp.zeros_like(computed),
         child_refined=computed,
-        bound=bound,
         child_bound=child_bound,
         pending=pending,
         child_perm=child_perm,
@@ -964,7 +962,7 @@ def lazy_assignment(
     st = lax.while_loop(lambda st: jnp.any(st.chosen) | jnp.any(st.pending), body, st)
     below = jnp.sum(st.counts.reshape(B, K * K, n_below), axis=1, dtype=jnp.int32)
     return (
-        costs(st.E, st.A, st.computed, st.nested_done, st.bound, st.child_bound),
+        costs(st.E, st.A, st.computed, st.nested_done, bound, st.child_bound),
         st.perm,
         st.computed.reshape(B, K, K),
         st.G.reshape(B, K, K, T),
