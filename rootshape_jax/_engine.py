@@ -455,8 +455,8 @@ def lower_bounds(p: Prepared, O: Float[Array, "B d d"]) -> Float[Array, "B K K"]
     lateral DP terms, the exact DP-free cost for the others), and null costs are exact. So
     every entry is at most the true cost, and an assignment that is optimal with bounds in
     place of unknown costs, and picks only known ones, is optimal for the true costs
-    (`lazy_assignment`). `refined_energy_bounds` is a tighter bound for the pairs the
-    assignment keeps picking.
+    (`lazy_assignment`). `refined_energy_bounds` is a tighter bound, which the assignment
+    uses for every real pair.
     """
     (ca, half_a), (cb, half_b) = p.cone_a, p.cone_b
     dtype = p.La.dtype
