@@ -801,6 +801,13 @@ def lazy_assignment(
 
         return run_in_slabs(need, step, bound, slab=REFINE_SLAB)
 
+    # Every real–real pair's refined bound and the cost bound it gives, before the first
+    # assignment (loop-invariant).
+    bound = energy_bound.reshape(-1)
+    if options.prune:
+        bound = refine((p.both & rows[:, None, None]).reshape(-1), bound)
+    bound_cost = bound_costs(p, bound.reshape(B, K, K))
+
     if n_below:
         # Pairs where one lateral has no children need no nested assignment: every child of
         # the other is unmatched, at its subtree's exact cost (0 when neither has children).
@@ -852,9 +859,9 @@ def lazy_assignment(
             A = jnp.where(direct, alone, A)
         return E, G, A, nested_done | direct, Em, Gm
 
-    def costs(E, A, computed, nested_done, bound, child_bound):
+    def costs(E, A, computed, nested_done, child_bound):
         known = p.lam_lateral * E.reshape(B, K, K) + p.fixed
-        unknown = bound_costs(p, bound.reshape(B, K, K))
+        unknown = bound_cost
         if n_below:
             # Bounds; the pair's own DP with its children's bound (row/column minima, then the
             # assignment of bounds once picked); all exact.
@@ -901,11 +908,6 @@ def lazy_assignment(
 
         return run_in_slabs(need & nested, step, child_bound, slab=CHILD_SLAB)
 
-    # Every real–real pair's refined bound, before the first assignment (loop-invariant).
-    bound = energy_bound.reshape(-1)
-    if options.prune:
-        bound = refine((p.both & rows[:, None, None]).reshape(-1), bound)
-
     def body(st: _LazyState) -> _LazyState:
         E, G, Em, Gm, A, counts, child_perm = st.E, st.G, st.Em, st.Gm, st.A, st.counts, st.child_perm
         computed, nested_done, chosen = st.computed, st.nested_done, st.chosen
@@ -922,7 +924,7 @@ def lazy_assignment(
             child_refined = child_refined | (chosen & computed)
         E, G, A, nested_done, Em, Gm = exact(run_dp, E, G, A, nested_done, st.pending, Em, Gm)
         computed = computed | run_dp
-        perm = solve(costs(E, A, computed, nested_done, bound, child_bound))
+        perm = solve(costs(E, A, computed, nested_done, child_bound))
         return _LazyState(
             E=E,
             G=G,
@@ -942,7 +944,7 @@ def lazy_assignment(
 
     if child_bound is None:
         child_bound = jnp.zeros((B, K, K), dtype)
-    perm = solve(costs(E, A, computed, nested_done, bound, child_bound))
+    perm = solve(costs(E, A, computed, nested_done, child_bound))
     st = _LazyState(
         E=E,
         G=G,
@@ -962,7 +964,7 @@ def lazy_assignment(
     st = lax.while_loop(lambda st: jnp.any(st.chosen) | jnp.any(st.pending), body, st)
     below = jnp.sum(st.counts.reshape(B, K * K, n_below), axis=1, dtype=jnp.int32)
     return (
-        costs(st.E, st.A, st.computed, st.nested_done, bound, st.child_bound),
+        costs(st.E, st.A, st.computed, st.nested_done, st.child_bound),
         st.perm,
         st.computed.reshape(B, K, K),
         st.G.reshape(B, K, K, T),
