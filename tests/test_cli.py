@@ -650,6 +650,7 @@ def test_ctrl_c_during_distances_exits_cleanly(tmp_path):
     import time
 
     env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}  # compile for real
+    env["PYTHONFAULTHANDLER"] = "1"  # SIGABRT dumps every thread's stack: where a stuck run waits
     rng = random.Random(18)
     for attempt in range(3):
         out = tmp_path / f"o{attempt}"
@@ -676,14 +677,24 @@ def test_ctrl_c_during_distances_exits_cleanly(tmp_path):
             stderr=subprocess.PIPE,
             env=env,
         )
-        seen, deadline = b"", time.monotonic() + 120
+        # The bar shows after ~5 s here; in CI once it did not (stuck for 120 s, or the run died
+        # without a word), so wait longer and, if it never shows, report how the run ended or,
+        # with faulthandler's dump, where it was stuck.
+        started, seen, deadline = time.monotonic(), b"", time.monotonic() + 300
         while b"/28 " not in seen and time.monotonic() < deadline:  # the progress bar is shown
             if select.select([p.stderr], [], [], 1.0)[0]:
                 chunk = os.read(p.stderr.fileno(), 4096)
                 if not chunk:
                     break
                 seen += chunk
-        assert b"/28 " in seen, seen.decode(errors="replace")
+        if b"/28 " not in seen:
+            p.send_signal(signal.SIGABRT)
+            _, err = p.communicate(timeout=60)
+            waited = time.monotonic() - started
+            pytest.fail(
+                f"attempt {attempt}: no progress bar after {waited:.0f} s (exit code {p.returncode})\n"
+                + (seen + err).decode(errors="replace")
+            )
         time.sleep(rng.uniform(1.0, 8.0))
         p.send_signal(signal.SIGINT)
         _, err = p.communicate(timeout=120)

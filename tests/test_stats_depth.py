@@ -14,7 +14,19 @@ import pytest
 from helpers import rotation_matrix
 
 import rootshape_jax as rs
-from rootshape_jax._mean import KarcherMean, _exact_update, karcher_mean, karcher_objective, lower_bound_distances
+from rootshape_jax._engine import registration_options
+from rootshape_jax._mean import (
+    MEAN_REGISTRATION,
+    KarcherMean,
+    _exact_update,
+    _full_registration,
+    _MonitoredMinimiser,
+    _solve_gradient,
+    _zero_tree_energy,
+    karcher_mean,
+    karcher_objective,
+    lower_bound_distances,
+)
 from rootshape_jax._metric import preshape_distance_squared
 from rootshape_jax._pca import modes, project, reconstruct, sample, tangent_pca
 from rootshape_jax._regression import TraitRegression
@@ -336,17 +348,36 @@ def test_depth3_without_second_order_laterals_is_the_depth2_mean():
     assert bool(np.all(np.asarray(m3.child_dropped[0])))
 
 
+def _gradient_descent_from(mu: rs.SRVFTree, samples: rs.SRVFTree, max_steps: int):
+    """`karcher_mean(method="gradient")`'s solve with its defaults, started at `mu`."""
+    opts = registration_options(None, base=MEAN_REGISTRATION)
+    mu_like = eqx.tree_at(lambda t: t.origin, mu, jnp.mean(samples.origin, axis=0))
+    tol = 10 * float(jnp.finfo(samples.q0.dtype).eps) * float(_zero_tree_energy(samples, W))
+    solver = _MonitoredMinimiser(
+        optx.GradientDescent(learning_rate=0.5, rtol=0.0, atol=0.0), jnp.asarray(1e-4), jnp.asarray(tol), max_steps + 1
+    )
+    mu, _, _, _, result = _solve_gradient(params_of(mu), samples, mu_like, W, opts, solver, max_steps, False)
+    assert result == optx.RESULTS.successful
+    _, energies, _ = _full_registration(mu, samples, mu_like, W, opts)
+    return float(jnp.mean(energies))
+
+
 @pytest.mark.slow
-def test_fixed_point_and_gradient_reach_the_same_energy(population, fp_mean):
+def test_fixed_point_and_gradient_agree(population, fp_mean):
     grad = karcher_mean(population, method="gradient", max_steps=100)
     assert grad.result == optx.RESULTS.successful
     trace = np.asarray(grad.energy_trace)
     assert np.all(np.diff(trace) <= 1e-12 * trace[0])
-    # From the same start both settle in the same basin; F is not convex and neither solver is
-    # exact at a kink, so "the same" is within 1 % (measured 0.55 % here: 0.14040 vs 0.13964).
+    # From the same start the fixed point settles at least as low as gradient descent (F is not
+    # convex: here in a lower basin, 0.12736 against 0.13941; measured 0.55 % apart on older
+    # code, 0.14040 against 0.13964) ...
     one = karcher_mean(population, n_starts=1)
     assert one.init_index == grad.init_index
-    np.testing.assert_allclose(float(one.energy), float(grad.energy), rtol=1e-2)
+    assert float(one.energy) <= 1.01 * float(grad.energy)
+    # ... and its result is a minimum for gradient descent too: started there, gradient descent
+    # stops where it began (measured 0.12738), neither solver exact at a kink, hence 1 %.
+    from_fp = _gradient_descent_from(one.fitted, rs.to_srvf(population), max_steps=100)
+    np.testing.assert_allclose(from_fp, float(one.energy), rtol=1e-2)
     # The default fixed point (central starts) is no worse than gradient descent from the medoid.
     assert float(fp_mean.energy) <= 1.01 * float(grad.energy)
 
