@@ -680,7 +680,8 @@ def test_ctrl_c_during_distances_exits_cleanly(tmp_path):
         # The bar shows after ~5 s here; in CI once it did not (stuck for 120 s, or the run died
         # without a word), so wait longer and, if it never shows, report how the run ended or,
         # with faulthandler's dump, where it was stuck.
-        started, seen, deadline = time.monotonic(), b"", time.monotonic() + 300
+        seen, started = b"", time.monotonic()
+        deadline = started + 300
         while b"/28 " not in seen and time.monotonic() < deadline:  # the progress bar is shown
             if select.select([p.stderr], [], [], 1.0)[0]:
                 chunk = os.read(p.stderr.fileno(), 4096)
