@@ -700,6 +700,86 @@ def run_dp_slabs(need, pair_of, store, carry, *, neighbourhood: int, dp_batch_si
     return run_in_slabs(need, step, carry, slab=_slab_size(n_items, dp_batch_size))
 
 
+def zero_length_pairs(p: Prepared) -> Bool[Array, "B K K"]:
+    """Real–real lateral pairs where either branch has a zero SRVF (a Karcher mean's unreached
+    slot): the branch energy is the other's whole norm ``La + Lb`` for every warp (a warp
+    keeps the norm), so no DP is run and the warp is the identity. A DP would pick among
+    equal warps by discretisation and rounding, and the registered branch with it."""
+    return p.both & ((p.La == 0)[:, :, None] | (p.Lb == 0)[:, None, :])
+
+
+def dps_run(p: Prepared, computed: Array) -> Int[Array, " B"]:
+    """The DPs run per pair of trees: the computed lateral pairs but the zero-length ones."""
+    ran = computed.reshape(p.both.shape) & ~zero_length_pairs(p)
+    return jnp.sum(ran.reshape(ran.shape[0], -1), axis=1, dtype=jnp.int32)
+
+
+def tie_classes(t: SRVFTree) -> Int[Array, "B K"]:
+    """For every lateral slot of a batch of trees, the first slot that is interchangeable with
+    it for the metric (itself if none is).
+
+    Two slots are interchangeable when both are *empty* (every branch of the slot's subtree
+    has a zero SRVF) and they hold the same values: null slots all alike, real zero-length
+    slots (a Karcher mean's unreached slots) with the same mask, attachment and radius, level by
+    level. Their rows of every cost matrix are then equal, so an optimal assignment may hand
+    them their partners in any order (`canonical_matching`). Slots with any length are kept
+    apart: two equal real laterals are not worth comparing whole curves for.
+    """
+    B, K = t.mask.shape
+
+    def flat(x):
+        return x.reshape(B, K, -1)
+
+    real = t.mask.astype(t.s.dtype)
+    empty = jnp.all(flat(t.q * real[..., None, None]) == 0, axis=-1)
+    sig = [real[..., None], (t.s * real)[..., None]]
+    if t.base_radius is not None:
+        sig.append((t.base_radius[..., 1:] * real)[..., None])  # [..., 0] is the main root's
+    for lv in t.deeper:
+        r = lv.mask.astype(lv.s.dtype)
+        empty = empty & jnp.all(flat(lv.q) == 0, axis=-1)
+        sig += [flat(r), flat(lv.s * r)]
+        if lv.base_radius is not None:
+            sig.append(flat(lv.base_radius * r))
+    sig = jnp.concatenate(sig, axis=-1)
+    same = jnp.all(sig[:, :, None, :] == sig[:, None, :, :], axis=-1) & empty[:, :, None] & empty[:, None, :]
+    same = same | jnp.eye(K, dtype=bool)
+    return jnp.argmax(same, axis=-1).astype(jnp.int32)
+
+
+def canonical_matching(
+    perm: Int[Array, " K"], class_a: Int[Array, " K"], class_b: Int[Array, " K"], real_b: Bool[Array, " K"]
+):
+    """An optimal assignment with its free choices made one fixed way.
+
+    Slots in one `tie_classes` class have equal cost rows (a's) or columns (b's), so an
+    optimal assignment may permute partners within a class at exactly the same cost, and the
+    solver's pick then rests on rounding noise in the other entries: enough for a Karcher
+    mean, which averages slot by slot, to take another path from inputs differing by 1e-16.
+    Here each class of a's slots, in slot order, takes its partners ordered real laterals of b
+    first, then by b's class; then each class of b's slots goes to the rows holding it in slot
+    order. The result depends only on which classes are matched with which.
+
+    Returns (the assignment, `rows_from`, `cols_from`): the new pair ``(i, perm'[i])`` stands
+    for the old ``(rows_from[i], cols_from[perm'[i]])``, an identical pair, whose stored
+    results (warps, children's assignment) it takes.
+    """
+    K = perm.shape[-1]
+    slot = jnp.arange(K, dtype=perm.dtype)
+    # a's classes: rows in slot order take their class's partners in key order.
+    held = class_b[perm] + K * (~real_b[perm]).astype(perm.dtype)
+    by_slot = jnp.lexsort((slot, class_a)).astype(perm.dtype)
+    by_key = jnp.lexsort((slot, held, class_a)).astype(perm.dtype)
+    rows_from = jnp.zeros_like(perm).at[by_slot].set(by_key)
+    perm = perm[rows_from]
+    # b's classes: the rows holding a class take its members in slot order.
+    by_row = jnp.lexsort((slot, class_b[perm])).astype(perm.dtype)
+    by_col = jnp.lexsort((slot, class_b)).astype(perm.dtype)
+    cols_from = jnp.zeros_like(perm).at[by_col].set(perm[by_row])
+    new = jnp.zeros_like(perm).at[by_row].set(by_col)
+    return new, rows_from, cols_from
+
+
 class _LazyState(NamedTuple):
     """The loop state of `lazy_assignment` (flat item arrays over the B·K·K lateral pairs;
     Em, Gm and pending over the B main-root pairs)."""
@@ -887,14 +967,20 @@ def lazy_assignment(
     child_perm = jnp.zeros((n_items, K2), jnp.int8 if K2 <= 127 else jnp.int32)
     # Main-root DPs still to run (in the loop's first pass).
     pending = rows if n_main else jnp.zeros((0,), bool)
-    if options.prune:
-        # Nothing is computed up front. (Not traced at all: each DP call site is its own
-        # compiled kernel, and a no-op call would still be compiled.)
-        computed = jnp.zeros((n_items,), bool)
-        nested_done = computed
-    else:
-        computed = (p.both & rows[:, None, None]).reshape(-1)
-        E, G, A, nested_done, Em, Gm = exact(computed, E, G, A, jnp.zeros_like(computed), pending, Em, Gm)
+    # Pairs with a zero-length branch are exact without a DP (`zero_length_pairs`).
+    trivial = (zero_length_pairs(p) & rows[:, None, None]).reshape(-1)
+    E = jnp.where(trivial, (p.La[:, :, None] + p.Lb[:, None, :]).reshape(-1), E)
+    G = jnp.where(trivial[:, None], _identity_grid(T, dtype), G)
+    computed = trivial
+    nested_done = trivial & ~nested if n_below else trivial
+    if n_below:
+        A = jnp.where(nested_done, alone, A)
+    if not options.prune:
+        # Every real–real DP up front. (With pruning none is: not traced at all, as each DP
+        # call site is its own compiled kernel, and a no-op call would still be compiled.)
+        need = (p.both & rows[:, None, None]).reshape(-1) & ~trivial
+        E, G, A, nested_done, Em, Gm = exact(need, E, G, A, nested_done, pending, Em, Gm)
+        computed = computed | need
         pending = jnp.zeros_like(pending)
         if n_below:
             A, counts, child_perm = children(computed & ~nested_done, A, counts, child_perm)
@@ -963,15 +1049,24 @@ def lazy_assignment(
     )
     st = lax.while_loop(lambda st: jnp.any(st.chosen) | jnp.any(st.pending), body, st)
     below = jnp.sum(st.counts.reshape(B, K * K, n_below), axis=1, dtype=jnp.int32)
+    # The free choices among interchangeable slots made one fixed way; each pair's stored
+    # results move with it (the pairs it is swapped with are identical).
+    perm, rows_from, cols_from = jax.vmap(canonical_matching)(st.perm, tie_classes(p.a), tie_classes(p.b), p.b.mask)
+
+    def relabel(x):
+        x = x.reshape((B, K, K) + x.shape[1:])
+        x = jnp.take_along_axis(x, rows_from.reshape((B, K, 1) + (1,) * (x.ndim - 3)), axis=1)
+        return jnp.take_along_axis(x, cols_from.reshape((B, 1, K) + (1,) * (x.ndim - 3)), axis=2)
+
     return (
-        costs(st.E, st.A, st.computed, st.nested_done, st.child_bound),
-        st.perm,
-        st.computed.reshape(B, K, K),
-        st.G.reshape(B, K, K, T),
+        relabel(costs(st.E, st.A, st.computed, st.nested_done, st.child_bound).reshape(-1)),
+        perm,
+        relabel(st.computed),
+        relabel(st.G),
         below,
         st.Em,
         st.Gm,
-        st.child_perm.astype(jnp.int32).reshape(B, K, K, K2),
+        relabel(st.child_perm.astype(jnp.int32)).reshape(B, K, K, K2),
     )
 
 
@@ -998,7 +1093,7 @@ def child_assignment(a: SRVFTree, b: SRVFTree, weights: Weights, O: Array, activ
     ``[S, K2]``."""
     p, (C, perm, computed, _, below, _, _, _) = _assign_children(a, b, weights, O, active, options)
     total = jnp.sum(jnp.take_along_axis(C, perm[:, :, None], axis=2)[:, :, 0], axis=1)
-    n_dp = jnp.sum(computed.reshape(computed.shape[0], -1), axis=1, dtype=jnp.int32)
+    n_dp = dps_run(p, computed)
     return jnp.where(active, total, 0.0), jnp.concatenate([n_dp[:, None], below], axis=1), perm
 
 
@@ -1039,13 +1134,13 @@ def child_registrations(
             )
             both = matched_slots(pc, perm_c, active)
             gam = jnp.take_along_axis(G, perm_c[:, :, None, None], axis=2)[:, :, 0]
-            n_dp = jnp.sum(computed.reshape(computed.shape[0], -1), axis=1, dtype=jnp.int32)
+            n_dp = dps_run(pc, computed)
         else:
             pc = prepare(a_c, b_c, child_weights(p.weights))
             perm_c = child_perm[bi, i, perm[bi, i]]
             both = matched_slots(pc, perm_c, active)
-            gam = _matched_warps(pc, O[bi], perm_c, both, options)
-            n_dp = jnp.sum(both, axis=1, dtype=jnp.int32)
+            gam, ran = _matched_warps(pc, O[bi], perm_c, both, options)
+            n_dp = jnp.sum(ran, axis=1, dtype=jnp.int32)
         S, K2 = perm_c.shape
         n_dp = n_dp[:, None]
         gam = jnp.where(both[..., None], gam, _identity_grid(T, dtype))
@@ -1076,10 +1171,12 @@ def matched_slots(p: Prepared, perm: Array, rows: Array) -> Array:
 
 
 def _matched_warps(p: Prepared, O: Array, perm: Array, matched: Array, options) -> Array:
-    """The DP warps ``[B, K, T]`` of the pairs (i, perm[i]) flagged in `matched` (b's branches
-    turned by O, as the assignment saw them); other slots hold zeros."""
+    """The warps ``[B, K, T]`` of the pairs (i, perm[i]) flagged in `matched` (b's branches
+    turned by O, as the assignment saw them; identity for `zero_length_pairs`), other slots
+    zeros, and where a DP ran ``[B, K]``."""
     B, K, T, _ = p.a.q.shape
     qb = rotate_batch(p.b.q, O)
+    trivial = matched & jnp.take_along_axis(zero_length_pairs(p), perm[:, :, None], axis=2)[:, :, 0]
 
     def pair_of(lanes):
         bi, i = jnp.divmod(lanes, K)
@@ -1088,16 +1185,17 @@ def _matched_warps(p: Prepared, O: Array, perm: Array, matched: Array, options) 
     def store(lanes, e, g, G):
         return G.at[lanes].set(g, mode="drop")
 
-    G = jnp.zeros((B * K, T), p.La.dtype)
+    G = jnp.where(trivial.reshape(-1, 1), _identity_grid(T, p.La.dtype), 0.0)
+    run = matched & ~trivial
     G = run_dp_slabs(
-        matched.reshape(-1),
+        run.reshape(-1),
         pair_of,
         store,
         G,
         neighbourhood=options.neighbourhood,
         dp_batch_size=options.dp_batch_size,
     )
-    return G.reshape(B, K, T)
+    return G.reshape(B, K, T), run
 
 
 def evaluate(p: Prepared, O: Array, rows: Array, options: RegistrationOptions):
@@ -1119,7 +1217,7 @@ def evaluate(p: Prepared, O: Array, rows: Array, options: RegistrationOptions):
     matched = matched_slots(p, perm, rows)
     gam = jnp.take_along_axis(G, perm[:, :, None, None], axis=2)[:, :, 0]
     gam = jnp.where(matched[..., None], gam, identity)
-    n_dp = jnp.sum(computed.reshape(B, K * K), axis=1, dtype=jnp.int32)
+    n_dp = dps_run(p, computed)
     children = []
     if a.deeper:
         children, again = child_registrations(p, O, perm, matched, options, child_perm)
