@@ -972,11 +972,18 @@ def to_srvf(tree: RootTree | SRVFTree, *, weights=None) -> SRVFTree:
             f"expected a RootTree or SRVFTree, got {type(tree).__name__}; "
             "use rootshape_jax.batch(roots) to build one from Root objects."
         )
+    lam = jnp.asarray(weights.thickness, tree.main.dtype) if wants_thickness(tree, weights) else None
+    return _srvf_tree(tree, lam)
+
+
+# Compiled as one program: run op by op, the first call at each new batch size compiled every
+# small op apart (measured 4.4 s for 2 CPlantBox pea roots at depth 3, against ~0.3 s).
+@eqx.filter_jit
+def _srvf_tree(tree: RootTree, lam) -> SRVFTree:
+    """`to_srvf`'s arrays; `lam` is the thickness weight λr, or None to leave radii out."""
     origin = tree.main[..., 0, :]
-    if wants_thickness(tree, weights):
-        q0, q, base, c = extended_srvf(
-            tree.main, tree.laterals, tree.main_radius, tree.lateral_radius, tree.mask, weights.thickness
-        )
+    if lam is not None:
+        q0, q, base, c = extended_srvf(tree.main, tree.laterals, tree.main_radius, tree.lateral_radius, tree.mask, lam)
         deeper = tuple(_level_srvf(lv, c) for lv in tree.deeper)
         return SRVFTree(
             q0=q0,
