@@ -113,7 +113,8 @@ class KarcherMean(eqx.Module):
     - `energy_trace`: F at the start and after each step (for the fixed point: the joint
       energy, an upper bound of F at that iterate), ending with the final `energy`.
     - `steps`: solver steps taken. `result`: the optimistix status (`optx.RESULTS`).
-    - `init_index`: index of the sample the solver started from (the medoid).
+    - `init_index`: index of the sample the solver started from (the medoid), or None when
+      it started from a tree given as `init`.
     - `lateral_lengths`: ``[K]`` length of each lateral of the fitted mean (before dropping).
     - `dropped`: ``[K]`` True where a fitted lateral was shorter than the threshold and dropped.
     - `weights`: the metric weights used (for `tangent_pca`); `registration`: the
@@ -132,7 +133,7 @@ class KarcherMean(eqx.Module):
     energy_trace: Float[Array, " S"]
     steps: Int[Array, ""]
     result: optx.RESULTS
-    init_index: int = eqx.field(static=True)
+    init_index: int | None = eqx.field(static=True)
     lateral_lengths: Float[Array, " K"]
     dropped: Bool[Array, " K"]
     weights: Weights
@@ -740,7 +741,24 @@ def _start_indices(init, distances, samples, weights, opts, n, n_starts: int) ->
         D = np.asarray(distances, dtype=np.float64)
         order = [i for i in np.argsort(np.sum(D**2, axis=1), kind="stable") if i != medoid]
         return [medoid] + [int(i) for i in order[: n_starts - 1]]
-    raise ValueError(f"init must be 'medoid' or a sample index, got {init!r}.")
+    raise ValueError(f"init must be 'medoid', a sample index or a single tree, got {init!r}.")
+
+
+def _start_tree(init: RootTree | SRVFTree, samples: SRVFTree, weights: Weights) -> SRVFTree:
+    """`init` given as a tree, checked against the samples and as an SRVF tree."""
+    tree = to_srvf(init, weights=weights)
+    if tree.batch_shape != ():
+        raise ValueError(
+            f"karcher_mean: init must be a single tree, got a batch of shape {tree.batch_shape}; "
+            "pick one with jax.tree.map(lambda x: x[i], trees)."
+        )
+    check_compatible(tree, samples, "karcher_mean: init and trees")
+    if tree.q0.dtype != samples.q0.dtype:
+        raise ValueError(
+            f"karcher_mean: init has dtype {tree.q0.dtype} and the trees {samples.q0.dtype}; "
+            "build both with the same dtype (batch(..., dtype=...))."
+        )
+    return tree
 
 
 # Populations up to this size are warmed up from several central samples by default: the
@@ -787,7 +805,7 @@ def karcher_mean(
     atol: float = 0.0,
     max_steps: int = 50,
     throw: bool = True,
-    init: Literal["medoid"] | int = "medoid",
+    init: Literal["medoid"] | int | RootTree | SRVFTree = "medoid",
     distances: Array | np.ndarray | None = None,
     min_lateral_length: float | None = None,
     registration: RegistrationOptions | dict | None = None,
@@ -828,7 +846,9 @@ def karcher_mean(
     - `n_starts`: with ``init="medoid"`` (fixed point), warm up from the medoid and the next
       most central samples, this many in all, and continue from the one with the lowest F
       (the start can decide the local minimum). Default 4 for at most 16 samples, else 1.
-    - `init`: ``"medoid"`` or the index of the sample to start from.
+    - `init`: ``"medoid"``, the index of the sample to start from, or a single tree (a
+      `RootTree` or `SRVFTree` with the samples' capacities and dtype, e.g. another mean's
+      `fitted`) to start from; its null slots start as zero-length laterals, as a sample's.
     - `distances`: an ``(n, n)`` distance matrix (e.g. `pairwise_distances(trees)`) for the
       medoid; without it the medoid of the DP-free lower bound of the elastic distance is used.
     - `min_lateral_length`: mean laterals shorter than this are dropped at the end; default
@@ -872,10 +892,14 @@ def karcher_mean(
         n_starts = _MULTI_STARTS if n <= _MULTI_START_MAX_N else 1
     if isinstance(n_starts, bool) or not isinstance(n_starts, int) or n_starts < 1:
         raise ValueError(f"n_starts must be an integer >= 1, got {n_starts!r}.")
-    starts = _start_indices(init, distances, samples, weights, opts, n, n_starts if method == "fixed_point" else 1)
+    if isinstance(init, (RootTree, SRVFTree)):
+        first = _start_tree(init, samples, weights)
+        starts, candidates = [None], [first]
+    else:
+        starts = _start_indices(init, distances, samples, weights, opts, n, n_starts if method == "fixed_point" else 1)
+        candidates = [jax.tree.map(lambda x, i=i: x[i], samples) for i in starts]
+        first = candidates[0]
     start = starts[0]
-
-    first = jax.tree.map(lambda x: x[start], samples)
     mu0 = params_of(first)
     origin = jnp.mean(samples.origin, axis=0)
     mu_like = eqx.tree_at(lambda t: t.origin, first, origin)
@@ -898,7 +922,7 @@ def karcher_mean(
         else:
             size = block_size
         blocks = _SampleBlocks(executor, samples, size, progress=progress)
-        mu0s = [params_of(jax.tree.map(lambda x, i=i: x[i], samples)) for i in starts]
+        mu0s = [params_of(c) for c in candidates]
         mu, trace, steps, result, registered, energies, chosen = _fixed_point(
             mu0s,
             samples,
