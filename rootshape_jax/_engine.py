@@ -351,6 +351,9 @@ class Prepared(eqx.Module):
     dir_a: Array  # [B, K, T, C] unit direction of each node of a (0 where q = 0)
     mass_a: Array  # [B, K, T] trapezoid weight times |q|² of each node of a
     blocks_b: tuple  # block cones of b (`block_cones`): axes [B, K, N_BLOCKS, C], half-angles
+    zero_length: Array  # [B, K, K] real–real pairs with a zero branch (`zero_length_pairs`)
+    ties_a: Array  # [B, K] `tie_classes` of a's slots
+    ties_b: Array
     # Depth D > 2 only (None otherwise): direction cones of the children of every lateral,
     # and the λ-weighted norms below every lateral (`descendant_norms`).
     child_cone_a: tuple | None = None  # axes [B, K, K2, C], half-angles [B, K, K2]
@@ -437,6 +440,9 @@ def prepare(a: SRVFTree, b: SRVFTree, weights: Weights) -> Prepared:
         safe_normalise(a.q),
         mass_a,
         block_cones(b.q, min(N_BLOCKS, T - 1)),
+        zero_length_pairs(both, La, Lb),
+        tie_classes(a),
+        tie_classes(b),
         *below,
     )
 
@@ -700,17 +706,18 @@ def run_dp_slabs(need, pair_of, store, carry, *, neighbourhood: int, dp_batch_si
     return run_in_slabs(need, step, carry, slab=_slab_size(n_items, dp_batch_size))
 
 
-def zero_length_pairs(p: Prepared) -> Bool[Array, "B K K"]:
-    """Real–real lateral pairs where either branch has a zero SRVF (a Karcher mean's unreached
-    slot): the branch energy is the other's whole norm ``La + Lb`` for every warp (a warp
-    keeps the norm), so no DP is run and the warp is the identity. A DP would pick among
-    equal warps by discretisation and rounding, and the registered branch with it."""
-    return p.both & ((p.La == 0)[:, :, None] | (p.Lb == 0)[:, None, :])
+def zero_length_pairs(both: Array, La: Array, Lb: Array) -> Bool[Array, "B K K"]:
+    """Real–real lateral pairs (`both`) where either branch has a zero SRVF (lengths `La`, `Lb`;
+    a Karcher mean's unreached slot): the branch energy is the other's whole norm ``La + Lb``
+    for every warp (a warp keeps the norm), so no DP is run and the warp is the identity. A DP
+    would pick among equal warps by discretisation and rounding, and the registered branch
+    with it."""
+    return both & ((La == 0)[:, :, None] | (Lb == 0)[:, None, :])
 
 
 def dps_run(p: Prepared, computed: Array) -> Int[Array, " B"]:
     """The DPs run per pair of trees: the computed lateral pairs but the zero-length ones."""
-    ran = computed.reshape(p.both.shape) & ~zero_length_pairs(p)
+    ran = computed.reshape(p.both.shape) & ~p.zero_length
     return jnp.sum(ran.reshape(ran.shape[0], -1), axis=1, dtype=jnp.int32)
 
 
@@ -968,7 +975,7 @@ def lazy_assignment(
     # Main-root DPs still to run (in the loop's first pass).
     pending = rows if n_main else jnp.zeros((0,), bool)
     # Pairs with a zero-length branch are exact without a DP (`zero_length_pairs`).
-    trivial = (zero_length_pairs(p) & rows[:, None, None]).reshape(-1)
+    trivial = (p.zero_length & rows[:, None, None]).reshape(-1)
     E = jnp.where(trivial, (p.La[:, :, None] + p.Lb[:, None, :]).reshape(-1), E)
     G = jnp.where(trivial[:, None], _identity_grid(T, dtype), G)
     computed = trivial
@@ -1051,7 +1058,7 @@ def lazy_assignment(
     below = jnp.sum(st.counts.reshape(B, K * K, n_below), axis=1, dtype=jnp.int32)
     # The free choices among interchangeable slots made one fixed way; each pair's stored
     # results move with it (the pairs it is swapped with are identical).
-    perm, rows_from, cols_from = jax.vmap(canonical_matching)(st.perm, tie_classes(p.a), tie_classes(p.b), p.b.mask)
+    perm, rows_from, cols_from = jax.vmap(canonical_matching)(st.perm, p.ties_a, p.ties_b, p.b.mask)
 
     def relabel(x):
         x = x.reshape((B, K, K) + x.shape[1:])
@@ -1176,7 +1183,7 @@ def _matched_warps(p: Prepared, O: Array, perm: Array, matched: Array, options) 
     zeros, and where a DP ran ``[B, K]``."""
     B, K, T, _ = p.a.q.shape
     qb = rotate_batch(p.b.q, O)
-    trivial = matched & jnp.take_along_axis(zero_length_pairs(p), perm[:, :, None], axis=2)[:, :, 0]
+    trivial = matched & jnp.take_along_axis(p.zero_length, perm[:, :, None], axis=2)[:, :, 0]
 
     def pair_of(lanes):
         bi, i = jnp.divmod(lanes, K)
