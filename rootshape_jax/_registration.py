@@ -32,7 +32,11 @@ def as_pair_batch(a, b, weights: Weights, what: str = "register") -> tuple[SRVFT
     b = to_srvf(b, weights=weights)
     check_compatible(a, b, f"{what}: a and b")
     if a.q0.dtype != b.q0.dtype:
-        raise ValueError(f"{what}: a and b have different dtypes ({a.q0.dtype} vs {b.q0.dtype}).")
+        raise ValueError(
+            f"{what}: a and b have different dtypes ({a.q0.dtype} vs {b.q0.dtype}); build both "
+            "in one call to batch(), or cast one with jax.tree.map(lambda x: x.astype(...), tree) "
+            "on its floating-point leaves."
+        )
     if a.batch_shape != b.batch_shape:
         raise ValueError(
             f"{what}: a has batch shape {a.batch_shape} but b has {b.batch_shape}; pass two single "

@@ -1109,7 +1109,9 @@ def _curves_of(tree: SRVFTree) -> RootTree:
 
 
 def check_compatible(a: RootTree | SRVFTree, b: RootTree | SRVFTree, what: str = "trees") -> None:
-    """Raise a clear ValueError when two trees cannot be compared (capacities, d, dtype)."""
+    """Raise a clear ValueError when two trees cannot be compared: thickness channel, (T, K, d),
+    plant system or single root, and capacities per level. Not the dtype: callers that need
+    one dtype check it themselves (`register`, `karcher_mean(init=...)`)."""
     if isinstance(a, SRVFTree) and isinstance(b, SRVFTree) and a.has_thickness != b.has_thickness:
         raise ValueError(
             f"{what}: one has a thickness channel and the other not; build both with "

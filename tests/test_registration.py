@@ -294,6 +294,9 @@ def test_clear_errors():
         rs.register(a, np.zeros((3, 2)))
     with pytest.raises(ValueError, match="batch shape"):
         rs.register(rs.stack([a, a]), b)
+    b32 = jax.tree.map(lambda x: x.astype(np.float32) if jnp.issubdtype(x.dtype, jnp.floating) else x, b)
+    with pytest.raises(ValueError, match="different dtypes.*one call to batch"):
+        rs.register(a, b32)
     with pytest.raises(ValueError, match="max_iterations"):
         rs.register(a, b, max_iterations=0)
 
