@@ -627,8 +627,9 @@ def batch(
     - `dtype`: float dtype of the arrays; default JAX's default float (float32 unless x64 is on).
     - `depth`: ``D``, levels kept (docs/design.md §11): 2 = main root + first-order laterals (the
       paper's trees), 3 adds second-order laterals (from `Root.children`), and so on. Default
-      (None) is 2, ignoring deeper orders silently as before; an explicit `depth` warns once
-      when roots have deeper branches than it keeps, saying how many were left out.
+      (None) is 2, ignoring deeper orders silently as before; an explicit `depth`, and any
+      depth for plants' systems (`read_rsml(..., by="plant")`, whose laterals are level 2),
+      warns once when roots have deeper branches than it keeps, saying how many were left out.
     - `max_children`: ``(K1, …, K(D−1))``, child slots per parent slot at each level (``K1`` is
       `max_laterals`; give one or the other, or equal values). Default, level by level,
       ``2 × (most children of any branch at that level)`` (at least 2). A capacity below the
@@ -667,7 +668,9 @@ def batch(
     capacities = _capacities(counts, depth, max_laterals, max_children)
     if max_laterals is None:
         max_laterals = capacities[0]
-    if explicit_depth:
+    if explicit_depth or _is_system(roots_list[0]):
+        # A plant's system at the default depth keeps its axes only: every lateral would be
+        # dropped without a word, so plants always get the warning.
         _warn_truncated(roots_list, depth)
     if dtype is None:
         dtype = jnp.zeros(()).dtype  # JAX's default float: respects jax_enable_x64
@@ -787,9 +790,17 @@ def _warn_truncated(roots: Sequence[Root], depth: int) -> None:
         total = sum(n for _, n in left_out)
         names = ", ".join(_root_label(roots[i], i) for i, _ in left_out[:5])
         more = f" and {len(left_out) - 5} more" if len(left_out) > 5 else ""
+        if _is_system(roots[0]):
+            # Level 1 of a plant's system is its axes: level 2 holds the axes' own laterals.
+            what = f"{total} laterals of order {depth - 1} or higher (level 1 of a plant's system is its axes)"
+            fix = f"Pass depth={depth + 1} to keep them" + (
+                " (a plant's system needs depth=3 for its axes' laterals)." if depth == 2 else "."
+            )
+        else:
+            what = f"{total} laterals of order {depth} or higher (laterals of laterals ...)"
+            fix = "Pass a larger depth to keep them."
         warnings.warn(
-            f"batch(depth={depth}): {total} laterals of order {depth} or higher (laterals of laterals ...) were left out "
-            f"({len(left_out)} roots: {names}{more}). Pass a larger depth to keep them.",
+            f"batch(depth={depth}): {what} were left out ({len(left_out)} roots: {names}{more}). {fix}",
             UserWarning,
             stacklevel=3,
         )

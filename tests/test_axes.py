@@ -403,3 +403,17 @@ def test_tangent_space_reads_the_per_level_weights():
     np.testing.assert_allclose(np.asarray(c.deeper[0].q) / np.asarray(c1.deeper[0].q), np.sqrt(2.5))
     np.testing.assert_allclose(np.asarray(c.deeper[0].s) / np.asarray(c1.deeper[0].s), np.sqrt(0.2 / 0.7))
     np.testing.assert_allclose(np.asarray(c.q), np.asarray(c1.q))
+
+
+def test_plants_at_the_default_depth_warn_that_their_laterals_are_left_out():
+    # Level 1 of a plant's system is its axes: at depth 2 every lateral would be dropped.
+    roots = _taproots()
+    plants = [plant_system([r], name=f"p{i}") for i, r in enumerate(roots)]
+    n_laterals = sum(r.n_laterals for r in roots)
+    assert n_laterals > 0
+    with pytest.warns(UserWarning, match=rf"{n_laterals} laterals of order 1 or higher .*Pass depth=3"):
+        t = rs.batch(plants, n_points=T)
+    assert t.depth == 2 and int(t.mask.sum()) == len(plants)  # the axes only
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rs.batch(plants, n_points=T, depth=3)
