@@ -312,7 +312,18 @@ def test_run_extract_writes_rsml_and_overlay_and_skips_bad(tmp_path):
     comp = by["p0"]["comparison"]["plants"][0]
     assert comp["main_length_ratio"] == pytest.approx(1.0, abs=0.05)
     assert "comparison" not in by["p1"]
-    assert (out / "summary.json").is_file()
+    # Strict JSON (no NaN): the elastic distance, not asked for, is null.
+    import json
+
+    summary = json.loads((out / "summary.json").read_text(), parse_constant=lambda c: pytest.fail(f"{c} in JSON"))
+    (plant,) = [r for r in summary if Path(r["image"]).stem == "p0"][0]["comparison"]["plants"]
+    assert plant["elastic_distance"] is None and plant["main_length_ratio"] == pytest.approx(1.0, abs=0.05)
+    # The folder extract wrote reads as its RSML files: the overlays are left out, with a word.
+    from rootshape_jax.io import read_folder
+
+    with pytest.warns(UserWarning, match="left out 2 overlay image"):
+        again = read_folder(out)
+    assert len(again) == 2
     # pixels_per_mm: RSML in mm, overlay still in pixels.
     rows = extract_images([src / "p1.png"], tmp_path / "mm", pixels_per_mm=20.0, progress=False)
     (r,) = read_rsml(tmp_path / "mm" / "p1.rsml")
@@ -370,3 +381,11 @@ def test_cli_extract_writes_rsml_overlay_and_names_a_bad_image(tmp_path):
     assert len(roots) == 1 and roots[0].n_laterals >= 2
     assert (out / "good_overlay.png").read_bytes()[:4] == b"\x89PNG"
     assert not (out / "broken.rsml").exists()
+    # A second run into the same folder is refused (nothing rewritten), unless --overwrite.
+    before = (out / "good.rsml").stat().st_mtime_ns
+    cmd = [sys.executable, "-m", "rootshape_jax", "extract", str(src / "good.png"), "--out", str(out), "--quiet"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert proc.returncode != 0 and "--overwrite" in proc.stderr and "Traceback" not in proc.stderr
+    assert (out / "good.rsml").stat().st_mtime_ns == before
+    proc = subprocess.run(cmd + ["--overwrite"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]

@@ -115,8 +115,27 @@ def cmd_geodesic(args) -> None:
 def cmd_extract(args) -> None:
     import warnings
 
-    from rootshape_jax.io import extract_images
+    from pathlib import Path
 
+    from rootshape_jax.io import extract_images
+    from rootshape_jax.io._extract_cli import expand_images
+
+    out_dir = Path(args.out)
+    if out_dir.is_dir() and not args.overwrite:
+        stems = {p.stem for p in expand_images(args.images)}
+        earlier = sorted(
+            p.name
+            for p in out_dir.iterdir()
+            if p.name == "summary.json"
+            or (p.suffix == ".rsml" and p.stem in stems)
+            or (p.name.endswith("_overlay.png") and p.stem[: -len("_overlay")] in stems)
+        )
+        if earlier:
+            shown = ", ".join(earlier[:3]) + (f" and {len(earlier) - 3} more" if len(earlier) > 3 else "")
+            raise CLIError(
+                f"--out {args.out}: holds results of an earlier run ({shown}); give --overwrite to "
+                "replace them, or another --out."
+            )
     options = {} if args.root_width is None else {"root_width": args.root_width}
     with warnings.catch_warnings():
         # A skipped image is named in its row and summarised below: one line each, no repeat.
@@ -127,6 +146,7 @@ def cmd_extract(args) -> None:
             tracing=args.tracing,
             pixels_per_mm=args.pixels_per_mm,
             progress=not args.quiet,
+            elastic=args.elastic,
             **options,
         )
     ok = [r for r in rows if r.get("status") == "ok"]

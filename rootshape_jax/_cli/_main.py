@@ -130,7 +130,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             _end_process(EXIT_INTERRUPTED)
         return EXIT_INTERRUPTED
     except Exception as e:  # noqa: BLE001 - every failure becomes one line (and what it left in --out) unless --debug
-        if args.debug:
+        if getattr(args, "debug", False):
             raise
         import rootshape_jax as rs
 

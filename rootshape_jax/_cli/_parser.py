@@ -546,7 +546,8 @@ def build_parser() -> argparse.ArgumentParser:
         "germination paper, dark-on-light or light-on-dark): one RSML and an overlay PNG "
         "(the extraction drawn on the photo, one colour per root) per image, and "
         "summary.json. With --tracing, the hand tracing is drawn too and compared (lengths, "
-        "lateral counts, elastic distance). A bad image is named and skipped.",
+        "lateral counts; the elastic distance with --elastic). A bad image is named and skipped. "
+        "An --out folder holding an earlier run's results is refused unless --overwrite.",
         cmd_extract,
     )
     p.add_argument("images", nargs="+", metavar="IMAGE", help="image files or folders of images")
@@ -571,7 +572,17 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="PX",
         help="typical root width in pixels (default 6; set it for thick roots)",
     )
+    p.add_argument(
+        "--elastic",
+        action="store_true",
+        help="with --tracing, also compute the elastic distance of each extracted plant to its "
+        "tracing (one registration per plant; compiles once, ~10-20 s)",
+    )
+    p.add_argument(
+        "--overwrite", action="store_true", help="replace the results of an earlier run in the --out folder"
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--debug", action="store_true", help="show the full Python traceback on errors")
 
     p = add(
         "demo",

@@ -7,6 +7,7 @@ The command-line parser lives with the other subcommands; this module holds the 
 from __future__ import annotations
 
 import json
+import math
 import os
 import warnings
 from collections.abc import Sequence
@@ -98,6 +99,7 @@ def extract_images(
     tracing: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
     pixels_per_mm: float | None = None,
     progress: bool = True,
+    elastic: bool = False,
     **options,
 ) -> list[dict]:
     """Extract roots from each image; write ``OUT/<stem>.rsml`` and ``OUT/<stem>_overlay.png``.
@@ -110,6 +112,8 @@ def extract_images(
       ``<stem>.rsml`` files, or a list of RSML files matched by stem.
     - `pixels_per_mm`: image scale; the RSML is then written in mm.
     - `progress`: show a progress bar.
+    - `elastic`: with a tracing, also compute each matched plant's elastic distance to it
+      (`compare_to_tracing(elastic=True)`); otherwise that field is null in summary.json.
     - `**options`: passed to `roots_from_image`.
 
     A bad image (unreadable, truncated, unsupported, no root found) is named in a warning and
@@ -164,8 +168,22 @@ def extract_images(
         if traced:
             # Compare in pixels: the tracing is read in pixels.
             px = [r.scaled_about(np.zeros(r.dim), scale) for r in roots] if scale != 1.0 else roots
-            cmp = compare_to_tracing(px, traced, elastic=False)
+            cmp = compare_to_tracing(px, traced, elastic=elastic)
             row.update(tracing=str(tpath), comparison=cmp.as_dict())
         rows.append(row)
-    (out / "summary.json").write_text(json.dumps(rows, indent=2, default=float))
+    # Strict JSON: a value not computed (NaN) is written as null.
+    (out / "summary.json").write_text(json.dumps(_json_safe(rows), indent=2, allow_nan=False, default=float))
     return rows
+
+
+def _json_safe(x):
+    """`x` with NaN and infinite floats as None and numpy scalars as Python numbers."""
+    if isinstance(x, dict):
+        return {k: _json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_safe(v) for v in x]
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x

@@ -39,9 +39,24 @@ class ReadReport:
 
 
 def root_files(folder: str | os.PathLike) -> list[Path]:
-    """The RSML files and images directly inside `folder`, sorted by name."""
+    """The RSML files and images directly inside `folder`, sorted by name; not the overlays
+    that `rootshape extract` writes beside its RSML files (`extract_overlays`)."""
     folder = Path(folder)
-    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in RSML_SUFFIXES + IMAGE_SUFFIXES)
+    found = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in RSML_SUFFIXES + IMAGE_SUFFIXES]
+    overlays = set(extract_overlays(found))
+    return sorted(p for p in found if p not in overlays)
+
+
+def extract_overlays(files: Sequence[Path]) -> list[Path]:
+    """The images among `files` that are `rootshape extract`'s drawings, not photographs:
+    ``<stem>_overlay.png`` beside its ``<stem>.rsml``. Read as photographs they would add a
+    second, wrong copy of every extracted root."""
+    rsml = {p.with_suffix("").name for p in files if p.suffix.lower() in RSML_SUFFIXES}
+    return [
+        p
+        for p in files
+        if p.suffix.lower() == ".png" and p.stem.endswith("_overlay") and p.stem[: -len("_overlay")] in rsml
+    ]
 
 
 def short_reason(message: str, path: Path) -> str:
@@ -129,6 +144,14 @@ def expand(paths: Sequence[str | os.PathLike]) -> list[tuple[Path, bool]]:
             raise InputError(f"{text}: no such file or folder.")
         if p.is_dir():
             found = root_files(p)
+            n_overlays = len(extract_overlays([f for f in p.iterdir() if f.is_file()]))
+            if n_overlays:
+                warnings.warn(
+                    f"{text}: left out {n_overlays} overlay image(s) that `rootshape extract` wrote "
+                    "(<name>_overlay.png beside <name>.rsml): the roots are read from the RSML files.",
+                    UserWarning,
+                    stacklevel=2,
+                )
             if not found:
                 raise InputError(
                     f"{text}: the folder contains no RSML files (.rsml) or images ({', '.join(IMAGE_SUFFIXES)})."
