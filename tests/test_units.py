@@ -189,3 +189,22 @@ def test_real_smartroot_inches_to_mm():
     assert mm[0].main_length == pytest.approx(25.4 * lupin[0].main_length, rel=1e-12)
     px = io.read_rsml(SHARED / "smartroot" / "lupin.rsml", physical_units=False)
     np.testing.assert_allclose(io.convert_units(px, "mm")[0].main, mm[0].main, rtol=1e-9)
+
+
+def test_cli_refuses_to_compare_sizes_across_units(tmp_path, capsys):
+    # An inch file and a pixel file in one folder: their sizes cannot be compared.
+    d = tmp_path / "mixed"
+    d.mkdir()
+    io.write_rsml(in_unit(synthetic_roots(2, seed=1), "inch"), d / "a.rsml", unit="inch", resolution=200.0)
+    io.write_rsml(in_unit(synthetic_roots(2, seed=2), "pixel"), d / "b.rsml")
+    proc = run_cli("distances", d, "--no-normalise-scale", "--points", "12", "--out", tmp_path / "o")
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if "error" in ln]
+    assert len(lines) == 1 and "different units (inch: a.rsml; pixel: b.rsml)" in lines[0] and "--unit" in lines[0], proc.stderr
+    assert not (tmp_path / "o" / "distances.csv").exists()
+    # Scale-normalised, the shapes are compared, with a warning that sizes written back mix units.
+    from rootshape_jax._cli._inputs import _check_units
+
+    roots = io.read_folder(d)
+    _check_units(roots, normalised=True)
+    assert "different units" in capsys.readouterr().err

@@ -169,6 +169,7 @@ def prepare(roots: list, args, *, min_roots: int = 1, samples: int | None = None
     if len(roots) < min_roots:
         raise CLIError(f"this analysis needs at least {min_roots} roots, got {len(roots)}.")
     normalised = args.normalise_scale
+    _check_units(roots, normalised)
     by = group_column(args)
     conditions = io.labels_of(roots, by) if by else [r.metadata.get("condition") for r in roots]
     # depth None (no --depth) is batch's default: depth 2, deeper orders ignored silently.
@@ -183,6 +184,33 @@ def prepare(roots: list, args, *, min_roots: int = 1, samples: int | None = None
         conditions=conditions if all(c is not None for c in conditions) else None,
         label_name=by or "condition",
         labels=label_columns(roots),
+    )
+
+
+def _check_units(roots: list, normalised: bool) -> None:
+    """Roots in different units (inch and pixel, say) have no common size: refused unless
+    scale-normalised, where only the shapes are compared (then a warning: results written
+    back "in the input's units" mix them)."""
+    by_unit: dict[str, list[str]] = {}
+    for r in roots:
+        unit = r.metadata.get("unit")
+        if unit is not None:
+            source = r.metadata.get("source_file")
+            by_unit.setdefault(str(unit), []).append(Path(source).name if source else str(r.name))
+    if len(by_unit) < 2:
+        return
+    listed = "; ".join(
+        f"{u}: {', '.join(sorted(set(f))[:2])}{' ...' if len(set(f)) > 2 else ''}" for u, f in by_unit.items()
+    )
+    fix = (
+        "convert them to one unit with --unit (files in pixels also need --pixel-size), or analyse "
+        "each unit's files separately"
+    )
+    if not normalised:
+        raise CLIError(f"the roots are in different units ({listed}), so their sizes cannot be compared; {fix}.")
+    warn(
+        f"the roots are in different units ({listed}); their shapes are compared (scale-normalised), "
+        f"but sizes written back in the input's units mix them. To avoid that, {fix}."
     )
 
 
