@@ -200,7 +200,9 @@ def test_cli_refuses_to_compare_sizes_across_units(tmp_path, capsys):
     proc = run_cli("distances", d, "--no-normalise-scale", "--points", "12", "--out", tmp_path / "o")
     assert proc.returncode == 1 and "Traceback" not in proc.stderr
     lines = [ln for ln in proc.stderr.splitlines() if "error" in ln]
-    assert len(lines) == 1 and "different units (inch: a.rsml; pixel: b.rsml)" in lines[0] and "--unit" in lines[0], proc.stderr
+    assert len(lines) == 1 and "different units (inch: a.rsml; pixel: b.rsml)" in lines[0] and "--unit" in lines[0], (
+        proc.stderr
+    )
     assert not (tmp_path / "o" / "distances.csv").exists()
     # Scale-normalised, the shapes are compared, with a warning that sizes written back mix units.
     from rootshape_jax._cli._inputs import _check_units

@@ -114,7 +114,6 @@ def cmd_geodesic(args) -> None:
 
 def cmd_extract(args) -> None:
     import warnings
-
     from pathlib import Path
 
     from rootshape_jax.io import extract_images

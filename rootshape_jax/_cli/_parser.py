@@ -578,9 +578,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --tracing, also compute the elastic distance of each extracted plant to its "
         "tracing (one registration per plant; compiles once, ~10-20 s)",
     )
-    p.add_argument(
-        "--overwrite", action="store_true", help="replace the results of an earlier run in the --out folder"
-    )
+    p.add_argument("--overwrite", action="store_true", help="replace the results of an earlier run in the --out folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--debug", action="store_true", help="show the full Python traceback on errors")
 
