@@ -680,6 +680,7 @@ def batch(
         for r in roots_list
     ]
     main, lats, attach, mask, main_r, lat_r = (np.stack(a) for a in list(zip(*arrays))[:6])
+    _warn_imprecise(roots_list, main, lats, mask, normalise_scale)
     has_radius = any(_has_radius(r, depth) for r in roots_list)
     radii = {}
     if has_radius:
@@ -804,6 +805,41 @@ def _warn_truncated(roots: Sequence[Root], depth: int) -> None:
             UserWarning,
             stacklevel=3,
         )
+
+
+#: Rounding of a coordinate, as a fraction of a main-root segment, above which `batch` warns.
+_PRECISION_WARN = 0.01
+
+
+def _warn_imprecise(roots, main, lats, mask, normalised: bool) -> None:
+    """Warn when the dtype's rounding of the stored coordinates is a sizeable fraction of a
+    segment: coordinates far from (0, 0) compared with the root's size, as after
+    `normalise_scale` (the base stays where the data put it, the root shrinks to length 1).
+    The SRVFs are differences of neighbouring points, so they inherit that error."""
+    eps = float(np.finfo(main.dtype).eps)
+    seg = np.linalg.norm(np.diff(main.astype(np.float64), axis=1), axis=-1)  # [N, T-1]
+    seg = np.where(seg > 0, seg, np.nan)
+    reach = np.maximum(np.abs(main).max(axis=(1, 2)), np.where(mask[..., None, None], np.abs(lats), 0).max(axis=(1, 2, 3)))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = reach * eps / np.nanmedian(seg, axis=1)
+    bad = np.flatnonzero(np.nan_to_num(ratio) > _PRECISION_WARN)
+    if not len(bad):
+        return
+    worst = int(bad[np.argmax(ratio[bad])])
+    why = (
+        "normalise_scale shrinks each root to main-root length 1 about its base, which stays where the data put it"
+        if normalised
+        else "the roots are small compared with their distance from (0, 0)"
+    )
+    warnings.warn(
+        f"batch(): {np.dtype(main.dtype).name} rounds the coordinates of {len(bad)} root(s) by up to "
+        f"{ratio[worst]:.2g} of a main-root segment (worst: {_root_label(roots[worst], worst)}, coordinates up "
+        f"to {np.abs(main[worst]).max():.3g}): {why}. Distances and means then carry that error. Use "
+        "dtype=float64 (jax.config.update('jax_enable_x64', True); on the command line --float64), or "
+        "move the roots near (0, 0) first.",
+        UserWarning,
+        stacklevel=3,
+    )
 
 
 def _has_radius(root: Root, depth: int) -> bool:

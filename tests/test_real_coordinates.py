@@ -6,6 +6,7 @@ are."""
 from __future__ import annotations
 
 import dataclasses
+import warnings
 import subprocess
 import sys
 from pathlib import Path
@@ -208,3 +209,17 @@ def test_plots_draw_far_roots_where_they_are():
         assert x0 <= main[..., 0].min() and main[..., 0].max() <= x1
         assert y0 <= main[..., 1].min() and main[..., 1].max() <= y1
     plt.close(fig)
+
+
+def test_batch_warns_when_float32_cannot_hold_a_normalised_root_far_from_the_origin():
+    # Normalised, a root shrinks to length 1 about its base, which stays at the data's place:
+    # 1e5 from (0, 0), float32 rounds every point by a large fraction of a segment.
+    root = rs.limit_laterals(synthetic_roots(1, seed=4)[0], 2)
+    far = moved(root, np.array([1e5, 1e5]), 0.0)
+    with pytest.warns(UserWarning, match=r"float32 rounds the coordinates of 1 root.*--float64"):
+        rs.batch([far], n_points=50, normalise_scale=True, dtype=np.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rs.batch([root], n_points=50, normalise_scale=True, dtype=np.float32)  # near the origin
+        rs.batch([far], n_points=50, normalise_scale=False, dtype=np.float32)  # at its size (mm)
+        rs.batch([far], n_points=50, normalise_scale=True, dtype=np.float64)
