@@ -819,7 +819,9 @@ def _warn_imprecise(roots, main, lats, mask, normalised: bool) -> None:
     eps = float(np.finfo(main.dtype).eps)
     seg = np.linalg.norm(np.diff(main.astype(np.float64), axis=1), axis=-1)  # [N, T-1]
     seg = np.where(seg > 0, seg, np.nan)
-    reach = np.maximum(np.abs(main).max(axis=(1, 2)), np.where(mask[..., None, None], np.abs(lats), 0).max(axis=(1, 2, 3)))
+    reach = np.maximum(
+        np.abs(main).max(axis=(1, 2)), np.where(mask[..., None, None], np.abs(lats), 0).max(axis=(1, 2, 3))
+    )
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = reach * eps / np.nanmedian(seg, axis=1)
     bad = np.flatnonzero(np.nan_to_num(ratio) > _PRECISION_WARN)

@@ -6,9 +6,9 @@ are."""
 from __future__ import annotations
 
 import dataclasses
-import warnings
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
