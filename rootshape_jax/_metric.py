@@ -58,6 +58,20 @@ class _ByTerm(eqx.Module):
     def items(self):
         return ((n, self.values[n]) for n in TERM_NAMES)
 
+    def __repr__(self) -> str:
+        # Concrete scalars print as numbers (``MetricTerms(main=0.0123, ...)``); batches and
+        # traced values keep equinox's summary (shapes and dtypes).
+        values = [self.values[n] for n in TERM_NAMES if n in self.values]
+        if all(isinstance(v, (float, int, np.ndarray, np.generic, jax.Array)) for v in values) and all(
+            np.ndim(v) == 0 and not isinstance(v, jax.core.Tracer) for v in values
+        ):
+            body = ", ".join(f"{n}={float(self.values[n]):.6g}" for n in TERM_NAMES if n in self.values)
+            deeper = getattr(self, "deeper", ())
+            if deeper:
+                body += ", deeper=" + repr(tuple(tuple(float(x) for x in level) for level in deeper))
+            return f"{type(self).__name__}({body})"
+        return eqx.tree_pformat(self)
+
 
 class Weights(_ByTerm):
     """Weights ``λ`` of the terms of the pre-shape metric, one per entry of `TERMS`:

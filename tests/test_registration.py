@@ -321,3 +321,17 @@ def test_long_batches_register_in_blocks_with_a_moving_bar(monkeypatch):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), atol=1e-10)
     with pytest.raises(ValueError, match="block_size"):
         rs.register(a, b, weights=W, block_size=0)
+
+
+def test_terms_and_weights_print_their_numbers():
+    # print(reg.terms) shows the three numbers (README), a batch its shapes.
+    _, _, a, b = _pair(16)
+    reg = rs.register(a, b, weights=W)
+    text = repr(reg.terms)
+    for name in ("main", "lateral", "position"):
+        assert f"{name}={float(reg.terms[name]):.6g}" in text
+    assert repr(rs.Weights(deeper=((0.5, 1.0),))) == (
+        "Weights(main=0.02, lateral=1, position=1, thickness=0, deeper=((0.5, 1.0),))"
+    )
+    batched = rs.register(rs.stack([a, a]), rs.stack([b, b]), weights=W).terms
+    assert "f64[2]" in repr(batched) or "f32[2]" in repr(batched)
