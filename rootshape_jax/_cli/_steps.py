@@ -658,7 +658,11 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
             f"learned weights {w}; status {res.status} after "
             f"{res.n_reregistrations} re-registrations and {res.steps} optimiser steps (regularisation "
             f"{res.regularisation:g}). Accuracy on these same roots would flatter the weights: "
-            + ("see the cross-validation below." if args.folds else "run with --folds K (K >= 2) to measure it honestly.")
+            + (
+                "see the cross-validation below."
+                if args.folds
+                else "run with --folds K (K >= 2) to measure it honestly."
+            )
         )
         if args.folds:
             say(args, f"Nested cross-validation ({args.folds} folds): learning on the training folds only...")
