@@ -169,6 +169,9 @@ def test_empty_folder_and_no_input(tmp_path):
     empty.mkdir()
     assert_one_line_error(run_cli("pca", empty, "--out", tmp_path / "o"), "empty", "no RSML files")
     assert_one_line_error(run_cli("distances", "--out", tmp_path / "o"), "no input")
+    # A folder of folders: they are named, with what to do.
+    (empty / "plate_a").mkdir()
+    assert_one_line_error(run_cli("traits", empty, "--out", tmp_path / "o"), "subfolders (plate_a)", "name them")
 
 
 def test_too_few_roots(rsml_files, tmp_path):

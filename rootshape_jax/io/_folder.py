@@ -153,8 +153,15 @@ def expand(paths: Sequence[str | os.PathLike]) -> list[tuple[Path, bool]]:
                     stacklevel=2,
                 )
             if not found:
+                subs = sorted(q.name for q in p.iterdir() if q.is_dir() and not q.name.startswith("."))
+                hint = (
+                    f" It has subfolders ({', '.join(subs[:4])}{', ...' if len(subs) > 4 else ''}), which are not "
+                    "searched: name them instead (several folders may be given)."
+                    if subs
+                    else ""
+                )
                 raise InputError(
-                    f"{text}: the folder contains no RSML files (.rsml) or images ({', '.join(IMAGE_SUFFIXES)})."
+                    f"{text}: the folder contains no RSML files (.rsml) or images ({', '.join(IMAGE_SUFFIXES)})." + hint
                 )
             files.extend((f, True) for f in found)
         else:
