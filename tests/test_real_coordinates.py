@@ -223,3 +223,31 @@ def test_batch_warns_when_float32_cannot_hold_a_normalised_root_far_from_the_ori
         rs.batch([root], n_points=50, normalise_scale=True, dtype=np.float32)  # near the origin
         rs.batch([far], n_points=50, normalise_scale=False, dtype=np.float32)  # at its size (mm)
         rs.batch([far], n_points=50, normalise_scale=True, dtype=np.float64)
+
+
+def test_geodesic_strip_of_roots_far_apart_centres_each_panel_on_its_step():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from rootshape_jax import plot as rplot
+
+    a, b = far_roots(2)
+    size = max(a.main_length, b.main_length)
+    b = moved(b, np.array([10 * size, 0.0]), 0.0)  # another plant, ten root lengths away
+    tree = rs.batch([a, b], n_points=T)
+    main = np.asarray(tree.main)
+    fig, axes = rplot.plot_geodesic(tree, title=None)  # auto: the bases travel far
+    widths = []
+    for ax, m in zip(np.ravel(axes), main):
+        (x0, x1), (y0, y1) = ax.get_xlim(), sorted(ax.get_ylim())
+        assert x0 <= m[:, 0].min() and m[:, 0].max() <= x1 and y0 <= m[:, 1].min() and m[:, 1].max() <= y1
+        widths.append(x1 - x0)
+    assert widths[0] == pytest.approx(widths[1]) and widths[0] < 3 * size  # same scale, each root large
+    plt.close(fig)
+    fig, axes = rplot.plot_geodesic(tree, title=None, align_bases=False)  # one region for all
+    for ax in np.ravel(axes):
+        x0, x1 = ax.get_xlim()
+        assert x0 <= main[..., 0].min() and main[..., 0].max() <= x1
+    plt.close(fig)

@@ -205,6 +205,7 @@ def plot_geodesic(
     unit: str | None = None,
     panel_height: float = 2.6,
     title: str | None = "Geodesic (optimal deformation); colour = corresponding lateral",
+    align_bases: bool | None = None,
 ):
     """A strip of the steps of a geodesic, e.g. the output of `rootshape_jax.geodesic`.
 
@@ -221,7 +222,11 @@ def plot_geodesic(
     - `unit`: length unit of the scale bar (a `RootTree` does not carry one).
     - `panel_height`: inches per panel. `title`: figure title (None for none).
 
-    Every panel shows the same region at the same scale, so only the deformation moves.
+    - `align_bases`: False: every panel shows the same region at the same scale, so only the
+      deformation moves. True: every panel has the same scale and size, centred on its step's
+      base (the path's translation is left out of the picture). None (default): True when the
+      bases travel further than the roots are large (roots at two places of a plate), where
+      one shared region would draw each root as a speck; else False.
 
     **Returns** ``(fig, axes)`` with `axes` a list, one per step.
     """
@@ -235,6 +240,11 @@ def plot_geodesic(
     if taus.shape[0] != n:
         raise ValueError(f"plot_geodesic: {taus.shape[0]} taus for {n} steps; give one per step.")
     frame = absolute_frame(drawings, projection, show_nulls)
+    relative = base_frame(drawings, projection, show_nulls)
+    if align_bases is None:
+        align_bases = bool(np.max(frame.span) > 2.0 * np.max(relative.span))
+    if align_bases:
+        frame = relative
     nrows, ncols = grid_shape(n, ncols if ncols is not None else n, max_cols=n)
     if axes is None:
         w, h = panel_size(frame, panel_height)
@@ -253,7 +263,7 @@ def plot_geodesic(
         frame,
         projection=projection,
         invert_y=invert_y,
-        align_bases=False,
+        align_bases=align_bases,
         style=style,
         unit=unit if unit is not None else common_unit(drawings),
     )
