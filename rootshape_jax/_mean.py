@@ -113,8 +113,9 @@ class KarcherMean(eqx.Module):
     - `energy_trace`: F at the start and after each step (for the fixed point: the joint
       energy, an upper bound of F at that iterate), ending with the final `energy`.
     - `steps`: solver steps taken. `result`: the optimistix status (`optx.RESULTS`).
-    - `init_index`: index of the sample the solver started from (the medoid), or None when
-      it started from a tree given as `init`.
+    - `init_index`: index of the sample the solver started from (the medoid, or with
+      `n_starts` the central sample whose warm-up reached the lowest F), or None when it
+      started from a tree given as `init`.
     - `lateral_lengths`: ``[K]`` length of each lateral of the fitted mean (before dropping).
     - `dropped`: ``[K]`` True where a fitted lateral was shorter than the threshold and dropped.
     - `weights`: the metric weights used (for `tangent_pca`); `registration`: the
@@ -596,7 +597,7 @@ _WARMUP_RTOL = 1e-2
 _exact_update_jit = eqx.filter_jit(_exact_update)
 
 
-def _warm_up(mu0, blocks, mu_like, weights, opts, *, atol, n_steps, bar):
+def _warm_up(mu0, blocks, mu_like, weights, opts, *, atol, n_steps, bar, label="warm-up"):
     """Karcher steps with fresh full registrations until F falls by less than
     ``_WARMUP_RTOL`` (relative) in a step, or stops falling (that step is undone). Returns the
     mean, its full registrations and the F trace."""
@@ -611,7 +612,7 @@ def _warm_up(mu0, blocks, mu_like, weights, opts, *, atol, n_steps, bar):
             break
         mu, registered, energies, O = mu_new, reg_new, e_new, O_new
         trace.append(F_new)
-        bar.set_postfix_str(f"F = {F_new:.6g} (warm-up)")
+        bar.set_postfix_str(f"F = {F_new:.6g} ({label})")
         bar.update(1)
         if F - F_new <= _WARMUP_RTOL * abs(F_new):
             break
@@ -627,7 +628,9 @@ def _fixed_point(
     with tqdm(desc="mean (fixed point)", unit="step", disable=not progress) as bar:
         best = None
         for i, mu0 in enumerate(mu0s):
-            cand = _warm_up(mu0, blocks, mu_like, weights, opts, atol=atol, n_steps=warm_up_steps, bar=bar)
+            # The bar counts every start's warm-up steps; `steps` only the chosen start's.
+            label = f"warm-up of start {i + 1}/{len(mu0s)}" if len(mu0s) > 1 else "warm-up"
+            cand = _warm_up(mu0, blocks, mu_like, weights, opts, atol=atol, n_steps=warm_up_steps, bar=bar, label=label)
             if best is None or cand[3][-1] < best[1][3][-1]:
                 best = (i, cand)
         chosen, (mu, registered, O, warm) = best

@@ -178,8 +178,10 @@ def run_mean(ctx: Context, out: Output, args) -> None:
         n_drop = int(np.sum(np.asarray(km.dropped)))
         sec.notes.append(
             f"{int(km.steps)} steps, final energy {fmt(trace[-1])} (start {fmt(trace[0])}); "
-            f"started from root {pop.names[km.init_index]!r} (the medoid); {n_drop} near-empty "
-            f"lateral slots dropped; mean has {int(np.sum(np.asarray(km.mean.mask)))} laterals."
+            f"started from root {pop.names[km.init_index]!r} (a central root: the medoid, or of several "
+            f"central starts the one whose warm-up reached the lowest energy); {n_drop} near-empty "
+            f"slots dropped; mean has {int(np.sum(np.asarray(km.mean.mask)))} "
+            + ("axes." if pop.tree.virtual_main else "laterals.")
         )
         if not bool(np.asarray(km.result == optx.RESULTS.successful)):
             sec.notes.append(f"the solver stopped at the step limit ({args.max_steps}) before converging.")
