@@ -817,7 +817,12 @@ def _warn_imprecise(roots, main, lats, mask, normalised: bool) -> None:
     `normalise_scale` (the base stays where the data put it, the root shrinks to length 1).
     The SRVFs are differences of neighbouring points, so they inherit that error."""
     eps = float(np.finfo(main.dtype).eps)
+    # A segment of the main root, or of the axes for plants' systems (a zero-length main root).
     seg = np.linalg.norm(np.diff(main.astype(np.float64), axis=1), axis=-1)  # [N, T-1]
+    lat_seg = np.linalg.norm(np.diff(lats.astype(np.float64), axis=2), axis=-1)  # [N, K, T-1]
+    seg = np.where(np.any(seg > 0, axis=1, keepdims=True), seg, lat_seg.max(axis=1))
+    if not np.all(np.any(seg > 0, axis=1)):
+        return  # a root with no length at all: nothing to measure against
     seg = np.where(seg > 0, seg, np.nan)
     reach = np.maximum(
         np.abs(main).max(axis=(1, 2)), np.where(mask[..., None, None], np.abs(lats), 0).max(axis=(1, 2, 3))
