@@ -61,9 +61,9 @@ class _ByTerm(eqx.Module):
     def __repr__(self) -> str:
         # Concrete scalars print as numbers (``MetricTerms(main=0.0123, ...)``); batches and
         # traced values keep equinox's summary (shapes and dtypes).
-        values = [self.values[n] for n in TERM_NAMES if n in self.values]
-        if all(isinstance(v, (float, int, np.ndarray, np.generic, jax.Array)) for v in values) and all(
-            np.ndim(v) == 0 and not isinstance(v, jax.core.Tracer) for v in values
+        leaves = jax.tree.leaves(self)  # the values and, for Weights, the deeper levels' weights
+        if all(isinstance(v, (float, int, np.ndarray, np.generic, jax.Array)) for v in leaves) and all(
+            np.ndim(v) == 0 and not isinstance(v, jax.core.Tracer) for v in leaves
         ):
             body = ", ".join(f"{n}={float(self.values[n]):.6g}" for n in TERM_NAMES if n in self.values)
             deeper = getattr(self, "deeper", ())

@@ -784,6 +784,13 @@ def _count_beyond(node: Root, ell: int, depth: int) -> int:
     return here + sum(_count_beyond(c, ell + 1, depth) for c in node.children)
 
 
+def _levels_of(root: Root) -> int:
+    """Levels of `root`'s hierarchy: 1 for a bare main root, 2 with laterals, and so on."""
+    if not root.n_laterals:
+        return 1
+    return 1 + max([1] + [_levels_of(c) for c in root.children])
+
+
 def _warn_truncated(roots: Sequence[Root], depth: int) -> None:
     left_out = [(i, _count_beyond(r, 0, depth)) for i, r in enumerate(roots)]
     left_out = [(i, n) for i, n in left_out if n]
@@ -791,17 +798,15 @@ def _warn_truncated(roots: Sequence[Root], depth: int) -> None:
         total = sum(n for _, n in left_out)
         names = ", ".join(_root_label(roots[i], i) for i, _ in left_out[:5])
         more = f" and {len(left_out) - 5} more" if len(left_out) > 5 else ""
+        need = max(_levels_of(roots[i]) for i, _ in left_out)
         if _is_system(roots[0]):
             # Level 1 of a plant's system is its axes: level 2 holds the axes' own laterals.
             what = f"{total} laterals of order {depth - 1} or higher (level 1 of a plant's system is its axes)"
-            fix = f"Pass depth={depth + 1} to keep them" + (
-                " (a plant's system needs depth=3 for its axes' laterals)." if depth == 2 else "."
-            )
         else:
             what = f"{total} laterals of order {depth} or higher (laterals of laterals ...)"
-            fix = "Pass a larger depth to keep them."
         warnings.warn(
-            f"batch(depth={depth}): {what} were left out ({len(left_out)} roots: {names}{more}). {fix}",
+            f"batch(depth={depth}): {what} were left out ({len(left_out)} roots: {names}{more}). Pass "
+            f"depth={need} to keep them all (--depth {need} on the command line).",
             UserWarning,
             stacklevel=3,
         )
@@ -815,21 +820,25 @@ def _warn_imprecise(roots, main, lats, mask, normalised: bool) -> None:
     """Warn when the dtype's rounding of the stored coordinates is a sizeable fraction of a
     segment: coordinates far from (0, 0) compared with the root's size, as after
     `normalise_scale` (the base stays where the data put it, the root shrinks to length 1).
-    The SRVFs are differences of neighbouring points, so they inherit that error."""
+    The SRVFs are differences of neighbouring points, so they inherit that error. The segment
+    is the main root's, or for plants' systems (zero-length main root) the longest axis's;
+    a root whose branches all collapsed to a point in the rounding counts as lost entirely."""
     eps = float(np.finfo(main.dtype).eps)
-    # A segment of the main root, or of the axes for plants' systems (a zero-length main root).
     seg = np.linalg.norm(np.diff(main.astype(np.float64), axis=1), axis=-1)  # [N, T-1]
     lat_seg = np.linalg.norm(np.diff(lats.astype(np.float64), axis=2), axis=-1)  # [N, K, T-1]
-    seg = np.where(np.any(seg > 0, axis=1, keepdims=True), seg, lat_seg.max(axis=1))
-    if not np.all(np.any(seg > 0, axis=1)):
-        return  # a root with no length at all: nothing to measure against
+    axis_seg = lat_seg.max(axis=1, initial=0.0)
+    seg = np.where(np.any(seg > 0, axis=1, keepdims=True), seg, axis_seg)
     seg = np.where(seg > 0, seg, np.nan)
-    reach = np.maximum(
-        np.abs(main).max(axis=(1, 2)), np.where(mask[..., None, None], np.abs(lats), 0).max(axis=(1, 2, 3))
-    )
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = reach * eps / np.nanmedian(seg, axis=1)
-    bad = np.flatnonzero(np.nan_to_num(ratio) > _PRECISION_WARN)
+    real_lats = np.where(mask[..., None, None], np.abs(lats), 0)
+    reach = np.maximum(np.abs(main).max(axis=(1, 2)), real_lats.max(axis=(1, 2, 3), initial=0.0))
+    had_length = np.array([normalising_length(r, main.shape[1]) > 0 for r in roots])
+    ratio = np.full(len(roots), np.inf)
+    for i in range(len(roots)):
+        if np.any(np.isfinite(seg[i])):
+            ratio[i] = reach[i] * eps / np.nanmedian(seg[i])
+        elif not had_length[i]:
+            ratio[i] = 0.0  # no length in the input either: nothing was lost
+    bad = np.flatnonzero(ratio > _PRECISION_WARN)
     if not len(bad):
         return
     worst = int(bad[np.argmax(ratio[bad])])
@@ -838,9 +847,10 @@ def _warn_imprecise(roots, main, lats, mask, normalised: bool) -> None:
         if normalised
         else "the roots are small compared with their distance from (0, 0)"
     )
+    amount = "all" if np.isinf(ratio[worst]) else f"{ratio[worst]:.2g}"
     warnings.warn(
         f"batch(): {np.dtype(main.dtype).name} rounds the coordinates of {len(bad)} root(s) by up to "
-        f"{ratio[worst]:.2g} of a main-root segment (worst: {_root_label(roots[worst], worst)}, coordinates up "
+        f"{amount} of a main-root segment (worst: {_root_label(roots[worst], worst)}, coordinates up "
         f"to {np.abs(main[worst]).max():.3g}): {why}. Distances and means then carry that error. Use "
         "dtype=float64 (jax.config.update('jax_enable_x64', True); on the command line --float64), or "
         "move the roots near (0, 0) first.",

@@ -411,9 +411,34 @@ def test_plants_at_the_default_depth_warn_that_their_laterals_are_left_out():
     plants = [plant_system([r], name=f"p{i}") for i, r in enumerate(roots)]
     n_laterals = sum(r.n_laterals for r in roots)
     assert n_laterals > 0
-    with pytest.warns(UserWarning, match=rf"{n_laterals} laterals of order 1 or higher .*Pass depth=3"):
+    said = (
+        rf"{n_laterals} laterals of order 1 or higher .*Pass depth=3 to keep them all \(--depth 3 on the command line\)"
+    )
+    with pytest.warns(UserWarning, match=said):
         t = rs.batch(plants, n_points=T)
     assert t.depth == 2 and int(t.mask.sum()) == len(plants)  # the axes only
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         rs.batch(plants, n_points=T, depth=3)
+
+
+@pytest.mark.slow  # a CLI run that compiles a registration
+def test_cli_geodesic_between_plants_runs_scale_normalised(tmp_path):
+    import subprocess
+    import sys
+
+    roots = _taproots()
+    write_rsml([plant_system([roots[0]], name="A"), plant_system([roots[1]], name="B")], tmp_path / "plants.rsml")
+    f = str(tmp_path / "plants.rsml")
+    args = [f, f, "--per", "plant", "--depth", "3", "--root-b", "1", "--points", str(T), "--steps", "3"]
+    proc = subprocess.run(
+        [sys.executable, "-m", "rootshape_jax", "geodesic", *args, "--quiet", "--out", str(tmp_path / "o")],
+        capture_output=True,
+        text=True,
+        timeout=1800,
+    )
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    assert "left out" not in proc.stderr  # --depth 3 keeps the axes' laterals
+    (first,) = read_rsml(tmp_path / "o" / "geodesic_step_00.rsml", by="plant")
+    assert first.n_laterals == 1  # one axis, scaled back to its size
+    assert first.laterals[0].shape[0] > 2

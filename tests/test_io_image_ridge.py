@@ -389,3 +389,6 @@ def test_cli_extract_writes_rsml_overlay_and_names_a_bad_image(tmp_path):
     assert (out / "good.rsml").stat().st_mtime_ns == before
     proc = subprocess.run(cmd + ["--overwrite"], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
+    # Hand tracings in the --out folder would be written over before being read: refused.
+    proc = subprocess.run(cmd + ["--overwrite", "--tracing", str(out)], capture_output=True, text=True, timeout=600)
+    assert proc.returncode != 0 and "hand tracings are in --out" in proc.stderr and "Traceback" not in proc.stderr

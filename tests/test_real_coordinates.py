@@ -251,3 +251,22 @@ def test_geodesic_strip_of_roots_far_apart_centres_each_panel_on_its_step():
         x0, x1 = ax.get_xlim()
         assert x0 <= main[..., 0].min() and main[..., 0].max() <= x1
     plt.close(fig)
+
+
+def test_precision_check_on_plants_collapsed_roots_and_no_lateral_slots():
+    from rootshape_jax.io import plant_system
+
+    root = rs.limit_laterals(synthetic_roots(1, seed=5)[0], 2)
+    far = moved(root, np.array([1e5, 1e5]), 0.0)
+    # A plant's system (zero-length main root) is measured against its axis.
+    with pytest.warns(UserWarning, match="float32 rounds the coordinates of 1 root"):
+        rs.batch([plant_system([far])], n_points=50, normalise_scale=True, dtype=np.float32, depth=3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rs.batch([plant_system([root])], n_points=50, normalise_scale=True, dtype=np.float32, depth=3)
+        # No lateral slots at all: nothing to reduce over, no crash.
+        bare = dataclasses.replace(root, laterals=(), attach=np.zeros(0), children=())
+        rs.batch([bare], n_points=50, max_laterals=0, dtype=np.float32)
+    # So far away that float32 collapses the normalised root to a point: all of it is lost.
+    with pytest.warns(UserWarning, match="by up to all of a main-root segment"):
+        rs.batch([moved(root, np.array([1e9, 1e9]), 0.0)], n_points=50, normalise_scale=True, dtype=np.float32)

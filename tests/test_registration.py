@@ -335,3 +335,10 @@ def test_terms_and_weights_print_their_numbers():
     )
     batched = rs.register(rs.stack([a, a]), rs.stack([b, b]), weights=W).terms
     assert "f64[2]" in repr(batched) or "f32[2]" in repr(batched)
+
+
+def test_weights_with_traced_deeper_levels_print_without_error():
+    w = rs.Weights(deeper=((0.5, 1.0),))
+    seen = []
+    jax.jit(lambda lv: seen.append(repr(eqx.tree_at(lambda t: t.deeper, w, ((lv, lv),)))) or lv)(1.0)
+    assert seen and "Weights(" in seen[0]

@@ -210,3 +210,32 @@ def test_cli_refuses_to_compare_sizes_across_units(tmp_path, capsys):
     roots = io.read_folder(d)
     _check_units(roots, normalised=True)
     assert "different units" in capsys.readouterr().err
+
+
+def test_spellings_of_one_unit_are_one_unit(capsys):
+    from rootshape_jax._cli._inputs import _check_units
+
+    roots = in_unit(synthetic_roots(1, seed=1), "mm") + in_unit(synthetic_roots(1, seed=2), "millimetre")
+    _check_units(roots, normalised=False)  # the same unit: no error, no warning
+    assert "different units" not in capsys.readouterr().err
+
+
+def test_many_laterals_hint(capsys):
+    from types import SimpleNamespace
+
+    from rootshape_jax._cli._inputs import MANY_LATERALS, _hint_many_laterals
+
+    root = synthetic_roots(1, seed=1)[0]
+    big = dataclasses.replace(
+        root,
+        laterals=tuple(root.laterals[0] for _ in range(MANY_LATERALS + 1)),
+        attach=np.full(MANY_LATERALS + 1, root.attach[0]),
+        children=(),
+        lateral_radii=None,
+        name="big",
+    )
+    _hint_many_laterals([root, big], SimpleNamespace(laterals=None))
+    assert f"big has {MANY_LATERALS + 1} laterals" in capsys.readouterr().err
+    _hint_many_laterals([root, big], SimpleNamespace(laterals=20))  # --laterals given: quiet
+    _hint_many_laterals([root], SimpleNamespace(laterals=None))
+    assert capsys.readouterr().err == ""

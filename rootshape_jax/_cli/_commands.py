@@ -120,8 +120,19 @@ def cmd_extract(args) -> None:
     from rootshape_jax.io._extract_cli import expand_images
 
     out_dir = Path(args.out)
+    stems = {p.stem for p in expand_images(args.images)}
+    for t in map(Path, args.tracing or ()):
+        # A tracing where extract writes its own <image name>.rsml would be replaced before it is read.
+        if t.is_dir():
+            clash = t.resolve() == out_dir.resolve() and any((t / f"{s}.rsml").exists() for s in stems)
+        else:
+            clash = t.parent.resolve() == out_dir.resolve() and t.stem in stems
+        if clash:
+            raise CLIError(
+                f"--tracing {t}: the hand tracings are in --out {args.out}, where extract writes "
+                "<image name>.rsml over them; give another --out."
+            )
     if out_dir.is_dir() and not args.overwrite:
-        stems = {p.stem for p in expand_images(args.images)}
         earlier = sorted(
             p.name
             for p in out_dir.iterdir()

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 
 import rootshape_jax as rs
+from rootshape_jax._tree import normalising_length
 from rootshape_jax.io import NORMALISED_UNIT, unit_label
 
 from ._common import PAPER_TRAITS, CLIError, fmt, make_weights, say, ticking, warn
@@ -479,10 +480,9 @@ def run_geodesic(a_root, b_root, out: Output, args) -> None:
         reg = rs.register(a, b, weights=make_weights(args))
         sizes = None
         if pop.normalised:
-            # The lengths batch() divided out (of the resampled main roots), so the path is
+            # The lengths batch() divided out (a plant's: its longest axis), so the path is
             # scaled back exactly: it starts at a and ends at b, in the input's units.
-            raw = rs.batch(pair, n_points=args.points)
-            sizes = tuple(float(x) for x in np.asarray(rs.curve_length(raw.main)))
+            sizes = tuple(normalising_length(r, args.points) for r in pair)
         # in_place: the registration's rotation is undone along the path, so it ends at b as given.
         path_out = rs.geodesic(
             a, b, n_steps=args.steps, weights=make_weights(args), registration=reg, in_place=True, sizes=sizes
