@@ -29,6 +29,7 @@ from ._curves import interpolate_at_fraction, srvf, srvf_to_curve
 from ._errors import CapacityError, InvalidRootError
 from ._root import Root, check_range, coordinate_limit, polyline_length
 from ._thickness import extended_srvf, integrate_branch, wants_thickness
+from ._traits import deepest_order
 
 
 def _is_array(x) -> bool:
@@ -680,7 +681,7 @@ def batch(
         for r in roots_list
     ]
     main, lats, attach, mask, main_r, lat_r = (np.stack(a) for a in list(zip(*arrays))[:6])
-    _warn_imprecise(roots_list, main, lats, mask, normalise_scale)
+    _warn_imprecise(roots_list, main, lats, normalise_scale)
     has_radius = any(_has_radius(r, depth) for r in roots_list)
     radii = {}
     if has_radius:
@@ -784,13 +785,6 @@ def _count_beyond(node: Root, ell: int, depth: int) -> int:
     return here + sum(_count_beyond(c, ell + 1, depth) for c in node.children)
 
 
-def _levels_of(root: Root) -> int:
-    """Levels of `root`'s hierarchy: 1 for a bare main root, 2 with laterals, and so on."""
-    if not root.n_laterals:
-        return 1
-    return 1 + max([1] + [_levels_of(c) for c in root.children])
-
-
 def _warn_truncated(roots: Sequence[Root], depth: int) -> None:
     left_out = [(i, _count_beyond(r, 0, depth)) for i, r in enumerate(roots)]
     left_out = [(i, n) for i, n in left_out if n]
@@ -798,7 +792,7 @@ def _warn_truncated(roots: Sequence[Root], depth: int) -> None:
         total = sum(n for _, n in left_out)
         names = ", ".join(_root_label(roots[i], i) for i, _ in left_out[:5])
         more = f" and {len(left_out) - 5} more" if len(left_out) > 5 else ""
-        need = max(_levels_of(roots[i]) for i, _ in left_out)
+        need = 1 + max(deepest_order(roots[i]) for i, _ in left_out)
         if _is_system(roots[0]):
             # Level 1 of a plant's system is its axes: level 2 holds the axes' own laterals.
             what = f"{total} laterals of order {depth - 1} or higher (level 1 of a plant's system is its axes)"
@@ -816,7 +810,7 @@ def _warn_truncated(roots: Sequence[Root], depth: int) -> None:
 _PRECISION_WARN = 0.01
 
 
-def _warn_imprecise(roots, main, lats, mask, normalised: bool) -> None:
+def _warn_imprecise(roots, main, lats, normalised: bool) -> None:
     """Warn when the dtype's rounding of the stored coordinates is a sizeable fraction of a
     segment: coordinates far from (0, 0) compared with the root's size, as after
     `normalise_scale` (the base stays where the data put it, the root shrinks to length 1).
@@ -825,19 +819,22 @@ def _warn_imprecise(roots, main, lats, mask, normalised: bool) -> None:
     a root whose branches all collapsed to a point in the rounding counts as lost entirely."""
     eps = float(np.finfo(main.dtype).eps)
     seg = np.linalg.norm(np.diff(main.astype(np.float64), axis=1), axis=-1)  # [N, T-1]
-    lat_seg = np.linalg.norm(np.diff(lats.astype(np.float64), axis=2), axis=-1)  # [N, K, T-1]
-    axis_seg = lat_seg.max(axis=1, initial=0.0)
-    seg = np.where(np.any(seg > 0, axis=1, keepdims=True), seg, axis_seg)
+    flat = ~np.any(seg > 0, axis=1)  # plants' systems, and roots the rounding collapsed
+    if np.any(flat):
+        axes = np.linalg.norm(np.diff(lats[flat].astype(np.float64), axis=2), axis=-1)  # [n, K, T-1]
+        seg[flat] = axes.max(axis=1, initial=0.0)
     seg = np.where(seg > 0, seg, np.nan)
-    real_lats = np.where(mask[..., None, None], np.abs(lats), 0)
-    reach = np.maximum(np.abs(main).max(axis=(1, 2)), real_lats.max(axis=(1, 2, 3), initial=0.0))
-    had_length = np.array([normalising_length(r, main.shape[1]) > 0 for r in roots])
-    ratio = np.full(len(roots), np.inf)
+    # Reductions, no full-size temporaries (a cluster batch holds thousands of roots). Padding
+    # slots repeat the main root's first point, which the main root's reach already covers.
+    reach = np.max([np.abs(main.max(axis=(1, 2))), np.abs(main.min(axis=(1, 2)))], axis=0)
+    if lats.shape[1]:
+        reach = np.max([reach, np.abs(lats.max(axis=(1, 2, 3))), np.abs(lats.min(axis=(1, 2, 3)))], axis=0)
+    ratio = np.zeros(len(roots))
     for i in range(len(roots)):
         if np.any(np.isfinite(seg[i])):
             ratio[i] = reach[i] * eps / np.nanmedian(seg[i])
-        elif not had_length[i]:
-            ratio[i] = 0.0  # no length in the input either: nothing was lost
+        elif normalising_length(roots[i], main.shape[1]) > 0:
+            ratio[i] = np.inf  # a root with length came out as a point: all of it is lost
     bad = np.flatnonzero(ratio > _PRECISION_WARN)
     if not len(bad):
         return

@@ -9,7 +9,7 @@ import numpy as np
 
 from ._common import PAPER_TRAITS, CLIError, say, warn
 from ._inputs import Reading, covariate_columns, load_roots, pick, prepare, read_requested, subsample
-from ._report import LOG_NAME, Output, settings, write_index
+from ._report import LOG_NAME, Output, refuse_earlier_results, settings, write_index
 from ._steps import (
     Context,
     group_labels,
@@ -133,19 +133,16 @@ def cmd_extract(args) -> None:
                 "<image name>.rsml over them; give another --out."
             )
     if out_dir.is_dir() and not args.overwrite:
-        earlier = sorted(
-            p.name
-            for p in out_dir.iterdir()
-            if p.name == "summary.json"
-            or (p.suffix == ".rsml" and p.stem in stems)
-            or (p.name.endswith("_overlay.png") and p.stem[: -len("_overlay")] in stems)
+        refuse_earlier_results(
+            args.out,
+            [
+                p.name
+                for p in out_dir.iterdir()
+                if p.name == "summary.json"
+                or (p.suffix == ".rsml" and p.stem in stems)
+                or (p.name.endswith("_overlay.png") and p.stem[: -len("_overlay")] in stems)
+            ],
         )
-        if earlier:
-            shown = ", ".join(earlier[:3]) + (f" and {len(earlier) - 3} more" if len(earlier) > 3 else "")
-            raise CLIError(
-                f"--out {args.out}: holds results of an earlier run ({shown}); give --overwrite to "
-                "replace them, or another --out."
-            )
     options = {} if args.root_width is None else {"root_width": args.root_width}
     with warnings.catch_warnings():
         # A skipped image is named in its row and summarised below: one line each, no repeat.

@@ -76,6 +76,17 @@ def is_output_name(name: str) -> bool:
     return any(fnmatch.fnmatchcase(name, pattern) for pattern in OUTPUT_NAMES)
 
 
+def refuse_earlier_results(folder, earlier: list[str]) -> None:
+    """`CLIError` when the --out `folder` holds files of an earlier run (`earlier`, their names)."""
+    if earlier:
+        earlier = sorted(earlier)
+        shown = ", ".join(earlier[:6]) + (f" and {len(earlier) - 6} more" if len(earlier) > 6 else "")
+        raise CLIError(
+            f"--out {folder}: holds results of an earlier run ({shown}); give --overwrite "
+            "to replace them, or choose another folder."
+        )
+
+
 class Output:
     """The output folder: writes files, remembers them with captions, times each step.
 
@@ -91,13 +102,7 @@ class Output:
         if self.folder.exists() and not self.folder.is_dir():
             raise CLIError(f"--out {folder}: exists and is not a folder.")
         if self.folder.is_dir() and not self.overwrite:
-            earlier = sorted(p.name for p in self.folder.iterdir() if is_output_name(p.name))
-            if earlier:
-                shown = ", ".join(earlier[:6]) + (f" and {len(earlier) - 6} more" if len(earlier) > 6 else "")
-                raise CLIError(
-                    f"--out {folder}: holds results of an earlier run ({shown}); give --overwrite "
-                    "to replace them, or choose another folder."
-                )
+            refuse_earlier_results(folder, [p.name for p in self.folder.iterdir() if is_output_name(p.name)])
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
         except OSError as e:

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 import rootshape_jax as rs
+from rootshape_jax._traits import deepest_order
 from rootshape_jax.io import unit_label
 
 from ._common import fmt, make_weights, say
@@ -22,17 +23,6 @@ DAYS = (14.0, 20.0)
 # Longest first-order laterals kept per plant (their own laterals come along): keeps the
 # section near a minute on 2 busy cores; --laterals overrides it.
 SYSTEM_LATERALS = 10
-
-
-def deepest(root: rs.Root) -> int:
-    """Highest lateral order in `root` (1: first-order laterals only, 0: none)."""
-    best, stack = 0, [(root, 1)]
-    while stack:
-        node, order = stack.pop()
-        if node.n_laterals:
-            best = max(best, order)
-        stack.extend((c, order + 1) for c in node.children)
-    return best
 
 
 def pea_population(n: int, args) -> list[rs.Root]:
@@ -67,9 +57,9 @@ def real_multi_order_files(folder: Path) -> tuple[list[tuple[Path, rs.Root]], li
                 continue
         if not roots:
             continue
-        best = max(roots, key=deepest)
-        seen.append((path, deepest(best)))
-        if deepest(best) >= 2:
+        best = max(roots, key=deepest_order)
+        seen.append((path, deepest_order(best)))
+        if deepest_order(best) >= 2:
             found.append((path, best))
     return found, seen
 
@@ -173,7 +163,7 @@ def _pea_section(out: Output, sec, plants: list, args, plot_geodesic) -> None:
     ratio = D3[iu] / np.maximum(D2[iu], np.finfo(float).tiny)
     sec.notes.append(
         f"{len(plants)} CPlantBox pea plants ({DAYS[0]:g}–{DAYS[1]:g} days, the {args.laterals or SYSTEM_LATERALS} "
-        f"longest laterals of each with their own laterals; {int(sum(deepest(p) >= 2 for p in plants))} have "
+        f"longest laterals of each with their own laterals; {int(sum(deepest_order(p) >= 2 for p in plants))} have "
         f"second-order laterals), T = {T}, capacities {tree3.capacities} at depth 3. Distance matrix in "
         f"{t3:.1f} s at depth 3 and {t2:.1f} s at depth 2 (same run, compilation included: "
         f"{t3 / t2:.2f}×); depth 3 / depth 2 distance ratio {fmt(ratio.min(), 3)}–{fmt(ratio.max(), 3)} "
@@ -225,5 +215,5 @@ def _real_files_note(out: Output, sec, args) -> None:
     out.figure(sec, fig, "systems_real.png", f"{path.name}: a real root system with second-order laterals")
     sec.notes.append(
         f"real files: {len(found)} of {len(seen)} RSML files in {folder} hold second-order laterals; "
-        f"drawn: {path.name} (deepest order {deepest(root)})."
+        f"drawn: {path.name} (deepest order {deepest_order(root)})."
     )

@@ -41,10 +41,14 @@ class ReadReport:
 def root_files(folder: str | os.PathLike) -> list[Path]:
     """The RSML files and images directly inside `folder`, sorted by name; not the overlays
     that `rootshape extract` writes beside its RSML files (`extract_overlays`)."""
-    folder = Path(folder)
+    return _scan(Path(folder))[0]
+
+
+def _scan(folder: Path) -> tuple[list[Path], list[Path]]:
+    """(`root_files` of `folder`, the `extract_overlays` left out of them), from one listing."""
     found = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in RSML_SUFFIXES + IMAGE_SUFFIXES]
-    overlays = set(extract_overlays(found))
-    return sorted(p for p in found if p not in overlays)
+    overlays = extract_overlays(found)
+    return sorted(set(found) - set(overlays)), overlays
 
 
 def extract_overlays(files: Sequence[Path]) -> list[Path]:
@@ -143,11 +147,10 @@ def expand(paths: Sequence[str | os.PathLike]) -> list[tuple[Path, bool]]:
         if not p.exists():
             raise InputError(f"{text}: no such file or folder.")
         if p.is_dir():
-            found = root_files(p)
-            n_overlays = len(extract_overlays([f for f in p.iterdir() if f.is_file()]))
-            if n_overlays:
+            found, overlays = _scan(p)
+            if overlays:
                 warnings.warn(
-                    f"{text}: left out {n_overlays} overlay image(s) that `rootshape extract` wrote "
+                    f"{text}: left out {len(overlays)} overlay image(s) that `rootshape extract` wrote "
                     "(<name>_overlay.png beside <name>.rsml): the roots are read from the RSML files.",
                     UserWarning,
                     stacklevel=2,
