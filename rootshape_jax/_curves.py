@@ -4,11 +4,14 @@ Conventions (docs/design.md §3): a curve is sampled at ``T`` points of the grid
 ``t = linspace(0, 1, T)``; SRVF ``q = b' / sqrt(|b'|)``; integrals over ``t`` use the trapezoid
 rule on that grid. The SRVF is discretised so that ``||q||² = ∫|q|²`` equals the polyline length
 *exactly*: the speed at a grid node is the mean of the two adjacent segment speeds (one at the
-ends) and the direction is the bisector of the adjacent unit tangents. Zero-speed segments give
+ends) and the direction is the bisector of the adjacent unit tangents (the outgoing tangent at a
+cusp, where the bisector is rounding noise). Zero-speed segments give
 ``q = 0`` and every norm is gradient-safe (no NaN in values or gradients).
 """
 
 from __future__ import annotations
+
+import math
 
 import jax
 import jax.numpy as jnp
@@ -68,10 +71,17 @@ def curve_length(beta: Float[ArrayLike, "*batch T d"]) -> Float[Array, " *batch"
     return jnp.sum(safe_norm(jnp.diff(beta, axis=-2)), axis=-1)
 
 
+#: |t_prev + t_next| of unit tangents turning by 179°: sharper turns are cusps (see `srvf`).
+CUSP_BISECTOR = 2.0 * math.sin(math.radians(0.5))
+
+
 def srvf(beta: Float[ArrayLike, "T d"]) -> Float[Array, "T d"]:
     """Square-root velocity function of a curve sampled on ``linspace(0, 1, T)``.
 
     Works on any leading batch axes. ``l2_norm_squared(srvf(beta)) == curve_length(beta)``.
+    Each node takes the mean speed of its two segments along the bisector of their directions;
+    at a cusp (a turn sharper than 179°, where the bisector is rounding noise) along the
+    outgoing segment's direction.
     """
     beta = jnp.asarray(beta)
     if beta.ndim < 2 or beta.shape[-2] < 2:
@@ -86,7 +96,12 @@ def srvf(beta: Float[ArrayLike, "T d"]) -> Float[Array, "T d"]:
     node_speed = 0.5 * (s_ext[..., :-1] + s_ext[..., 1:])
     t_prev = jnp.pad(tangent, pad + [(1, 0), (0, 0)], mode="edge")
     t_next = jnp.pad(tangent, pad + [(0, 1), (0, 0)], mode="edge")
-    direction = safe_normalise(t_prev + t_next)
+    bisector = t_prev + t_next
+    # Where the curve turns back on itself (tracings that step back along a pixel row), the
+    # bisector is rounding noise: its sign would flip with a translation of the data or the
+    # dtype. Turns sharper than 179° take the direction the curve leaves in.
+    cusp = safe_norm(bisector) < CUSP_BISECTOR
+    direction = jnp.where(cusp[..., None], t_next, safe_normalise(bisector))
     return safe_sqrt(node_speed)[..., None] * direction
 
 

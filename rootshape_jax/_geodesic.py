@@ -87,11 +87,12 @@ def geodesic(
       and ends at b as given, where they lie. False: the path ends at b as registered (rotated
       about its base onto a), the usual picture of a shape-space geodesic. Rotations are
       quotiented out of the shape space, so both are the same shape path.
-    - `sizes`: ``(length_a, length_b)``, the main-root lengths of a and b before
-      `batch(normalise_scale=True)` divided them out. That scaling keeps each root's base (the
-      seed) fixed, so here step τ is scaled back about its base by
-      ``(1 − τ) length_a + τ length_b``: the path runs between the roots at their real sizes
-      and positions. Leave it None for roots that were not scale-normalised.
+    - `sizes`: ``(length_a, length_b)``, the lengths `batch(normalise_scale=True)` divided a
+      and b by (`normalising_length`: the main root's, resampled). That division is about
+      (0, 0), so a's seed went to ``seed_a / length_a``; here step τ is scaled back about its
+      base by ``(1 − τ) length_a + τ length_b`` and its base put at
+      ``(1 − τ) seed_a + τ seed_b``: the path runs between the roots at their real sizes and
+      positions. Leave it None for roots that were not scale-normalised.
     """
     if not isinstance(n_steps, int) or n_steps < 2:
         raise ValueError(f"n_steps must be an integer >= 2, got {n_steps!r}.")
@@ -110,7 +111,10 @@ def geodesic(
         la, lb = (float(x) for x in sizes)
         if not (la > 0 and lb > 0 and jnp.isfinite(la) and jnp.isfinite(lb)):
             raise ValueError(f"sizes must be two positive main-root lengths (length_a, length_b), got {sizes!r}.")
-        path = scale_tree(path, (1 - taus) * la + taus * lb)
+        # The stored seeds are seed / length (normalised about (0, 0)): scaled back, they are
+        # the data's seeds, and the path's bases run on the straight line between them.
+        seeds = (1 - taus)[:, None] * (la * path.main[0, 0]) + taus[:, None] * (lb * path.main[-1, 0])
+        path = scale_tree(path, (1 - taus) * la + taus * lb, base=seeds)
     return path
 
 

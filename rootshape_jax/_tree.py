@@ -460,8 +460,10 @@ def root_to_level_arrays(
         if length <= 0:
             raise InvalidRootError(f"root {root.name!r}: main root has zero length; cannot normalise scale.")
         scale = 1.0 / length
-    o = main[0]
-    main = o + (main - o) * scale
+    # Scaled about the coordinate origin (0, 0), not about the base: a root far from (0, 0)
+    # keeps the relative precision its coordinates had (scaled about a base at 5e4 µm, a
+    # length-1 root keeps ~2 digits in float32). Back in place: `scale_tree(..., base=...)`.
+    main = main * scale
     d = main.shape[1]
     main_resampled = resample_polyline(main, n_points)
     main_radius = np.zeros((n_points,))
@@ -473,7 +475,7 @@ def root_to_level_arrays(
     mask = np.zeros((capacity,), dtype=bool)
     placed = []  # each lateral's polyline joined to the main root, before the resampling shift
     for k, (lat, s) in enumerate(zip(root.laterals, root.attach)):
-        lat = o + (lat.astype(np.float64) - o) * scale
+        lat = lat.astype(np.float64) * scale
         radius = None
         if root.lateral_radii is not None:
             radius = root.lateral_radii[k].astype(np.float64) * scale
@@ -494,7 +496,7 @@ def root_to_level_arrays(
         mask[k] = True
     for k in range(root.n_laterals, capacity):
         lats[k] = np.repeat(main_resampled[:1], n_points, axis=0)
-    levels = _deeper_levels(root, placed, lats, capacities, n_points=n_points, origin=o, scale=scale)
+    levels = _deeper_levels(root, placed, lats, capacities, n_points=n_points, scale=scale)
     # Checked in float64, before the cast (which would overflow to inf with a warning).
     limit = coordinate_limit(dtype, n_points)
     label = f"root {root.name!r}" if root.name else "root"
@@ -527,7 +529,7 @@ def root_to_level_arrays(
     )
 
 
-def _deeper_levels(root, placed, lats, capacities, *, n_points, origin, scale):
+def _deeper_levels(root, placed, lats, capacities, *, n_points, scale):
     """numpy (curves, attach, mask, radius) of levels 2 … len(capacities) for one root.
 
     Each child is placed as `root_to_arrays_with_radius` places a lateral on the main root: its
@@ -567,7 +569,7 @@ def _deeper_levels(root, placed, lats, capacities, *, n_points, origin, scale):
         for k, (child, s) in enumerate(zip(node.laterals, node.attach)):
             # The fraction along the node's own polyline, moved to the joined parent polyline.
             frac = float(np.clip((L - L0 + float(s) * L0) / L, 0.0, 1.0)) if L > 0 else 0.0
-            poly = origin + (child.astype(np.float64) - origin) * scale
+            poly = child.astype(np.float64) * scale
             rad = None if node.lateral_radii is None else node.lateral_radii[k].astype(np.float64) * scale
             base = _point_at_fraction(parent_poly, frac)
             if np.linalg.norm(poly[0] - base) > 1e-9 * max(1.0, np.abs(parent_poly).max()):
@@ -624,7 +626,8 @@ def batch(
     - `max_laterals`: ``K``, lateral slots. Default ``2 × (most laterals of any root)`` (at least
       2), enough to register any pair (docs/design.md §2).
     - `normalise_scale`: divide each root by its main-root length (the paper's scale invariance;
-      leave off for growth studies).
+      leave off for growth studies), about (0, 0): the base moves to ``seed / length`` and a root
+      far from (0, 0) keeps its precision. `scale_tree(..., base=...)` puts results back.
     - `dtype`: float dtype of the arrays; default JAX's default float (float32 unless x64 is on).
     - `depth`: ``D``, levels kept (docs/design.md §11): 2 = main root + first-order laterals (the
       paper's trees), 3 adds second-order laterals (from `Root.children`), and so on. Default
@@ -681,7 +684,7 @@ def batch(
         for r in roots_list
     ]
     main, lats, attach, mask, main_r, lat_r = (np.stack(a) for a in list(zip(*arrays))[:6])
-    _warn_imprecise(roots_list, main, lats, normalise_scale)
+    _warn_imprecise(roots_list, main, lats)
     has_radius = any(_has_radius(r, depth) for r in roots_list)
     radii = {}
     if has_radius:
@@ -810,11 +813,11 @@ def _warn_truncated(roots: Sequence[Root], depth: int) -> None:
 _PRECISION_WARN = 0.01
 
 
-def _warn_imprecise(roots, main, lats, normalised: bool) -> None:
+def _warn_imprecise(roots, main, lats) -> None:
     """Warn when the dtype's rounding of the stored coordinates is a sizeable fraction of a
-    segment: coordinates far from (0, 0) compared with the root's size, as after
-    `normalise_scale` (the base stays where the data put it, the root shrinks to length 1).
-    The SRVFs are differences of neighbouring points, so they inherit that error. The segment
+    segment: coordinates far from (0, 0) compared with the root's size (`normalise_scale`
+    divides about (0, 0), so it keeps that ratio). The SRVFs are differences of neighbouring
+    points, so they inherit that error. The segment
     is the main root's, or for plants' systems (zero-length main root) the longest axis's;
     a root whose branches all collapsed to a point in the rounding counts as lost entirely."""
     eps = float(np.finfo(main.dtype).eps)
@@ -839,16 +842,12 @@ def _warn_imprecise(roots, main, lats, normalised: bool) -> None:
     if not len(bad):
         return
     worst = int(bad[np.argmax(ratio[bad])])
-    why = (
-        "normalise_scale shrinks each root to main-root length 1 about its base, which stays where the data put it"
-        if normalised
-        else "the roots are small compared with their distance from (0, 0)"
-    )
     amount = "all" if np.isinf(ratio[worst]) else f"{ratio[worst]:.2g}"
     warnings.warn(
         f"batch(): {np.dtype(main.dtype).name} rounds the coordinates of {len(bad)} root(s) by up to "
         f"{amount} of a main-root segment (worst: {_root_label(roots[worst], worst)}, coordinates up "
-        f"to {np.abs(main[worst]).max():.3g}): {why}. Distances and means then carry that error. Use "
+        f"to {np.abs(main[worst]).max():.3g}): the roots are small compared with their distance from "
+        "(0, 0). Distances and means then carry that error. Use "
         "dtype=float64 (jax.config.update('jax_enable_x64', True); on the command line --float64), or "
         "move the roots near (0, 0) first.",
         UserWarning,
@@ -1197,12 +1196,18 @@ def check_compatible(a: RootTree | SRVFTree, b: RootTree | SRVFTree, what: str =
         )
 
 
-def scale_tree(tree: RootTree, scales) -> RootTree:
+def scale_tree(tree: RootTree, scales, *, base=None) -> RootTree:
     """A (batched) `RootTree` with each root scaled about its main-root base.
 
     `scales` broadcasts to the tree's batch shape (one factor per root, or a scalar); factors
     must be finite and positive; radii, when present, scale too. Attachment fractions and masks
     are kept.
+
+    `base`: where each scaled root's base goes (``[d]``, or ``[*B, d]`` one per root); default
+    None keeps it where it is. `batch(normalise_scale=True)` divides each root by its length
+    about (0, 0), so its base moves too: ``scale_tree(t, length, base=seed)`` puts a
+    normalised root (or a mean, a mode) back at its real size where the data are, e.g. a mean
+    at the roots' mean seed ``np.mean([r.main[0] for r in roots], axis=0)``.
     """
     if not isinstance(tree, RootTree):
         raise TypeError(f"scale_tree: expected a RootTree, got {type(tree).__name__}.")
@@ -1216,9 +1221,19 @@ def scale_tree(tree: RootTree, scales) -> RootTree:
         ) from None
     s = eqx.error_if(s, ~(jnp.isfinite(s) & (s > 0)), "scale_tree: scales must be finite and > 0.")
     o = tree.main[..., :1, :]  # [*B, 1, d] main-root base
-    main = o + (tree.main - o) * s[..., None, None]
-    o_lat = o[..., None, :, :]
-    laterals = o_lat + (tree.laterals - o_lat) * s[..., None, None, None]
+    to = o  # where the base goes
+    if base is not None:
+        b = jnp.asarray(base, dtype=tree.main.dtype)
+        try:
+            to = jnp.broadcast_to(b, tree.batch_shape + (tree.dim,))[..., None, :]
+        except ValueError:
+            raise ValueError(
+                f"scale_tree: base of shape {b.shape} does not match the tree (batch shape "
+                f"{tree.batch_shape}, d = {tree.dim}); give one point [d], or one per root [*B, d]."
+            ) from None
+    main = to + (tree.main - o) * s[..., None, None]
+    o_lat, to_lat = o[..., None, :, :], to[..., None, :, :]
+    laterals = to_lat + (tree.laterals - o_lat) * s[..., None, None, None]
     out = eqx.tree_at(lambda t: (t.main, t.laterals), tree, (main, laterals))
     if tree.main_radius is not None:  # radii are lengths: they scale with the coordinates
         radii = (tree.main_radius * s[..., None], tree.lateral_radius * s[..., None, None])
@@ -1228,8 +1243,9 @@ def scale_tree(tree: RootTree, scales) -> RootTree:
         for lv in tree.deeper:
             extra = lv.curves.ndim - 2 - s.ndim  # slot axes K1 … Kℓ
             o_l = o.reshape(o.shape[:-2] + (1,) * extra + (1, o.shape[-1]))
+            to_l = to.reshape(o_l.shape)
             sl = s.reshape(s.shape + (1,) * extra)
-            curves = o_l + (lv.curves - o_l) * sl[..., None, None]
+            curves = to_l + (lv.curves - o_l) * sl[..., None, None]
             radius = None if lv.radius is None else lv.radius * sl[..., None]
             deeper.append(BranchLevel(curves=curves, attach=lv.attach, mask=lv.mask, radius=radius))
         out = eqx.tree_at(lambda t: t.deeper, out, tuple(deeper))

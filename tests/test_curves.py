@@ -35,9 +35,12 @@ def _numpy_srvf(beta):
     for i in range(T):
         segs = [k for k in (i - 1, i) if 0 <= k < T - 1]
         speed = np.mean([np.linalg.norm(u[k]) for k in segs])
-        tang = sum(u[k] / np.linalg.norm(u[k]) for k in segs if np.linalg.norm(u[k]) > 0)
-        if speed == 0 or np.linalg.norm(tang) == 0:
+        units = [u[k] / np.linalg.norm(u[k]) for k in segs if np.linalg.norm(u[k]) > 0]
+        if speed == 0 or not units:
             continue
+        tang = sum(units)
+        if len(units) == 2 and np.linalg.norm(tang) < 2 * np.sin(np.radians(0.5)):
+            tang = units[1]  # a cusp (turn > 179°): the outgoing direction
         q[i] = np.sqrt(speed) * tang / np.linalg.norm(tang)
     return q
 
@@ -46,6 +49,34 @@ def _numpy_srvf(beta):
 def test_srvf_matches_numpy_reference(d, T):
     beta = _analytic(T, d)
     np.testing.assert_allclose(np.asarray(srvf(beta)), _numpy_srvf(beta), rtol=1e-12, atol=1e-12)
+
+
+def _stepping_back(d):
+    """A pixel tracing that steps back along its row (exact 180° turns) and turns by 179.5°."""
+    pts = [[1849.0, 760.0], [1848.0, 760.0], [1853.0, 760.0], [1858.0, 762.0], [1861.0, 762.0], [1859.0, 762.0]]
+    pts += [[1864.0, 762.0 + np.tan(np.radians(0.5)) * 5], [1870.0, 770.0]]
+    pts = np.array(pts)
+    return np.c_[pts, np.linspace(0.0, 3.0, len(pts))] if d == 3 else pts
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_srvf_at_cusps_is_the_same_wherever_the_curve_lies(d):
+    beta = _stepping_back(d)
+    q = np.asarray(srvf(beta))
+    np.testing.assert_allclose(q, _numpy_srvf(beta), rtol=1e-12, atol=1e-12)
+    # A 2D exact reversal: the node goes the way the curve leaves (+x), not a rounding-noise sign.
+    if d == 2:
+        assert q[1, 0] > 0 and q[1, 1] == 0 and q[5, 0] > 0
+    rng = np.random.default_rng(d)
+    for shift in (-beta[0], np.full(d, 1e5), rng.uniform(-1e3, 1e3, d)):
+        np.testing.assert_allclose(np.asarray(srvf(beta + shift)), q, atol=1e-9)
+    R = rotation_matrix(rng, d)
+    np.testing.assert_allclose(np.asarray(srvf((beta - beta[0]) @ R.T)), q @ R.T, atol=1e-9)
+    # Float32 (coordinates rounded by ~1e-4 px) keeps the directions.
+    q32 = np.asarray(srvf(beta.astype(np.float32)), np.float64)
+    np.testing.assert_allclose(q32, q, atol=1e-3 * np.abs(q).max())
+    # The length identity holds at cusps too.
+    assert float(l2_norm_squared(srvf(beta))) == pytest.approx(float(curve_length(beta)), rel=1e-12)
 
 
 @pytest.mark.parametrize("d,T", list(itertools.product([2, 3], [30, 100, 400])))

@@ -539,7 +539,14 @@ def test_output_roots_drop_zero_length_branches_at_every_order():
     tree = eqx.tree_at(lambda t: t.laterals, tree, jnp.asarray(lats))
     tree = eqx.tree_at(lambda t: t.deeper[0].curves, tree, jnp.asarray(curves))
     pop = Population(
-        roots=[root], tree=tree, names=["r"], normalised=False, unit="mm", mean_length=1.0, conditions=None
+        roots=[root],
+        tree=tree,
+        names=["r"],
+        normalised=False,
+        unit="mm",
+        mean_length=1.0,
+        mean_seed=root.main[0],
+        conditions=None,
     )
     (out,) = to_output_roots(tree, pop, ["r"])
     assert count_by_order(root) == {0: 1, 1: 3, 2: 3}

@@ -11,11 +11,14 @@ import sys
 import warnings
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
+from helpers import tree_allclose
 
 import rootshape_jax as rs
 from rootshape_jax import io
+from rootshape_jax._tree import normalising_length
 from rootshape_jax.datasets import synthetic_roots
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "rsml"
@@ -140,10 +143,11 @@ def test_python_karcher_mean_of_far_roots_stays_in_place(normalise):
     km = rs.karcher_mean(tree, max_steps=3, throw=False, progress=False)
     main = np.asarray(km.mean.main)
     if normalise:
-        # Normalisation scales each root about its seed: the mean is at main-root length 1,
-        # at the mean seed; scaled about its base by the mean length it is at the data's size.
+        # Normalisation divides each root by its length about (0, 0): the mean is at main-root
+        # length 1; scaled back by the mean length and put at the mean seed, it is in place.
         assert float(rs.curve_length(km.mean.main)) == pytest.approx(1.0, rel=0.1)
-        main = np.asarray(rs.scale_tree(km.mean, float(np.mean([r.main_length for r in roots]))).main)
+        size = float(np.mean([r.main_length for r in roots]))
+        main = np.asarray(rs.scale_tree(km.mean, size, base=np.mean([r.main[0] for r in roots], axis=0)).main)
     check_mean_in_place(roots, main, real_size=True)
 
 
@@ -211,17 +215,48 @@ def test_plots_draw_far_roots_where_they_are():
     plt.close(fig)
 
 
-def test_batch_warns_when_float32_cannot_hold_a_normalised_root_far_from_the_origin():
-    # Normalised, a root shrinks to length 1 about its base, which stays at the data's place:
-    # 1e5 from (0, 0), float32 rounds every point by a large fraction of a segment.
+def test_normalised_roots_far_from_the_origin_keep_float32_precision():
+    # Normalisation divides each root by its length about (0, 0), so a root 1e5 mm from (0, 0)
+    # keeps the digits its coordinates had. (Scaled about its base, as before, a length-1 root
+    # at 1e5 lost most of a segment to float32 rounding; the SRVFs came out wrong.)
+    roots = [rs.limit_laterals(r, 2) for r in synthetic_roots(2, seed=4)]
+    far = [moved(r, np.array([1e5, -7e4]), 0.3) for r in roots]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        t32 = rs.batch(far, n_points=50, normalise_scale=True, dtype=np.float32)
+    t64 = rs.batch(far, n_points=50, normalise_scale=True, dtype=np.float64)
+    near = rs.batch([moved(r, np.zeros(2), 0.3) for r in roots], n_points=50, normalise_scale=True, dtype=np.float64)
+    # The same length-1 shapes with their bases left at the seeds (scaled about the base).
+    lengths = [normalising_length(r, 50) for r in far]
+    seeds = np.array([r.main[0] for r in far])
+    at_seeds = jax.tree_util.tree_map(
+        lambda x: x.astype(np.float32) if x.dtype == np.float64 else x, rs.scale_tree(t64, 1.0, base=seeds)
+    )
+    q32, q64, q_near, q_seeds = (np.asarray(rs.to_srvf(t).q0, np.float64) for t in (t32, t64, near, at_seeds))
+    np.testing.assert_allclose(q64, q_near, atol=1e-9)  # the shape does not depend on the place
+    # float32 keeps what the data's own coordinates hold (1e5 against segments of ~2 mm: a few
+    # 1e-3 of a unit SRVF); at the seeds it lost a large part of every segment.
+    assert np.abs(q32 - q64).max() < 5e-3
+    assert np.abs(q_seeds - q64).max() > 0.1
+    lat32, lat64 = (np.asarray(rs.to_srvf(t).q, np.float64) for t in (t32, t64))
+    assert np.abs(lat32 - lat64).max() < 5e-3
+    # The seeds went to seed / length; scale_tree(base=...) puts the roots back.
+    back = rs.scale_tree(t64, lengths, base=seeds)
+    assert tree_allclose(back, rs.batch(far, n_points=50, dtype=np.float64), atol=1e-8)
+
+
+def test_batch_warns_when_float32_cannot_hold_roots_far_from_the_origin():
+    # 1e8 mm from (0, 0), float32 rounds every point by a large fraction of a segment: the
+    # data themselves cannot be held, normalised or not.
     root = rs.limit_laterals(synthetic_roots(1, seed=4)[0], 2)
-    far = moved(root, np.array([1e5, 1e5]), 0.0)
-    with pytest.warns(UserWarning, match=r"float32 rounds the coordinates of 1 root.*--float64"):
-        rs.batch([far], n_points=50, normalise_scale=True, dtype=np.float32)
+    far = moved(root, np.array([1e8, 1e8]), 0.0)
+    for normalise in (False, True):
+        with pytest.warns(UserWarning, match=r"float32 rounds the coordinates of 1 root.*--float64"):
+            rs.batch([far], n_points=50, normalise_scale=normalise, dtype=np.float32)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         rs.batch([root], n_points=50, normalise_scale=True, dtype=np.float32)  # near the origin
-        rs.batch([far], n_points=50, normalise_scale=False, dtype=np.float32)  # at its size (mm)
+        rs.batch([moved(root, np.array([1e5, 1e5]), 0.0)], n_points=50, normalise_scale=True, dtype=np.float32)
         rs.batch([far], n_points=50, normalise_scale=True, dtype=np.float64)
 
 
@@ -257,7 +292,7 @@ def test_precision_check_on_plants_collapsed_roots_and_no_lateral_slots():
     from rootshape_jax.io import plant_system
 
     root = rs.limit_laterals(synthetic_roots(1, seed=5)[0], 2)
-    far = moved(root, np.array([1e5, 1e5]), 0.0)
+    far = moved(root, np.array([1e8, 1e8]), 0.0)
     # A plant's system (zero-length main root) is measured against its axis.
     with pytest.warns(UserWarning, match="float32 rounds the coordinates of 1 root"):
         rs.batch([plant_system([far])], n_points=50, normalise_scale=True, dtype=np.float32, depth=3)
@@ -269,4 +304,4 @@ def test_precision_check_on_plants_collapsed_roots_and_no_lateral_slots():
         rs.batch([bare], n_points=50, max_laterals=0, dtype=np.float32)
     # So far away that float32 collapses the normalised root to a point: all of it is lost.
     with pytest.warns(UserWarning, match="by up to all of a main-root segment"):
-        rs.batch([moved(root, np.array([1e9, 1e9]), 0.0)], n_points=50, normalise_scale=True, dtype=np.float32)
+        rs.batch([moved(root, np.array([1e13, 1e13]), 0.0)], n_points=50, normalise_scale=True, dtype=np.float32)

@@ -90,3 +90,27 @@ def test_scale_tree_keeps_dtype_and_checks_input():
         rs.scale_tree(tree, [1.0, -2.0])
     with pytest.raises(TypeError, match="RootTree"):
         rs.scale_tree(rs.to_srvf(tree), [1.0, 2.0])
+
+
+def test_scale_tree_moves_bases_as_a_loop():
+    rng = np.random.default_rng(1)
+    tree = rs.batch(synthetic_roots(3, seed=5), n_points=11, depth=3)
+    scales = rng.uniform(0.3, 3.0, size=3)
+    bases = rng.uniform(-1e3, 1e3, size=(3, 2))
+    for base in (bases, bases[0]):  # one per root, or one for all
+        got = rs.scale_tree(tree, scales, base=base)
+        to = np.broadcast_to(base, (3, 2))
+        main, lats = np.asarray(tree.main), np.asarray(tree.laterals)
+        curves = np.asarray(tree.deeper[0].curves) if tree.deeper else None
+        for b in range(3):
+            o = main[b, 0]
+            np.testing.assert_allclose(np.asarray(got.main)[b], to[b] + scales[b] * (main[b] - o), rtol=1e-12)
+            np.testing.assert_allclose(
+                np.asarray(got.laterals)[b], to[b] + scales[b] * (lats[b] - o), rtol=1e-12, atol=1e-9
+            )
+            if curves is not None:
+                np.testing.assert_allclose(
+                    np.asarray(got.deeper[0].curves)[b], to[b] + scales[b] * (curves[b] - o), rtol=1e-12, atol=1e-9
+                )
+    with pytest.raises(ValueError, match="base of shape"):
+        rs.scale_tree(tree, scales, base=np.zeros((2, 2)))

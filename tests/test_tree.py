@@ -10,6 +10,7 @@ from helpers import random_root, tree_allclose
 
 import rootshape_jax as rs
 from rootshape_jax._metric import preshape_terms
+from rootshape_jax._tree import normalising_length
 
 
 def test_attach_computed_by_projection():
@@ -78,8 +79,11 @@ def test_normalise_scale():
     r = random_root(rng, n_laterals=2, main_length=7.0)
     t = rs.batch(r, normalise_scale=True)
     assert float(rs.curve_length(t.main)) == pytest.approx(1.0, rel=1e-9)
-    big = rs.batch(r.scaled(3.0), normalise_scale=True)
+    # Each root is divided by its length about (0, 0): a root scaled about (0, 0) gives the
+    # same tree, and the base moves to seed / length.
+    big = rs.batch(r.scaled_about(np.zeros(r.dim), 3.0), normalise_scale=True)
     assert tree_allclose(t, big, atol=1e-12)
+    np.testing.assert_allclose(t.main[0], r.main[0] / normalising_length(r, 100), rtol=1e-12)
 
 
 @pytest.mark.parametrize("plant", [False, True])
@@ -96,7 +100,8 @@ def test_normalising_length_takes_a_normalised_tree_back_to_the_input(plant):
     kw = dict(n_points=12, dtype=np.float64, depth=3 if plant else 2)
     length = normalising_length(r, 12)
     assert length < (9.0 if plant else 7.0) - 1e-3  # 12 points cut the corners
-    back = rs.scale_tree(rs.batch(r, normalise_scale=True, **kw), length)
+    # Normalisation divides about (0, 0): the base goes back to the seed with `base=`.
+    back = rs.scale_tree(rs.batch(r, normalise_scale=True, **kw), length, base=r.main[0])
     assert tree_allclose(back, rs.batch(r, **kw), atol=1e-9)
 
 

@@ -153,13 +153,10 @@ class Population:
     normalised: bool
     unit: str | None
     mean_length: float  # mean main-root length, in `unit`
+    mean_seed: np.ndarray  # mean main-root base (a plant's: its collar), in the input's frame
     conditions: list | None  # the group label of each root (--by, default "condition")
     label_name: str = "condition"
     labels: dict = dataclasses.field(default_factory=dict)  # every label column: {name: [value per root]}
-
-    def output_scale(self) -> float:
-        """Factor that takes analysis coordinates back to the input's units."""
-        return self.mean_length if self.normalised else 1.0
 
 
 def prepare(roots: list, args, *, min_roots: int = 1, samples: int | None = None) -> Population:
@@ -182,6 +179,7 @@ def prepare(roots: list, args, *, min_roots: int = 1, samples: int | None = None
         normalised=normalised,
         unit=common_unit(roots),
         mean_length=float(np.mean([normalising_length(r, args.points) for r in roots])),
+        mean_seed=np.mean([np.asarray(r.main[0], np.float64) for r in roots], axis=0),
         conditions=conditions if all(c is not None for c in conditions) else None,
         label_name=by or "condition",
         labels=label_columns(roots),
@@ -289,7 +287,11 @@ def to_output_roots(tree, pop: Population, names: Sequence[str]) -> list:
     return out
 
 
-def in_input_units(tree, pop: Population):
-    """Analysis coordinates back in the input's units: scale-normalised roots are scaled by
-    the inputs' mean main-root length."""
-    return rs.scale_tree(tree, pop.output_scale()) if pop.normalised else tree
+def in_input_units(tree, pop: Population, lengths=None):
+    """Analysis coordinates back in the input's units and frame. Scale-normalised roots (a
+    mean, modes, synthesised roots) are scaled about their base by `lengths` (default the
+    inputs' mean main-root length) and put at the inputs' mean seed: normalisation divided
+    each root by its length about (0, 0), so their bases moved too."""
+    if not pop.normalised:
+        return tree
+    return rs.scale_tree(tree, pop.mean_length if lengths is None else lengths, base=pop.mean_seed)

@@ -298,7 +298,7 @@ def run_regress(ctx: Context, out: Output, args) -> None:
             trees = reg.synthesize(values)
             if pop.normalised:
                 lengths = np.linalg.norm(np.diff(np.asarray(trees.main, np.float64), axis=1), axis=-1).sum(-1)
-                trees = rs.scale_tree(trees, values[:, 0] / np.maximum(lengths, 1e-12))
+                trees = in_input_units(trees, pop, values[:, 0] / np.maximum(lengths, 1e-12))
             return trees, to_output_roots(trees, pop, names)
 
         # How well the model reproduces the training roots' own traits.
