@@ -101,7 +101,8 @@ def srvf(beta: Float[ArrayLike, "T d"]) -> Float[Array, "T d"]:
     # bisector is rounding noise: its sign would flip with a translation of the data or the
     # dtype. Turns sharper than 179° take the direction the curve leaves in.
     cusp = safe_norm(bisector) < CUSP_BISECTOR
-    direction = jnp.where(cusp[..., None], t_next, safe_normalise(bisector))
+    # (Selected before normalising: no huge gradient from a near-zero bisector.)
+    direction = safe_normalise(jnp.where(cusp[..., None], t_next, bisector))
     return safe_sqrt(node_speed)[..., None] * direction
 
 

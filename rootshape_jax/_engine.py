@@ -1433,7 +1433,7 @@ def _axes_view(t: SRVFTree):
 def _order_key(t: SRVFTree) -> Float[Array, "B F"]:
     """A few numbers read off a tree's content (any fixed function works; only its values on
     the two trees of a pair are compared). The first ones do not change when a root is turned
-    or moved (lateral count, lateral lengths, attachment positions, main-root length, deeper
+    or moved (lateral count, main-root length, lateral lengths, attachment positions, deeper
     lengths), so a rotated or translated root keeps its place in the order; the others break
     the remaining ties."""
     if t.virtual_main and t.deeper:
@@ -1442,9 +1442,9 @@ def _order_key(t: SRVFTree) -> Float[Array, "B F"]:
     L = l2_norm_squared(t.q) * t.mask
     invariant = [
         jnp.sum(t.mask, axis=-1).astype(dtype),
+        l2_norm_squared(t.q0),
         jnp.sum(L, axis=-1),
         jnp.sum(jnp.where(t.mask, t.s, 0.0), axis=-1),
-        l2_norm_squared(t.q0),
     ]
     invariant += [jnp.sum(lv.q.reshape(lv.q.shape[:1] + (-1,)) ** 2, axis=-1) for lv in t.deeper]
     rest = [

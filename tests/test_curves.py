@@ -75,8 +75,11 @@ def test_srvf_at_cusps_is_the_same_wherever_the_curve_lies(d):
     # Float32 (coordinates rounded by ~1e-4 px) keeps the directions.
     q32 = np.asarray(srvf(beta.astype(np.float32)), np.float64)
     np.testing.assert_allclose(q32, q, atol=1e-3 * np.abs(q).max())
-    # The length identity holds at cusps too.
+    # The length identity holds at cusps too, and gradients stay finite there.
     assert float(l2_norm_squared(srvf(beta))) == pytest.approx(float(curve_length(beta)), rel=1e-12)
+    w = rng.normal(size=beta.shape)
+    g = np.asarray(jax.grad(lambda b: jnp.sum(srvf(b) * w))(jnp.asarray(beta)))
+    assert np.all(np.isfinite(g))
 
 
 @pytest.mark.parametrize("d,T", list(itertools.product([2, 3], [30, 100, 400])))
