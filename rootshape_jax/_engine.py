@@ -1457,20 +1457,27 @@ def _order_key(t: SRVFTree) -> Float[Array, "B F"]:
     return jnp.stack(invariant + rest, axis=-1)
 
 
+#: Relative difference below which two entries of a pair's order key count as equal (one value
+#: for every dtype: float32 rounds the key's sums by ~1e-6 relative).
+ORDER_KEY_RTOL = 1e-4
+
+
 def canonical_pairs(a: SRVFTree, b: SRVFTree) -> tuple[SRVFTree, SRVFTree]:
     """Each pair in a fixed order that does not depend on the argument order: b first where its
     content key is lexicographically smaller than a's.
 
     The alternation finds a local optimum that can depend on which root is registered onto
     which (up to ~1 % of the distance on real roots). Registering every pair in a canonical
-    order makes a distance exactly symmetric, at no extra cost. Key entries closer than
-    rounding noise (√ε relative) count as equal: scale-normalised main roots all have length
-    1, and a comparison decided by rounding would flip with a translation of the data, with
-    float32 against float64, or with the order of a sum, moving the distance by that ~1 %.
-    Only when every entry is that close does the exact comparison decide.
+    order makes a distance exactly symmetric, at no extra cost. Key entries within
+    `ORDER_KEY_RTOL` of each other (relative; far above float32's rounding of them) count as
+    equal: scale-normalised main roots all have length 1, and a comparison decided by
+    rounding would flip with a translation of the data, with float32 against float64, or with
+    the order of a sum, moving the distance by that ~1 %. The tolerance is the same in every
+    dtype, so float32 and float64 order pairs alike. Only when every entry is that close does
+    the exact comparison decide.
     """
     ka, kb = _order_key(a), _order_key(b)
-    tol = float(np.sqrt(np.finfo(ka.dtype).eps))
+    tol = ORDER_KEY_RTOL
     size = jnp.maximum(jnp.maximum(jnp.abs(ka), jnp.abs(kb)), jnp.finfo(ka.dtype).tiny)
     clear = jnp.abs(ka - kb) > tol * size
     diff = jnp.where(jnp.any(clear, axis=-1, keepdims=True), clear, ka != kb)

@@ -80,7 +80,8 @@ def geodesic(
 
     Where the path lies: every step's base moves on the straight line from a's base to b's
     (the SRVFs forget translation; the trees' `origin` keeps it), so roots far from the
-    coordinate origin stay where they are.
+    coordinate origin stay where they are (scale-normalised trees: pass `sizes`, below; their
+    stored bases are at seed / length).
 
     - `in_place`: True (default): the registration's rotation is undone gradually (step τ is
       turned about its base by the fraction τ of the inverse rotation), so the path starts at a

@@ -45,3 +45,32 @@ def test_batched_distance_is_symmetric(trees):
     d1 = np.asarray(rs.distance(a, b))
     d2 = np.asarray(rs.distance(b, a))
     assert np.array_equal(d1, d2)
+
+
+def _root_with_one_lateral(s, length, seed=np.array([300.0, 500.0])):
+    main = seed + np.c_[np.zeros(11), -np.linspace(0.0, 10.0, 11)]
+    base = main[0] + np.array([0.0, -10.0 * s])
+    lateral = base + np.c_[np.linspace(0.0, length, 6), np.zeros(6)]
+    return rs.Root(main=main, laterals=(lateral,), attach=np.array([s]))
+
+
+@pytest.mark.parametrize("delta", [3e-3, 3e-5, 1e-8, 0.0])
+def test_pair_order_is_the_same_in_float32_and_float64(delta):
+    # Normalised main roots all have length 1: the order is read from the next key entries,
+    # with one tolerance for every dtype, so float32 and float64 register the pair alike
+    # (a dtype-dependent tolerance ordered such pairs differently).
+    from rootshape_jax._engine import canonical_pairs
+
+    a, b = _root_with_one_lateral(0.6, 3.0), _root_with_one_lateral(0.3, 3.0 * (1 + delta))
+    first = {}
+    for dtype in (np.float32, np.float64):
+        ta, tb = (
+            rs.stack([t])
+            for t in rs.unstack(rs.to_srvf(rs.batch([a, b], n_points=20, normalise_scale=True, dtype=dtype)))
+        )
+        f_ab, _ = canonical_pairs(ta, tb)
+        f_ba, _ = canonical_pairs(tb, ta)
+        # Either argument order puts the same root first.
+        assert float(f_ab.s[0, 0]) == pytest.approx(float(f_ba.s[0, 0]))
+        first[dtype] = round(float(f_ab.s[0, 0]), 3)
+    assert first[np.float32] == first[np.float64]

@@ -172,8 +172,7 @@ def _elastic(a: Root, b: Root, n_points: int) -> float:
         if b.main.shape[1] > 2
         else b
     )
-    # The distance ignores translation: both bases at (0, 0) keep the normalised shapes precise
-    # in float32 (pixel coordinates far from the origin would round them, see `batch`).
+    # The distance ignores translation: both bases at (0, 0), where float32 holds the most digits.
     a2, b2 = (
         dataclasses.replace(r, main=r.main - r.main[0], laterals=tuple(l - r.main[0] for l in r.laterals), children=())
         for r in (a2, b2)
