@@ -1457,6 +1457,12 @@ def _order_key(t: SRVFTree) -> Float[Array, "B F"]:
     return jnp.stack(invariant + rest, axis=-1)
 
 
+#: Revision of the distance a pair of trees gets, for stores of finished blocks: raised when
+#: the SRVF discretisation or the registration's choices change what a pair computes, so a
+#: store written before is refused instead of mixing two metrics. 2: SRVF cusps take the
+#: outgoing direction; the pair order tolerates rounding (session 23).
+METRIC_REVISION = 2
+
 #: Relative difference below which two entries of a pair's order key count as equal (one value
 #: for every dtype: float32 rounds the key's sums by ~1e-6 relative).
 ORDER_KEY_RTOL = 1e-4

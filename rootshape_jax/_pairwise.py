@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._engine import RegistrationOptions, pair_distances_squared, registration_options
+from ._engine import METRIC_REVISION, RegistrationOptions, pair_distances_squared, registration_options
 from ._executor import BlockStore, LocalExecutor, executor_for, fingerprint
 from ._metric import Weights
 from ._tree import RootTree, SRVFTree, batch_size, check_compatible, to_srvf
@@ -105,6 +105,7 @@ def run_pairs(
                 "block_size": block_size,
                 "chunk_size": chunk_size,
                 "dtype": str(dtype),
+                "metric_revision": METRIC_REVISION,
                 "fingerprint": fingerprint(kind, s, t, weights, options, repr(options)),
             },
         )

@@ -217,6 +217,15 @@ def test_local_store_resumes_without_recomputing(tmp_path):
     with pytest.raises(rs.StoreMismatchError, match="holds another run"):
         rs.pairwise_distances(t, chunk_size=2, progress=False, store=store, weights=rs.Weights(main=0.5))
     assert jnp.allclose(D2, D2.T)
+    # A store written before the metric changed (no metric_revision: session 22 and earlier)
+    # is refused rather than mixed with today's distances.
+    import json
+
+    manifest = json.loads((store / "manifest.json").read_text())
+    del manifest["metric_revision"]
+    (store / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(rs.StoreMismatchError, match="metric_revision: stored None vs now"):
+        rs.pairwise_distances(t, chunk_size=2, progress=False, store=store)
 
 
 def test_use_all_cores_before_and_after_jax_starts():
