@@ -1483,9 +1483,8 @@ def canonical_pairs(a: SRVFTree, b: SRVFTree) -> tuple[SRVFTree, SRVFTree]:
     the exact comparison decide.
     """
     ka, kb = _order_key(a), _order_key(b)
-    tol = ORDER_KEY_RTOL
     size = jnp.maximum(jnp.maximum(jnp.abs(ka), jnp.abs(kb)), jnp.finfo(ka.dtype).tiny)
-    clear = jnp.abs(ka - kb) > tol * size
+    clear = jnp.abs(ka - kb) > ORDER_KEY_RTOL * size
     diff = jnp.where(jnp.any(clear, axis=-1, keepdims=True), clear, ka != kb)
     first = jnp.argmax(diff, axis=-1)[:, None]
     swap = jnp.any(diff, axis=-1) & (
