@@ -257,6 +257,15 @@ def polyline_length(points: np.ndarray) -> float:
     return float(np.sum(np.linalg.norm(np.diff(points, axis=0), axis=1)))
 
 
+def is_plant_system(root: "Root") -> bool:
+    """True for a plant's system (`rootshape_jax.io.plant_system`): marked by it
+    (``metadata["virtual_main"]``), or a zero-length main root with laterals (a real root read
+    from a file never has zero length; a mean or mode of systems has)."""
+    return bool(root.metadata.get("virtual_main")) or (
+        root.n_laterals > 0 and polyline_length(np.asarray(root.main, dtype=np.float64)) == 0.0
+    )
+
+
 def limit_laterals(root: Root, n: int | None) -> Root:
     """The root with only its `n` longest laterals, kept in their original order.
 

@@ -16,7 +16,7 @@ import numpy as np
 import scipy.spatial
 
 from ._errors import InvalidRootError
-from ._root import Root, polyline_length
+from ._root import Root, is_plant_system, polyline_length
 
 TRAIT_NAMES: tuple[str, ...] = (
     "main_length",
@@ -141,12 +141,23 @@ def deepest_order(root: Root) -> int:
     return best
 
 
+def _axes(root: Root) -> tuple[Root, ...]:
+    """The top-level branches a root's traits describe: its own main root, or a plant's
+    axes (`is_plant_system`; an axis known only as a polyline has no laterals)."""
+    if not is_plant_system(root):
+        return (root,)
+    if root.children:
+        return tuple(root.children)
+    return tuple(Root(main=lat) for lat in root.laterals)
+
+
 def order_traits(root: Root, orders: int) -> dict:
     """Per-order counts and lengths for lateral orders 1 … `orders` (0 where an order is
     absent): ``n_laterals_order{k}``, ``length_order{k}`` (total length of the order-k
-    laterals) and ``mean_length_order{k}``. Order k+1 comes from `Root.children`."""
+    laterals) and ``mean_length_order{k}``. Order k+1 comes from `Root.children`. For a
+    plant's system the orders count from its axes (order 1: the axes' laterals)."""
     lengths: list[list[float]] = [[] for _ in range(orders)]
-    stack = [(root, 1)]
+    stack = [(axis, 1) for axis in _axes(root)]
     while stack:
         node, order = stack.pop()
         if order > orders:
@@ -161,29 +172,39 @@ def order_traits(root: Root, orders: int) -> dict:
     return out
 
 
+def _lateral_order(root: Root) -> int:
+    """Deepest lateral order of `root`, counted from its axes for a plant's system."""
+    return max(deepest_order(axis) for axis in _axes(root))
+
+
 def _root_traits(root: Root, window: float | None) -> dict:
     if not isinstance(root, Root):
         raise InvalidRootError(
             f"traits() expects a rootshape_jax.Root or a sequence of them, got {type(root).__name__}."
         )
-    main = np.asarray(root.main, dtype=float)
+    axes = _axes(root)
+    # A plant's main root is its longest axis; its laterals are those of every axis.
+    axis_len = np.array([polyline_length(np.asarray(a.main, dtype=float)) for a in axes])
+    main = np.asarray(axes[int(np.argmax(axis_len))].main, dtype=float)
     d = main.shape[1]
-    lat_len = np.array([polyline_length(np.asarray(lat, dtype=float)) for lat in root.laterals])
+    lats = [np.asarray(lat, dtype=float) for a in axes for lat in a.laterals]
+    lat_len = np.array([polyline_length(lat) for lat in lats])
     main_len = polyline_length(main)
     n = len(lat_len)
-    pts = np.concatenate([main] + [np.asarray(lat, dtype=float) for lat in root.laterals], axis=0)
+    pts = np.concatenate([np.asarray(a.main, dtype=float) for a in axes] + lats, axis=0)
     chord = float(np.linalg.norm(main[-1] - main[0]))
-    angles = insertion_angles(root, window=window)
+    angles = np.concatenate([insertion_angles(a, window=window) for a in axes])
     horizontal = pts[:, :-1]
+    total_axis_len = float(axis_len.sum())
     return {
         "name": root.name,
         "main_length": main_len,
         "n_laterals": n,
-        "lateral_density": n / main_len if main_len > 0 else math.nan,
+        "lateral_density": n / total_axis_len if total_axis_len > 0 else math.nan,
         "mean_lateral_length": float(lat_len.mean()) if n else 0.0,
         "std_lateral_length": float(lat_len.std()) if n else 0.0,
         "total_lateral_length": float(lat_len.sum()),
-        "total_length": main_len + float(lat_len.sum()),
+        "total_length": total_axis_len + float(lat_len.sum()),
         "main_tortuosity": main_len / chord if chord > 0 else math.nan,
         "mean_insertion_angle": float(np.nanmean(angles)) if np.any(np.isfinite(angles)) else math.nan,
         "depth": float(pts[:, -1].max() - pts[:, -1].min()),
@@ -220,7 +241,8 @@ def traits(
     - ``convex_hull_area``: 2D — area of the convex hull of all points; 3D — area of the convex
       hull of the points projected on the horizontal plane (the root system's footprint, which
       does not depend on how the plant is turned about the vertical). 0 for degenerate hulls.
-    - ``convex_hull_volume``: 3D — volume of the convex hull; NaN in 2D.
+    - ``convex_hull_volume``: 3D — volume of the convex hull; NaN in 2D (a 2D tracing has no
+      volume).
 
     The traits above use the main root and the first-order laterals. Higher orders (whole root
     systems, `Root.children`) add per-order columns for lateral orders k = 1 … `orders`
@@ -228,27 +250,34 @@ def traits(
     ``mean_length_order{k}``. By default `orders` is the deepest order present in the root (in
     any root of a sequence, so the table is rectangular) when that is 2 or more; roots with
     first-order laterals only get no extra columns. ``orders=N`` always gives orders 1 … N
-    (0 where absent). For a plant's system (``read_rsml(by="plant")``) the axes are order 1.
+    (0 where absent).
+
+    **A plant's system** (``read_rsml(by="plant")``, `rootshape_jax.io.plant_system`: axes
+    under a virtual main root of zero length) is described as a plant: its main root is its
+    longest axis (``main_length``, ``main_tortuosity``); its laterals are the first-order
+    laterals of every axis (counts, lengths, insertion angles on their own axis);
+    ``lateral_density`` divides by the summed length of the axes; ``total_length`` is every
+    axis plus those laterals; the extents and hulls cover the axes and their laterals; orders
+    count from the axes (order 1: the axes' laterals). A column ``n_axes`` (1 for single
+    roots) is added when any root is a plant's system. A plant of one axis therefore has the
+    traits of that axis read as a single root.
     """
     if orders is not None and (isinstance(orders, bool) or not isinstance(orders, (int, np.integer)) or orders < 0):
         raise ValueError(f"`orders` must be a whole number >= 0 or None, got {orders!r}.")
-    if isinstance(root_or_roots, Root):
-        row = _root_traits(root_or_roots, window)
-        n = deepest_order(root_or_roots) if orders is None else orders
-        if orders is not None or n >= 2:
-            row.update(order_traits(root_or_roots, n))
-        return row
-    if isinstance(root_or_roots, (str, bytes, Mapping)) or not isinstance(root_or_roots, Iterable):
+    single = isinstance(root_or_roots, Root)
+    if not single and (isinstance(root_or_roots, (str, bytes, Mapping)) or not isinstance(root_or_roots, Iterable)):
         raise InvalidRootError(
             f"traits() expects a rootshape_jax.Root or a sequence of them, got {type(root_or_roots).__name__}."
         )
-    roots = list(root_or_roots)
+    roots = [root_or_roots] if single else list(root_or_roots)
     rows = [_root_traits(r, window) for r in roots]
-    n = max((deepest_order(r) for r in roots), default=0) if orders is None else orders
+    if any(is_plant_system(r) for r in roots):
+        rows = [{"name": row.pop("name"), "n_axes": len(_axes(r)), **row} for row, r in zip(rows, roots)]
+    n = max((_lateral_order(r) for r in roots), default=0) if orders is None else orders
     if orders is not None or n >= 2:
         for row, r in zip(rows, roots):
             row.update(order_traits(r, n))
-    return rows
+    return rows[0] if single else rows
 
 
 # Power of length in each trait's unit (None: no unit); the insertion angle is in degrees.

@@ -27,7 +27,7 @@ from jaxtyping import Array, Bool, Float
 
 from ._curves import interpolate_at_fraction, srvf, srvf_to_curve
 from ._errors import CapacityError, InvalidRootError
-from ._root import Root, check_range, coordinate_limit, polyline_length
+from ._root import Root, check_range, coordinate_limit, is_plant_system, polyline_length
 from ._thickness import extended_srvf, integrate_branch, wants_thickness
 from ._traits import deepest_order
 
@@ -672,7 +672,7 @@ def batch(
     capacities = _capacities(counts, depth, max_laterals, max_children)
     if max_laterals is None:
         max_laterals = capacities[0]
-    if explicit_depth or _is_system(roots_list[0]):
+    if explicit_depth or is_plant_system(roots_list[0]):
         # A plant's system at the default depth keeps its axes only: every lateral would be
         # dropped without a word, so plants always get the warning.
         _warn_truncated(roots_list, depth)
@@ -713,16 +713,8 @@ def batch(
     return unstack(tree)[0] if single else tree
 
 
-def _is_system(root: Root) -> bool:
-    """A plant's system: marked by `plant_system`, or a zero-length main root with laterals
-    (a real root never has zero length; a mean or mode of systems has)."""
-    return bool(root.metadata.get("virtual_main")) or (
-        root.n_laterals > 0 and polyline_length(root.main.astype(np.float64)) == 0.0
-    )
-
-
 def _virtual_main(roots: Sequence[Root]) -> bool:
-    flags = [_is_system(r) for r in roots]
+    flags = [is_plant_system(r) for r in roots]
     if any(flags) and not all(flags):
         systems = [_root_label(r, i) for i, r in enumerate(roots) if flags[i]][:3]
         single = [_root_label(r, i) for i, r in enumerate(roots) if not flags[i]][:3]
@@ -796,7 +788,7 @@ def _warn_truncated(roots: Sequence[Root], depth: int) -> None:
         names = ", ".join(_root_label(roots[i], i) for i, _ in left_out[:5])
         more = f" and {len(left_out) - 5} more" if len(left_out) > 5 else ""
         need = 1 + max(deepest_order(roots[i]) for i, _ in left_out)
-        if _is_system(roots[0]):
+        if is_plant_system(roots[0]):
             # Level 1 of a plant's system is its axes: level 2 holds the axes' own laterals.
             what = f"{total} laterals of order {depth - 1} or higher (level 1 of a plant's system is its axes)"
         else:

@@ -100,6 +100,9 @@ def test_traits_end_to_end(rsml_files, tmp_path):
     for row, root in zip(rows, roots):
         assert float(row["main_length_mm"]) == pytest.approx(root.main_length, rel=1e-12)
         assert int(row["n_laterals"]) == root.n_laterals
+    # 2D tracings have no volume: no column of NaN for it.
+    assert {r.dim for r in roots} == {2} and "convex_hull_area_mm2" in rows[0]
+    assert not any(k.startswith("convex_hull_volume") for k in rows[0])
 
 
 def test_traits_samples_subsamples_evenly(tmp_path):

@@ -214,16 +214,25 @@ def test_traits_per_plant_and_per_root(plant_file, tmp_path):
     by_root = read_rsml(plant_file)
     by_plant = read_rsml(plant_file, by="plant")
     assert (len(by_root), len(by_plant)) == (3, 2)
-    proc = run_cli("traits", plant_file, "--per", "plant", "--depth", "3", "--out", tmp_path / "p")
+    # --depth 4 on plants keeps the axes' laterals and theirs: lateral orders 1 … 2 of the axes.
+    proc = run_cli("traits", plant_file, "--per", "plant", "--depth", "4", "--out", tmp_path / "p")
     assert proc.returncode == 0, proc.stderr
     rows = read_csv(tmp_path / "p" / "traits.csv")
-    assert len(rows) == 2
-    # Reference: count by walking Root.children (axes are order 1 of a plant's system).
+    assert len(rows) == 2 and "n_laterals_order3" not in rows[0]
+    # Reference: count by walking Root.children (level 1 of a plant's system is its axes, so
+    # the axes' laterals are order 1 of the plant's traits).
     for row, plant in zip(rows, by_plant):
         counts = count_by_order(plant)
-        assert int(row["n_laterals_order1"]) == counts[1]
-        assert int(row["n_laterals_order2"]) == counts.get(2, 0)
-    assert int(rows[0]["n_laterals_order1"]) == 2
+        assert int(row["n_axes"]) == counts[1]
+        assert int(row["n_laterals"]) == int(row["n_laterals_order1"]) == counts[2]
+        assert int(row["n_laterals_order2"]) == counts.get(3, 0)
+    assert [int(r["n_axes"]) for r in rows] == [2, 1]
+    # Plant B has one axis: its traits are those of that axis read as a single root.
+    proc = run_cli("traits", plant_file, "--depth", "3", "--out", tmp_path / "b")
+    one = read_csv(tmp_path / "b" / "traits.csv")[2]
+    assert {k: v for k, v in rows[1].items() if k not in ("name", "n_axes")} == {
+        k: v for k, v in one.items() if k != "name"
+    }
     proc = run_cli("traits", plant_file, "--depth", "4", "--out", tmp_path / "r")
     assert proc.returncode == 0, proc.stderr
     rows = read_csv(tmp_path / "r" / "traits.csv")

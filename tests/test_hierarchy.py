@@ -362,7 +362,10 @@ def test_read_rsml_by_plant_on_a_hand_built_file(tmp_path):
         t = rs.batch(plants, n_points=10, depth=4, dtype=np.float64)
     assert [int(x) for x in t.mask.sum(1)] == [2, 1]
     assert int(t.deeper[0].mask.sum()) == 2 and int(t.deeper[1].mask.sum()) == 1
-    assert rs.traits(a)["n_laterals_order3"] == 1
+    # Traits count orders from the axes: the order-3 root of the file is their order 2.
+    row = rs.traits(a)
+    assert (row["n_axes"], row["n_laterals_order1"], row["n_laterals_order2"]) == (2, 2, 1)
+    assert "n_laterals_order3" not in row
     with pytest.raises(ValueError, match="by must be"):
         read_rsml(path, by="axis")
     # Written back as the axes of one plant, read back identically either way.

@@ -329,6 +329,20 @@ def test_run_extract_writes_rsml_and_overlay_and_skips_bad(tmp_path):
     (r,) = read_rsml(tmp_path / "mm" / "p1.rsml")
     assert r.metadata["unit"] == "mm"
     assert r.main_length == pytest.approx(polyline_length(mains["p1"][0]) / 20.0, rel=0.05)
+    # pixel_size in a unit (as the other commands' --pixel-size): the same roots, in that unit.
+    extract_images([src / "p1.png"], tmp_path / "cm", pixel_size=0.005, unit="cm", progress=False)
+    (r_cm,) = read_rsml(tmp_path / "cm" / "p1.rsml")
+    assert r_cm.metadata["unit"] == "cm"
+    np.testing.assert_allclose(r_cm.main * 10.0, r.main, rtol=1e-6)
+    # The overlay is drawn in pixels either way (the same lines, up to anti-aliasing of rounding).
+    import skimage.io
+
+    cm_png, mm_png = (skimage.io.imread(tmp_path / d / "p1_overlay.png").astype(float) for d in ("cm", "mm"))
+    assert cm_png.shape == mm_png.shape and np.mean(np.abs(cm_png - mm_png)) < 0.01
+    with pytest.raises(ValueError, match="not both"):
+        extract_images([src / "p1.png"], tmp_path / "x", pixels_per_mm=20.0, pixel_size=0.05, progress=False)
+    with pytest.raises(ValueError, match="unknown length unit 'furlong'"):
+        extract_images([src / "p1.png"], tmp_path / "x", pixel_size=0.05, unit="furlong", progress=False)
     # A missing file is named and skipped like a bad one; an empty folder is an error.
     with pytest.warns(UserWarning, match="missing.png"):
         (row,) = extract_images([tmp_path / "missing.png"], tmp_path / "o2", progress=False)
@@ -392,3 +406,16 @@ def test_cli_extract_writes_rsml_overlay_and_names_a_bad_image(tmp_path):
     # Hand tracings in the --out folder would be written over before being read: refused.
     proc = subprocess.run(cmd + ["--overwrite", "--tracing", str(out)], capture_output=True, text=True, timeout=600)
     assert proc.returncode != 0 and "hand tracings are in --out" in proc.stderr and "Traceback" not in proc.stderr
+    # --pixel-size with --unit, as in the other commands; clear errors for the wrong pairings.
+    proc = subprocess.run(
+        cmd + ["--overwrite", "--pixel-size", "0.1", "--unit", "cm"], capture_output=True, text=True, timeout=600
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (cm,) = read_rsml(out / "good.rsml")
+    assert cm.metadata["unit"] == "cm" and cm.main_length == pytest.approx(roots[0].main_length * 0.1, rel=1e-6)
+    for extra, words in (
+        (["--pixel-size", "0.1", "--pixels-per-mm", "10"], "not both"),
+        (["--unit", "cm"], "give --pixel-size too"),
+    ):
+        proc = subprocess.run(cmd + ["--overwrite", *extra], capture_output=True, text=True, timeout=600)
+        assert proc.returncode != 0 and words in proc.stderr and "Traceback" not in proc.stderr

@@ -240,3 +240,39 @@ def test_csv_round_trip(tmp_path):
     traits_to_csv(rows[0], tmp_path / "one.csv")
     with open(tmp_path / "one.csv", newline="") as f:
         assert len(list(csv.DictReader(f))) == 1
+
+
+def test_plant_systems_are_described_as_plants():
+    """A plant's system (axes under a zero-length virtual main root) is described by its axes:
+    main = the longest axis, laterals = every axis's laterals, totals over the whole plant;
+    a plant of one axis has exactly the traits of that axis (issue 21's review: they were 0,
+    NaN and the axes counted as laterals)."""
+    from rootshape_jax.io import plant_system
+
+    axes = synthetic_roots(3, seed=7, dim=2, segment_length=6.0)
+    plant = plant_system(axes, name="p")
+    row = traits(plant)
+    lens = [sum(np.linalg.norm(np.diff(a.main, axis=0), axis=1)) for a in axes]
+    lat_lens = [sum(np.linalg.norm(np.diff(lat, axis=0), axis=1)) for a in axes for lat in a.laterals]
+    primary = axes[int(np.argmax(lens))]
+    pts = np.concatenate([p for a in axes for p in (a.main, *a.laterals)])
+    assert row["n_axes"] == 3 and list(row)[:3] == ["name", "n_axes", "main_length"]
+    assert row["main_length"] == pytest.approx(max(lens), rel=1e-12)
+    assert row["main_tortuosity"] == pytest.approx(traits(primary)["main_tortuosity"], rel=1e-12)
+    assert row["n_laterals"] == len(lat_lens) == sum(a.n_laterals for a in axes)
+    assert row["lateral_density"] == pytest.approx(len(lat_lens) / sum(lens), rel=1e-12)
+    assert row["mean_lateral_length"] == pytest.approx(np.mean(lat_lens), rel=1e-12)
+    assert row["std_lateral_length"] == pytest.approx(np.std(lat_lens), rel=1e-12)
+    assert row["total_length"] == pytest.approx(sum(lens) + sum(lat_lens), rel=1e-12)
+    angles = np.concatenate([insertion_angles(a) for a in axes])
+    assert row["mean_insertion_angle"] == pytest.approx(np.nanmean(angles), rel=1e-12)
+    assert row["depth"] == pytest.approx(pts[:, 1].max() - pts[:, 1].min(), rel=1e-12)
+    assert row["width"] == pytest.approx(pts[:, 0].max() - pts[:, 0].min(), rel=1e-12)
+    assert row["convex_hull_area"] == pytest.approx(_shoelace_hull_area(pts), rel=1e-10)
+    # One axis: the axis's own traits, plus n_axes = 1.
+    one = traits(plant_system(axes[:1], name=axes[0].name))
+    assert one.pop("n_axes") == 1 and one == traits(axes[0])
+    # A table mixing plants and single roots stays rectangular; single roots have one axis.
+    rows = traits([plant, axes[1]])
+    assert list(rows[0]) == list(rows[1]) and rows[1]["n_axes"] == 1
+    assert "n_axes" not in traits(axes)[0]

@@ -119,6 +119,10 @@ def cmd_extract(args) -> None:
     from rootshape_jax.io import extract_images
     from rootshape_jax.io._extract_cli import expand_images
 
+    if args.pixel_size is not None and args.pixels_per_mm is not None:
+        raise CLIError("give --pixels-per-mm or --pixel-size (with --unit), not both.")
+    if args.unit is not None and args.pixel_size is None:
+        raise CLIError(f"--unit {args.unit}: it is the unit of --pixel-size; give --pixel-size too.")
     out_dir = Path(args.out)
     stems = {p.stem for p in expand_images(args.images)}
     for t in map(Path, args.tracing or ()):
@@ -152,6 +156,8 @@ def cmd_extract(args) -> None:
             args.out,
             tracing=args.tracing,
             pixels_per_mm=args.pixels_per_mm,
+            pixel_size=args.pixel_size,
+            unit=args.unit or "mm",
             progress=not args.quiet,
             elastic=args.elastic,
             **options,

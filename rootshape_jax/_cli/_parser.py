@@ -566,6 +566,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="image scale; the RSML is then written in mm",
     )
     p.add_argument(
+        "--pixel-size",
+        dest="pixel_size",
+        type=_positive_float,
+        metavar="SIZE",
+        help="length of one image pixel in --unit (instead of --pixels-per-mm, as in the other commands); "
+        "the RSML is then written in that unit",
+    )
+    p.add_argument("--unit", metavar="UNIT", default=None, help="unit of --pixel-size (default mm)")
+    p.add_argument(
         "--root-width",
         dest="root_width",
         type=_positive_float,

@@ -14,7 +14,7 @@ import numpy as np
 
 import rootshape_jax as rs
 from rootshape_jax._tree import normalising_length
-from rootshape_jax.io import NORMALISED_UNIT, unit_label
+from rootshape_jax.io import NORMALISED_UNIT, is_plant_system, unit_label
 
 from ._common import PAPER_TRAITS, CLIError, fmt, make_weights, say, ticking, warn
 from ._inputs import (
@@ -447,9 +447,15 @@ def run_traits(roots: list, out: Output, args) -> None:
                 "--unit, or analyse them separately."
             )
         rows = []
-        # --depth D: per-order columns for lateral orders 1 … D−1 (default: the deepest present).
+        # --depth D: per-order columns for the lateral orders the analysis keeps (default: the
+        # deepest present): 1 … D−1, or 1 … D−2 for plants, whose level 1 is their axes.
         depth = getattr(args, "depth", None)
-        for r, root in zip(rs.traits(roots, orders=None if depth is None else depth - 1), roots):
+        plants = any(is_plant_system(r) for r in roots)
+        orders = None if depth is None else max(depth - (2 if plants else 1), 0)
+        flat = all(root.dim == 2 for root in roots)
+        for r, root in zip(rs.traits(roots, orders=orders), roots):
+            if flat:
+                del r["convex_hull_volume"]  # NaN for every 2D tracing: no column
             for key in ("condition", *root.metadata.get("label_columns", ()), "unit", "source_file"):
                 if key in root.metadata:
                     r[key] = root.metadata[key]
@@ -458,13 +464,18 @@ def run_traits(roots: list, out: Output, args) -> None:
         out.write("traits.csv", lambda p: write_dict_csv(p, rows))
         show = [
             rs.trait_column(k, unit)
-            for k in ("name", "main_length", "n_laterals", "mean_lateral_length", "total_length", "depth", "width")
+            for k in ("name", *(("n_axes",) if plants else ()), "main_length", "n_laterals", "mean_lateral_length")
+            + ("total_length", "depth", "width")
         ]
         out.file(
             sec,
             "traits.csv",
-            f"architecture traits of the {len(rows)} input roots (lengths in {unit_label(unit)}; column names "
-            "carry the unit)",
+            f"architecture traits of the {len(rows)} input {'plants' if plants else 'roots'} "
+            + (
+                f"(lengths in {unit_label(unit)}; column names carry the unit)"
+                if unit is not None
+                else "(the roots are in different units: each row's lengths are in its unit column)"
+            ),
             "table",
             html_table(show, [[r[k] for k in show] for r in rows], max_rows=10),
         )

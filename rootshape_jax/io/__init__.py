@@ -1,5 +1,6 @@
 """Reading and writing root systems: RSML files, folders, scanned images, metadata tables."""
 
+from .._root import is_plant_system as is_plant_system
 from ._compare import (
     PlantComparison as PlantComparison,
     TracingComparison as TracingComparison,
@@ -25,7 +26,6 @@ from ._metadata import (
     read_metadata as read_metadata,
 )
 from ._rsml import (
-    is_plant_system as is_plant_system,
     plant_system as plant_system,
     read_rsml as read_rsml,
     write_rsml as write_rsml,

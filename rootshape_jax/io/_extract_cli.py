@@ -17,6 +17,7 @@ import numpy as np
 
 from .._errors import ImageError, RSMLError
 from .._root import Root
+from ._units import _known
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 _COLOURS = ("#e41a1c", "#ff7f00", "#ffff33", "#4daf4a", "#f781bf", "#a65628", "#984ea3", "#00e5ff")
@@ -98,6 +99,8 @@ def extract_images(
     *,
     tracing: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
     pixels_per_mm: float | None = None,
+    pixel_size: float | None = None,
+    unit: str = "mm",
     progress: bool = True,
     elastic: bool = False,
     **options,
@@ -110,7 +113,8 @@ def extract_images(
     - `out`: output folder (created).
     - `tracing`: hand tracings to draw and score against: an RSML file, a folder of
       ``<stem>.rsml`` files, or a list of RSML files matched by stem.
-    - `pixels_per_mm`: image scale; the RSML is then written in mm.
+    - `pixels_per_mm`: image scale; the RSML is then written in mm. Or `pixel_size`: the length
+      of one pixel in `unit` (default mm), the RSML then written in `unit`. Default: pixels.
     - `progress`: show a progress bar.
     - `elastic`: with a tracing, also compute each matched plant's elastic distance to it
       (`compare_to_tracing(elastic=True)`); otherwise that field is null in summary.json.
@@ -132,14 +136,23 @@ def extract_images(
     files = expand_images(images)
     if not files:
         raise FileNotFoundError(f"no image files in {list(map(str, images))} (looked for {', '.join(IMAGE_SUFFIXES)}).")
+    if pixels_per_mm is not None and pixel_size is not None:
+        raise ValueError("give pixels_per_mm or pixel_size, not both.")
+    # Pixels per output unit: the overlay and the tracing comparison work in pixels.
     scale = 1.0 if pixels_per_mm is None else float(pixels_per_mm)
+    scaled = {"pixels_per_mm": pixels_per_mm}
+    if pixel_size is not None:
+        if not (math.isfinite(pixel_size) and pixel_size > 0):
+            raise ValueError(f"pixel_size must be a positive number, got {pixel_size!r}.")
+        _known(unit)  # an unknown unit fails here, not once per image
+        scale, scaled = 1.0 / float(pixel_size), {"pixel_size": pixel_size, "unit": unit}
     rows = []
     bar = tqdm(files, desc="extract", unit="image", disable=not progress)
     for path in bar:
         bar.set_postfix_str(path.name)
         row: dict = {"image": str(path), "status": "ok", "reason": None}
         try:
-            roots = roots_from_image(path, pixels_per_mm=pixels_per_mm, **options)
+            roots = roots_from_image(path, **scaled, **options)
         except (ImageError, OSError, ValueError) as e:
             reason = str(e) if str(path) in str(e) else f"{path}: {e}"
             warnings.warn(f"skipped {path.name}: {reason}", stacklevel=2)

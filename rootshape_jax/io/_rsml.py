@@ -29,7 +29,7 @@ import numpy as np
 from defusedxml import DefusedXmlException, ElementTree as DET
 
 from .._errors import InvalidRootError, RSMLError, RSMLWarning
-from .._root import ROOT_COORDINATE_LIMIT, Root, check_range, polyline_length
+from .._root import ROOT_COORDINATE_LIMIT, Root, check_range, is_plant_system
 
 _PO_NS = "http://www.plantontology.org/xml-dtd/po.dtd"
 _PIXEL_UNITS = ("pixel", "pixels", "px")
@@ -756,12 +756,6 @@ def plant_system(axes: Sequence[Root], *, name: str = "", metadata: dict | None 
             else None
         ),
     )
-
-
-def is_plant_system(root: Root) -> bool:
-    """True for a plant's system with a virtual main root (`plant_system`): a main root of
-    zero length with laterals (a real root read from a file never has zero length)."""
-    return root.n_laterals > 0 and polyline_length(root.main) == 0.0
 
 
 def _axes_of(r: Root) -> list[tuple]:
