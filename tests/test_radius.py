@@ -378,3 +378,26 @@ def test_simulated_roots_keep_cplantbox_radii():
         np.testing.assert_array_equal(child.main_radius, rad)
     tree = batch(root, n_points=30)
     assert float(tree.main_radius[0]) == pytest.approx(10.0 * tap.getParameter("radius"), rel=1e-6)
+
+
+def test_cli_speaks_of_radii_only_when_the_metric_weighs_them(rng, tmp_path):
+    """A folder mixing files with and without diameters: at the default weights (no thickness
+    term) the missing radii do not matter and are not reported; with a thickness weight they
+    are. A thickness weight on files without any diameter says it has no effect."""
+    from helpers import run_cli
+
+    folder = tmp_path / "mixed"
+    folder.mkdir()
+    write_rsml([with_radii(random_root(rng, n_laterals=2), rng)], folder / "thick.rsml", unit="mm")
+    write_rsml([random_root(rng, n_laterals=2)], folder / "thin.rsml", unit="mm")
+    common = ("distances", folder, "--points", 12, "--quiet")
+    proc = run_cli(*common, "--out", tmp_path / "a")
+    assert proc.returncode == 0, proc.stderr
+    assert "radius" not in proc.stderr and "radii" not in proc.stderr, proc.stderr
+    proc = run_cli(*common, "--weights", "0.02,1,1,1", "--out", tmp_path / "b")
+    assert proc.returncode == 0, proc.stderr
+    assert "has no radius data; its radius is taken as 0" in proc.stderr, proc.stderr
+    write_rsml([random_root(rng, n_laterals=2)], folder / "thick.rsml", unit="mm")  # now without
+    proc = run_cli(*common, "--weights", "0.02,1,1,1", "--out", tmp_path / "c")
+    assert proc.returncode == 0, proc.stderr
+    assert "no root has radius data" in proc.stderr and "the thickness term is 0" in proc.stderr, proc.stderr

@@ -176,6 +176,12 @@ def test_cli_mean_rsml_is_in_the_data_frame_and_unit(tmp_path, normalise):
     (mean,) = io.read_rsml(out / "mean.rsml")
     assert mean.metadata["unit"] == "mm"
     check_mean_in_place(back, mean.main, real_size=True)
+    if normalise == "--normalise-scale":
+        # The normalised mean (shorter than 1: averaging shrinks) gets the inputs' mean length.
+        from rootshape_jax._tree import normalising_length
+
+        size = np.mean([normalising_length(r, T) for r in back])
+        assert mean.main_length == pytest.approx(size, rel=1e-4)
 
 
 def run_cli(*args) -> subprocess.CompletedProcess:

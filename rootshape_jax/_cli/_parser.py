@@ -84,8 +84,8 @@ def _weights(text: str):
     ok = 3 <= len(values) <= len(names) and all(math.isfinite(v) and v >= 0 for v in values) and sum(values) > 0
     if not ok:
         raise argparse.ArgumentTypeError(
-            f"expected {len(names) - 1} or {len(names)} non-negative numbers {','.join(names)} "
-            f"(e.g. 0.02,1,1 or 0.02,1,1,0.5), got {text!r}"
+            f"expected {len(names) - 1} or {len(names)} non-negative numbers {','.join(names)}, not all "
+            f"zero (e.g. 0.02,1,1 or 0.02,1,1,0.5), got {text!r}"
         )
     return tuple(values) + tuple(t.default_weight for t in rs.TERMS[len(values) :])
 

@@ -23,6 +23,7 @@ from ._inputs import (
     covariate_columns,
     covariate_matrix,
     in_input_units,
+    mean_size,
     prepare,
     to_output_roots,
 )
@@ -155,7 +156,7 @@ def run_mean(ctx: Context, out: Output, args) -> None:
             )
         ctx.mean = km
         trace = np.asarray(km.energy_trace, dtype=np.float64)
-        mean_roots = to_output_roots(in_input_units(rs.stack([km.mean]), pop), pop, ["mean"])
+        mean_roots = to_output_roots(in_input_units(rs.stack([km.mean]), pop, mean_size(km.mean, pop)), pop, ["mean"])
         out.rsml(sec, mean_roots, "mean.rsml", "the mean root (RSML)", unit=pop.unit)
         out.csv(
             sec, "mean_energy.csv", ["step", "energy"], list(enumerate(trace)), "Karcher energy F(μ) after each step"
@@ -251,7 +252,7 @@ def run_sample(ctx: Context, out: Output, args) -> None:
         sigma = np.asarray(pc.eigenvalues, np.float64)[:m]
         d = np.sqrt(np.sum(np.asarray(b, np.float64) ** 2 * sigma, axis=1))
         names = [f"random_{i:03d}" for i in range(n)]
-        roots = to_output_roots(in_input_units(trees, pop), pop, names)
+        roots = to_output_roots(in_input_units(trees, pop, mean_size(ctx.mean.mean, pop)), pop, names)
         out.rsml(sec, roots, "random_roots.rsml", f"{n} random roots (RSML)", unit=pop.unit)
         out.csv(
             sec,
