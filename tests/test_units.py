@@ -181,6 +181,42 @@ def test_cli_unit_mm_on_pixels_without_resolution_is_one_line(tmp_path):
     assert len(lines) == 1 and "coordinates are in pixels with no physical resolution" in lines[0], proc.stderr
 
 
+def test_pixel_size_puts_pixel_tracings_in_a_unit(tmp_path):
+    """RSML tracings in pixels without a resolution (RootNav, RhizoScan) take the pixel size
+    given, as images do; files with their own unit and resolution keep them."""
+    roots = in_unit(synthetic_roots(2, seed=2), "pixel")
+    io.write_rsml(roots, tmp_path / "px.rsml")
+    io.write_rsml(in_unit(synthetic_roots(1, seed=3), "inch"), tmp_path / "own.rsml", unit="inch", resolution=100.0)
+    raw = io.read_folder(tmp_path)
+    mm = io.read_folder(tmp_path, pixel_size=0.05)
+    cm = io.read_folder(tmp_path, pixel_size=0.005, unit="cm")
+    by = {r.metadata["source_file"]: i for i, r in enumerate(raw)}
+    own = by[str(tmp_path / "own.rsml")]
+    pixel = [i for i in range(len(raw)) if raw[i].metadata["unit"] == "pixel"]
+    assert len(pixel) == 2
+    for i in pixel:
+        assert mm[i].metadata["unit"] == "mm" and cm[i].metadata["unit"] == "cm"
+        np.testing.assert_allclose(mm[i].main, 0.05 * raw[i].main, rtol=1e-12)
+        np.testing.assert_allclose(cm[i].main, 0.005 * raw[i].main, rtol=1e-12)
+        np.testing.assert_allclose(mm[i].lateral_lengths, 0.05 * raw[i].lateral_lengths, rtol=1e-12)
+        # Written back, the file's pixels and its new resolution give the same coordinates.
+        io.write_rsml([mm[i]], tmp_path / "back.out")
+        (again,) = io.read_rsml(tmp_path / "back.out")
+        np.testing.assert_allclose(again.main, mm[i].main, rtol=1e-6)
+    assert mm[own].metadata["unit"] == "inch"  # its own <unit> and <resolution>
+    np.testing.assert_allclose(mm[own].main, raw[own].main)
+    np.testing.assert_allclose(cm[own].main, 2.54 * raw[own].main, rtol=1e-12)  # --unit still converts
+    # From the command line: trait columns in mm, lengths scaled.
+    d = tmp_path / "only_px"
+    d.mkdir()
+    io.write_rsml(roots, d / "px.rsml")
+    proc = run_cli("traits", d, "--pixel-size", "0.05", "--out", tmp_path / "o")
+    assert proc.returncode == 0, proc.stderr
+    with open(tmp_path / "o" / "traits.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [float(r["main_length_mm"]) for r in rows] == pytest.approx([0.05 * r.main_length for r in roots], rel=1e-9)
+
+
 @pytest.mark.skipif(not (SHARED / "smartroot" / "lupin.rsml").is_file(), reason="shared data absent")
 def test_real_smartroot_inches_to_mm():
     lupin = io.read_rsml(SHARED / "smartroot" / "lupin.rsml")

@@ -105,6 +105,13 @@ def _level_weights(text: str) -> tuple[tuple[float, float], ...]:
     return pairs
 
 
+PIXEL_SIZE_HELP = (
+    "length of one pixel, for images and for RSML tracings stored in pixels without a resolution "
+    "(RootNav, RhizoScan, ...), e.g. 0.0423 for 600 dpi in mm; their lengths are then in --unit "
+    "(default mm). Files with their own <unit> and <resolution> keep them. Default: keep pixels"
+)
+
+
 def _add_system_options(p: argparse.ArgumentParser) -> None:
     """What one root system is and how many orders of laterals the analysis keeps."""
     g = p.add_argument_group("whole root systems")
@@ -175,12 +182,12 @@ def _add_common(p: argparse.ArgumentParser, *, inputs: bool = True, default_out:
             help="condition of the synthetic roots: control, drought, high_nitrate, "
             "low_phosphate (repeat for several; default control)",
         )
-        img = p.add_argument_group("images")
+        img = p.add_argument_group("units")
         img.add_argument(
             "--pixel-size",
             type=_positive_float,
             metavar="SIZE",
-            help="length of one image pixel (e.g. 0.0423 for 600 dpi in mm); default: keep pixels",
+            help=PIXEL_SIZE_HELP,
         )
         img.add_argument(
             "--unit",
@@ -401,9 +408,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--root-b", type=int, default=0, metavar="I", help="which root of file B (0 = first)")
     _add_geodesic_options(p)
     _add_common(p, inputs=False)
-    img = p.add_argument_group("images")
-    img.add_argument("--pixel-size", type=_positive_float, metavar="SIZE", help="length of one image pixel")
-    img.add_argument("--unit", metavar="UNIT", help="unit of --pixel-size (default mm)")
+    img = p.add_argument_group("units")
+    img.add_argument("--pixel-size", type=_positive_float, metavar="SIZE", help=PIXEL_SIZE_HELP)
+    img.add_argument(
+        "--unit",
+        metavar="UNIT",
+        help="convert both roots to UNIT (mm, cm, m, um, inch); also the unit of --pixel-size (default mm)",
+    )
     _add_system_options(p)
 
     p = add(

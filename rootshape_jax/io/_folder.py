@@ -13,7 +13,7 @@ from .._errors import InputError, RootShapeError, RSMLError, RSMLWarning
 from .._root import Root
 from ._image import roots_from_image
 from ._rsml import read_rsml
-from ._units import convert_units
+from ._units import PIXEL_UNITS, convert_units
 
 RSML_SUFFIXES = (".rsml",)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
@@ -99,7 +99,9 @@ def read_root_file(
 
     Parts of an RSML file that cannot be read are summarised in one `notice` line (full text
     in ``report.log``); a file with nothing readable raises `RSMLError` with the precise reason.
-    Images use `pixel_size` (length of a pixel in `unit`, default mm) when given.
+    `pixel_size` (length of a pixel in `unit`, default mm), when given, puts images and RSML
+    roots in pixels without a physical resolution (RootNav, RhizoScan, ...) in `unit`; RSML
+    files with their own ``<unit>`` and ``<resolution>`` keep them.
     """
     path = Path(path)
     notice = _default_notice if notice is None else notice
@@ -123,6 +125,8 @@ def read_root_file(
                 f"{path}: {short_reason(str(caught[0].message), path)}"
                 + (f" and {len(caught) - 1} more warning(s)" if len(caught) > 1 else ""),
             )
+        if pixel_size is not None:
+            roots = [_with_pixel_size(r, pixel_size, unit or "mm") for r in roots]
     elif suffix in IMAGE_SUFFIXES:
         roots = roots_from_image(path, pixel_size=pixel_size, unit=(unit or "mm") if pixel_size else "pixel")
     else:
@@ -136,6 +140,16 @@ def read_root_file(
     for i, r in enumerate(roots):
         name = r.name or (path.stem if len(roots) == 1 else f"{path.stem}_{i}")
         out.append(dataclasses.replace(r, name=name, metadata=dict(r.metadata, source_file=str(path))))
+    return out
+
+
+def _with_pixel_size(root: Root, pixel_size: float, unit: str) -> Root:
+    """A root in pixels with no physical resolution, in `unit` through the pixel size given
+    (pixels per `unit` = 1 / `pixel_size`); any other root as it is."""
+    if str(root.metadata.get("unit")).lower() not in PIXEL_UNITS:
+        return root
+    meta = dict(root.metadata, file_unit=unit, resolution=1.0 / float(pixel_size))
+    (out,) = convert_units(dataclasses.replace(root, metadata=meta), unit)
     return out
 
 
@@ -250,7 +264,8 @@ def read_folder(
       file in a folder is skipped with one `RSMLWarning` naming it and its reason.
     - `unit`: convert every root to this length unit (``"mm"``, ``"cm"``, ``"inch"``, ...) with
       `convert_units`; default: keep each file's unit (``metadata["unit"]``).
-    - `pixel_size`: images only: the length of one pixel, in `unit` (mm by default).
+    - `pixel_size`: the length of one pixel, in `unit` (mm by default), for images and for RSML
+      roots in pixels without a physical resolution.
     - `report`: a `ReadReport` to fill with counts, skipped files and the full messages.
 
     **Returns** a list of `Root`: names made unique across files, ``metadata["source_file"]``

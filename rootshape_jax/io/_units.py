@@ -86,8 +86,8 @@ def convert_units(roots: Root | Sequence[Root], unit: str) -> list[Root]:
                 raise UnitError(
                     f"{where}: coordinates are in pixels with no physical resolution, so they cannot "
                     f"be converted to {unit}. Add <unit> and <resolution> (pixels per unit) to the "
-                    "file's <metadata>, give images a pixel size (--pixel-size), or leave out the "
-                    "unit option to keep pixels."
+                    "file's <metadata>, give the pixel size (--pixel-size, or pixel_size= when "
+                    "reading), or leave out the unit option to keep pixels."
                 )
             factor = MM_PER_UNIT[_known(str(file_unit))] / float(resolution) / MM_PER_UNIT[target]
         else:
