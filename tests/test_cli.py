@@ -105,6 +105,29 @@ def test_traits_end_to_end(rsml_files, tmp_path):
     assert not any(k.startswith("convex_hull_volume") for k in rows[0])
 
 
+def test_traits_angle_window_on_pixel_tracings(tmp_path):
+    """Pixel tracings: the first-segment insertion angles are coarse, and the run says how to
+    measure them over a chord; --angle-window gives the library's chord angles."""
+    roots = [dataclasses.replace(r, metadata={"unit": "pixel"}) for r in synthetic_roots(2, seed=4)]
+    roots = [r.scaled(200.0) for r in roots]  # a main root of ~200 px
+    folder = tmp_path / "px"
+    folder.mkdir()
+    write_rsml(roots, folder / "px.rsml")
+    back = read_rsml(folder / "px.rsml")
+    proc = run_cli("traits", folder, "--out", tmp_path / "a")
+    assert proc.returncode == 0, proc.stderr
+    assert "--angle-window" in proc.stderr
+    proc = run_cli("traits", folder, "--angle-window", 20, "--out", tmp_path / "b")
+    assert proc.returncode == 0, proc.stderr
+    assert "--angle-window" not in proc.stderr, proc.stderr
+    with open(tmp_path / "b" / "traits.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    want = [t["mean_insertion_angle"] for t in rs.traits(back, window=20.0)]
+    first = [t["mean_insertion_angle"] for t in rs.traits(back)]
+    assert [float(r["mean_insertion_angle_deg"]) for r in rows] == pytest.approx(want, rel=1e-12)
+    assert want != pytest.approx(first, rel=1e-6)  # the option changes what is measured
+
+
 def test_traits_samples_subsamples_evenly(tmp_path):
     out = tmp_path / "out"
     proc = run_cli(
@@ -204,6 +227,32 @@ def test_bad_requested_csv_fails_before_computing(rsml_files, tmp_path):
     req.write_text("main_length,foo\n1,2\n")
     proc = run_cli("regress", rsml_files, "--requested", req, "--out", tmp_path / "o")
     assert_one_line_error(proc, "req.csv", "mean_lateral_length")
+
+
+@pytest.mark.slow
+def test_regress_says_when_requested_traits_are_out_of_range_or_missed(tmp_path):
+    """Requested traits outside the inputs' range are named; a trait the predicted roots miss by
+    more than REGRESSION_MISS on average is reported, and only then (checked against the CSV)."""
+    from rootshape_jax._cli._steps import REGRESSION_MISS
+
+    req = tmp_path / "req.csv"
+    # The 6 synthetic roots' ranges: main 95-131 mm, mean lateral 26-41 mm, std 2.2-6.2 mm.
+    req.write_text("main_length,mean_lateral_length,std_lateral_length\n110,30,4\n110,900,4\n")
+    out = tmp_path / "o"
+    proc = run_cli(
+        "regress", "--synthetic", 6, "--points", 20, "--laterals", 4, "--max-steps", 3, "--requested", req,
+        "--quiet", "--out", out,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert "outside the inputs' range: mean_lateral_length 900" in proc.stderr, proc.stderr
+    assert "mean_lateral_length 30 " not in proc.stderr and "main_length 110" not in proc.stderr
+    with open(out / "predicted_roots.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    for name in ("main_length", "mean_lateral_length", "std_lateral_length"):
+        asked = np.array([float(r[f"requested_{name}_mm"]) for r in rows])
+        got = np.array([float(r[f"measured_{name}_mm"]) for r in rows])
+        missed = np.mean(np.abs(got - asked) / asked) > REGRESSION_MISS
+        assert (f"miss the requested {name.replace('_', ' ')}" in proc.stderr) == missed, (name, proc.stderr)
 
 
 @pytest.mark.parametrize(

@@ -549,6 +549,15 @@ def build_parser() -> argparse.ArgumentParser:
         cmd_traits,
     )
     _add_common(p)
+    p.add_argument(
+        "--angle-window",
+        dest="angle_window",
+        type=_positive_float,
+        metavar="LENGTH",
+        help="insertion angles from chords of this arc length (in the roots' unit): the lateral "
+        "from its base to LENGTH along it, the parent over LENGTH around the branching point. "
+        "Default: each lateral's first segment, coarse on pixel tracings (steps of a few pixels)",
+    )
 
     p = add(
         "extract",

@@ -178,12 +178,13 @@ def run_mean(ctx: Context, out: Output, args) -> None:
         fig, _ = plot_energy_trace(trace)
         out.figure(sec, fig, "mean_energy.png", "mean squared distance to the mean at each solver step (must fall)")
         n_drop = int(np.sum(np.asarray(km.dropped)))
+        n_kept = int(np.sum(np.asarray(km.mean.mask)))
+        branch = ("axis", "axes") if pop.tree.virtual_main else ("lateral", "laterals")
         sec.notes.append(
             f"{int(km.steps)} steps, final energy {fmt(trace[-1])} (start {fmt(trace[0])}); "
             f"started from root {pop.names[km.init_index]!r} (a central root: the medoid, or of several "
             f"central starts the one whose warm-up reached the lowest energy); {n_drop} near-empty "
-            f"slots dropped; mean has {int(np.sum(np.asarray(km.mean.mask)))} "
-            + ("axes." if pop.tree.virtual_main else "laterals.")
+            f"slot{'s' * (n_drop != 1)} dropped; mean has {n_kept} {branch[n_kept != 1]}."
         )
         if not bool(np.asarray(km.result == optx.RESULTS.successful)):
             sec.notes.append(f"the solver stopped at the step limit ({args.max_steps}) before converging.")
@@ -280,6 +281,11 @@ def trait_matrix(roots, names: Sequence[str] = PAPER_TRAITS) -> np.ndarray:
     return np.array([[float(r[k]) for k in names] for r in rs.traits(roots)], dtype=np.float64)
 
 
+#: Mean relative miss of a requested trait, measured on the predicted roots, above which
+#: `regress` says the roots do not have the traits asked for.
+REGRESSION_MISS = 0.25
+
+
 def run_regress(ctx: Context, out: Output, args) -> None:
     from rootshape_jax.plot import plot_regression_sweep
 
@@ -324,6 +330,20 @@ def run_regress(ctx: Context, out: Output, args) -> None:
 
         if getattr(args, "requested_values", None) is not None:
             values, vary = args.requested_values, None
+            lo, hi = P.min(axis=0), P.max(axis=0)
+            outside = [
+                f"{name} {v:.4g} (the inputs' range: {lo[j]:.4g} to {hi[j]:.4g})"
+                for j, name in enumerate(names_all)
+                for v in values[:, j]
+                if not lo[j] <= v <= hi[j]
+            ]
+            if outside:
+                warn(
+                    f"requested traits outside the inputs' range: {'; '.join(outside[:5])}"
+                    + (f"; and {len(outside) - 5} more" if len(outside) > 5 else "")
+                    + ". The linear model extrapolates there; compare the requested and measured columns "
+                    "of predicted_roots.csv."
+                )
         else:
             # Sweep one trait from its 10th to its 90th percentile, the others at their median.
             vary = PAPER_TRAITS.index(args.vary)
@@ -339,6 +359,17 @@ def run_regress(ctx: Context, out: Output, args) -> None:
             unit=pop.unit,
         )
         measured = trait_matrix(roots)
+        for j, name in enumerate(PAPER_TRAITS):
+            if vary is not None and j != vary:
+                continue  # traits held at their median are not requested
+            miss = float(np.mean(np.abs(measured[:, j] - values[:, j]) / np.maximum(np.abs(values[:, j]), 1e-12)))
+            if miss > REGRESSION_MISS:
+                warn(
+                    f"the predicted roots miss the requested {name.replace('_', ' ')} by {100 * miss:.0f} % on "
+                    f"average (requested vs measured in predicted_roots.csv; on the input roots the model "
+                    f"reproduces it with R² {report[j][1]:.2f}): treat these roots as the model's trend, "
+                    "not as roots with those traits."
+                )
         rows = [[n] + list(v) + list(m) for n, v, m in zip(names, values, measured)]
         header = (
             ["root"]
@@ -454,7 +485,14 @@ def run_traits(roots: list, out: Output, args) -> None:
         plants = any(is_plant_system(r) for r in roots)
         orders = None if depth is None else max(depth - (2 if plants else 1), 0)
         flat = all(root.dim == 2 for root in roots)
-        for r, root in zip(rs.traits(roots, orders=orders), roots):
+        window = getattr(args, "angle_window", None)
+        if window is None and unit is not None and unit.lower() in ("pixel", "pixels", "px"):
+            warn(
+                "insertion angles come from each lateral's first segment, a few pixels long on pixel "
+                "tracings, so they take few values (e.g. 45, 90 degrees); set --angle-window (e.g. 20, "
+                "in pixels) to measure them over a chord, or --pixel-size to work in mm."
+            )
+        for r, root in zip(rs.traits(roots, orders=orders, window=window), roots):
             if flat:
                 del r["convex_hull_volume"]  # NaN for every 2D tracing: no column
             for key in ("condition", *root.metadata.get("label_columns", ()), "unit", "source_file"):
