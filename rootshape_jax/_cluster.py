@@ -61,6 +61,19 @@ class Clustering:
         return int(self.labels.max()) + 1 if self.labels.size else 0
 
 
+#: Roots up to which the leaves are put in optimal order (adjacent leaves as close as possible);
+#: it costs O(N³). The heat maps (`plot.plot_distance_matrix`) order by the same linkage.
+MAX_OPTIMAL_ORDERING = 300
+
+
+def linkage_matrix(D: np.ndarray, method: str) -> np.ndarray:
+    """The scipy linkage of a distance matrix, leaves in optimal order up to
+    `MAX_OPTIMAL_ORDERING` roots (the order changes no merge, so no flat cluster)."""
+    return sch.linkage(
+        ssd.squareform(D, checks=False), method=method, optimal_ordering=D.shape[0] <= MAX_OPTIMAL_ORDERING
+    )
+
+
 def cluster(
     distances,
     *,
@@ -84,7 +97,7 @@ def cluster(
         raise ValueError("cluster needs at least two roots.")
     if (n_clusters is None) == (height is None):
         raise ValueError("give exactly one of n_clusters or height.")
-    Z = sch.linkage(ssd.squareform(D, checks=False), method=method)
+    Z = linkage_matrix(D, method)
     if n_clusters is not None:
         if not isinstance(n_clusters, (int, np.integer)) or not 1 <= n_clusters <= n:
             raise ValueError(f"n_clusters must be an integer in [1, {n}], got {n_clusters!r}.")

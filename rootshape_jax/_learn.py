@@ -86,6 +86,13 @@ def check_labels(labels, n: int, *, min_per_class: int = 2) -> np.ndarray:
             f"all {n} roots have the same label {classes[0]!r}; learning a metric needs at least two classes."
         )
     small = [f"{c!r} ({k})" for c, k in zip(classes.tolist(), counts.tolist()) if k < min_per_class]
+    if small and int(counts.min()) >= 2:
+        # Every class can learn; the folds ask for more members than the smallest class has.
+        raise LabelError(
+            f"classes {', '.join(small)} have fewer members than the {min_per_class} cross-validation "
+            f"folds, so some folds would hold none of them; use at most {int(counts.min())} folds "
+            "(--folds / n_folds), or merge or drop those classes."
+        )
     if small:
         raise LabelError(
             f"classes {', '.join(small)} have fewer than {min_per_class} members, so there is no "

@@ -105,6 +105,17 @@ def test_traits_end_to_end(rsml_files, tmp_path):
     assert not any(k.startswith("convex_hull_volume") for k in rows[0])
 
 
+def test_distances_say_their_unit_when_not_normalised(rsml_files, tmp_path):
+    """Unnormalised distances depend on the length unit (shape terms are lengths, positions are
+    fractions): the run says so, and the heat map names the unit."""
+    out = tmp_path / "o"
+    proc = run_cli("distances", rsml_files, "--no-normalise-scale", "--points", 12, "--quiet", "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    assert "depend on the unit" in proc.stdout and "(mm here)" in proc.stdout, proc.stdout
+    proc = run_cli("distances", rsml_files, "--points", 12, "--quiet", "--out", tmp_path / "n")
+    assert proc.returncode == 0 and "depend on the unit" not in proc.stdout
+
+
 def test_traits_angle_window_on_pixel_tracings(tmp_path):
     """Pixel tracings: the first-segment insertion angles are coarse, and the run says how to
     measure them over a chord; --angle-window gives the library's chord angles."""
@@ -116,10 +127,10 @@ def test_traits_angle_window_on_pixel_tracings(tmp_path):
     back = read_rsml(folder / "px.rsml")
     proc = run_cli("traits", folder, "--out", tmp_path / "a")
     assert proc.returncode == 0, proc.stderr
-    assert "--angle-window" in proc.stderr
+    assert "--angle-window" in proc.stdout
     proc = run_cli("traits", folder, "--angle-window", 20, "--out", tmp_path / "b")
     assert proc.returncode == 0, proc.stderr
-    assert "--angle-window" not in proc.stderr, proc.stderr
+    assert "--angle-window" not in proc.stdout, proc.stdout
     with open(tmp_path / "b" / "traits.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     want = [t["mean_insertion_angle"] for t in rs.traits(back, window=20.0)]
@@ -255,9 +266,25 @@ def test_regress_says_when_requested_traits_are_out_of_range_or_missed(tmp_path)
         assert (f"miss the requested {name.replace('_', ' ')}" in proc.stderr) == missed, (name, proc.stderr)
 
 
+def test_geodesic_steps_below_two_is_a_usage_error(rsml_files, capsys):
+    from rootshape_jax._cli import main
+
+    f = str(rsml_files / "control.rsml")
+    assert main(["geodesic", f, f, "--steps", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "--steps" in err and "at least 2 roots" in err and "Traceback" not in err
+
+
 @pytest.mark.parametrize(
     "option",
-    [["--weights", "1,2"], ["--weights", "a,b,c"], ["--weights", "-1,1,1"], ["--points", "1"], ["--samples", "0"]],
+    [
+        ["--weights", "1,2"],
+        ["--weights", "a,b,c"],
+        ["--weights", "-1,1,1"],
+        ["--weights", "0,0,0"],
+        ["--points", "1"],
+        ["--samples", "0"],
+    ],
 )
 def test_bad_option_values_are_usage_errors(rsml_files, option, capsys):
     # argparse rejects these before anything runs; in-process keeps the test fast.

@@ -38,9 +38,13 @@ def test_cluster_matches_scipy(method):
     D = _D(X)
     res = cluster(D, n_clusters=3, method=method)
     assert isinstance(res, Clustering) and res.n_clusters == 3
-    Z = sch.linkage(ssd.pdist(X), method=method)
+    # Leaves in optimal order (as the heat maps): the same merges, so the same partition.
+    Z = sch.linkage(ssd.pdist(X), method=method, optimal_ordering=True)
     np.testing.assert_allclose(res.linkage, Z)
+    plain = sch.linkage(ssd.pdist(X), method=method)
+    np.testing.assert_allclose(np.sort(res.linkage[:, 2]), np.sort(plain[:, 2]))
     assert _same_partition(res.labels, sch.fcluster(Z, 3, "maxclust"))
+    assert _same_partition(res.labels, sch.fcluster(plain, 3, "maxclust"))
     np.testing.assert_array_equal(res.order, sch.leaves_list(Z))
     # Labels are numbered by first appearance along the dendrogram.
     first = [res.labels[i] for i in res.order]
@@ -141,3 +145,29 @@ def test_two_conditions_are_separated_perfectly():
         assert _same_partition(cluster(D, n_clusters=2, method=method).labels, labels)
     assert loo_accuracy(D, labels)["accuracy"] == 1.0
     assert loo_accuracy(D, labels, rule="nearest_mean")["accuracy"] == 1.0
+
+
+@pytest.mark.parametrize("method", ["average", "complete", "single"])
+def test_heat_map_and_dendrogram_show_one_leaf_order(method):
+    """`rootshape cluster` draws distances.png and dendrogram.png: both in the leaf order of
+    the clustering's linkage, and every cluster's colour under its leaves (one-root ones too)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from rootshape_jax.plot import plot_dendrogram, plot_distance_matrix
+
+    X, _ = _points(2, (5, 6, 1), sep=1.5)
+    D = _D(X)
+    names = [f"r{i}" for i in range(len(D))]
+    res = cluster(D, n_clusters=3, method=method)
+    fig1, axes = plot_distance_matrix(D, labels=names, method=method)
+    heat = [t.get_text() for t in axes["matrix"].get_yticklabels()]
+    fig2, dax = plot_dendrogram(res.linkage, labels=names, n_clusters=3)
+    tree = [t.get_text() for t in dax["dendrogram"].get_xticklabels()]
+    assert heat == tree == [names[i] for i in res.order]
+    dots = dax["dendrogram"].collections[-1].get_facecolors()
+    assert len(dots) == len(D) and len({tuple(c) for c in dots}) == 3  # a colour per cluster
+    plt.close(fig1)
+    plt.close(fig2)

@@ -428,7 +428,7 @@ def test_bad_labels_raise_before_registering(labels, match, no_registration):
 def test_nested_cv_needs_n_folds_members_per_class(no_registration):
     roots, _ = position_signal_roots(n_per_class=3)
     trees = rs.batch(roots, n_points=12, dtype=np.float64)
-    with pytest.raises(LabelError, match="fewer than 5"):
+    with pytest.raises(LabelError, match="fewer members than the 5 cross-validation folds.*at most 3 folds"):
         rs.nested_cv_accuracy(trees, ["a"] * 3 + ["b"] * 3, n_folds=5, progress=False)
 
 

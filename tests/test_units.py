@@ -240,12 +240,27 @@ def test_cli_refuses_to_compare_sizes_across_units(tmp_path, capsys):
         proc.stderr
     )
     assert not (tmp_path / "o" / "distances.csv").exists()
-    # Scale-normalised, the shapes are compared, with a warning that sizes written back mix units.
+    # Scale-normalised, the shapes are compared, with a warning that made roots stay normalised.
     from rootshape_jax._cli._inputs import _check_units
 
     roots = io.read_folder(d)
-    _check_units(roots, normalised=True)
-    assert "different units" in capsys.readouterr().err
+    assert _check_units(roots, normalised=True) is True
+    assert "stay at the normalised scale" in capsys.readouterr().err
+    # regress works from lengths: refused before any computation.
+    io.write_rsml(in_unit(synthetic_roots(2, seed=3), "pixel"), d / "c.rsml")
+    proc = run_cli("regress", d, "--points", "12", "--out", tmp_path / "r")
+    assert proc.returncode == 1 and "traits (lengths) cannot be regressed" in proc.stderr, proc.stderr
+    assert not (tmp_path / "r" / "mean.rsml").exists()
+    # A geodesic between an inch root and a pixel root is written at the normalised scale, and
+    # says so: it starts at a of main-root length 1.
+    proc = run_cli(
+        "geodesic", d / "a.rsml", d / "b.rsml", "--points", "12", "--steps", "3", "--quiet", "--out", tmp_path / "g"
+    )
+    assert proc.returncode == 0, proc.stderr
+    (start,) = io.read_rsml(tmp_path / "g" / "geodesic_step_00.rsml")
+    assert start.metadata["unit"] == io.NORMALISED_UNIT
+    # (up to the SRVF-to-curve round trip of a T = 12 polyline; the inputs are ~100 units long)
+    assert start.main_length == pytest.approx(1.0, rel=1e-2)
 
 
 def test_spellings_of_one_unit_are_one_unit(capsys):

@@ -158,6 +158,13 @@ class Population:
     conditions: list | None  # the group label of each root (--by, default "condition")
     label_name: str = "condition"
     labels: dict = dataclasses.field(default_factory=dict)  # every label column: {name: [value per root]}
+    mixed_units: bool = False  # inputs in several units (then only normalised shapes are compared)
+
+    @property
+    def output_unit(self) -> str | None:
+        """The unit of the roots a run makes: the inputs' own, or with mixed units (no common
+        one) the normalised scale."""
+        return io.NORMALISED_UNIT if self.normalised and self.mixed_units else self.unit
 
 
 def prepare(roots: list, args, *, min_roots: int = 1, samples: int | None = None) -> Population:
@@ -167,7 +174,7 @@ def prepare(roots: list, args, *, min_roots: int = 1, samples: int | None = None
     if len(roots) < min_roots:
         raise CLIError(f"this analysis needs at least {min_roots} roots, got {len(roots)}.")
     normalised = args.normalise_scale
-    _check_units(roots, normalised)
+    mixed = _check_units(roots, normalised, getattr(args, "command", None))
     by = group_column(args)
     conditions = io.labels_of(roots, by) if by else [r.metadata.get("condition") for r in roots]
     thickness = dict(zip((t.name for t in rs.TERMS), getattr(args, "weights", ()))).get("thickness", 0.0)
@@ -195,6 +202,7 @@ def prepare(roots: list, args, *, min_roots: int = 1, samples: int | None = None
         conditions=conditions if all(c is not None for c in conditions) else None,
         label_name=by or "condition",
         labels=label_columns(roots),
+        mixed_units=mixed,
     )
 
 
@@ -216,10 +224,10 @@ def _hint_many_laterals(roots: list, args) -> None:
         )
 
 
-def _check_units(roots: list, normalised: bool) -> None:
-    """Roots in different units (inch and pixel, say) have no common size: refused unless
-    scale-normalised, where only the shapes are compared (then a warning: results written
-    back "in the input's units" mix them)."""
+def _check_units(roots: list, normalised: bool, command: str | None = None) -> bool:
+    """Whether the roots are in different units (inch and pixel, say). They have no common
+    size: refused unless scale-normalised, where only the shapes are compared (then a warning:
+    the roots a run makes stay normalised), and refused by regress, whose traits are lengths."""
     from rootshape_jax.io._units import MM_PER_UNIT, PIXEL_UNITS
 
     def same_as(unit: str) -> str:
@@ -238,7 +246,7 @@ def _check_units(roots: list, normalised: bool) -> None:
             source = r.metadata.get("source_file")
             by_unit.setdefault(str(unit), []).append(Path(source).name if source else str(r.name))
     if len(by_unit) < 2:
-        return
+        return False
     listed = "; ".join(
         f"{u}: {', '.join(sorted(set(f))[:2])}{' ...' if len(set(f)) > 2 else ''}" for u, f in by_unit.items()
     )
@@ -248,10 +256,17 @@ def _check_units(roots: list, normalised: bool) -> None:
     )
     if not normalised:
         raise CLIError(f"the roots are in different units ({listed}), so their sizes cannot be compared; {fix}.")
+    if command == "regress":
+        raise CLIError(
+            f"the roots are in different units ({listed}), so their traits (lengths) cannot be regressed "
+            f"together; {fix}."
+        )
     warn(
-        f"the roots are in different units ({listed}); their shapes are compared (scale-normalised), "
-        f"but sizes written back in the input's units mix them. To avoid that, {fix}."
+        f"the roots are in different units ({listed}); their shapes are compared (scale-normalised), and "
+        "the roots this run makes (mean, random, geodesic) stay at the normalised scale (main-root length "
+        f"1), as the inputs share no unit. To keep sizes, {fix}."
     )
+    return True
 
 
 def group_column(args) -> str | None:
@@ -291,7 +306,7 @@ def without_empty_branches(root, tol: float):
 
 def to_output_roots(tree, pop: Population, names: Sequence[str]) -> list:
     """Unpadded roots (null slots and zero-length branches dropped) labelled with the input's unit."""
-    meta = {"unit": pop.unit} if pop.unit else {}
+    meta = {"unit": pop.output_unit} if pop.output_unit else {}
     out = []
     for r in rs.to_roots(tree, names=list(names)):
         tol = 1e-9 * max(length(r.main), *(length(x) for x in r.laterals), 1e-300)
@@ -304,8 +319,8 @@ def in_input_units(tree, pop: Population, lengths=None):
     mean, modes, synthesised roots) are scaled about their base by `lengths` (default the
     inputs' mean main-root length; see `mean_size`) and put at the inputs' mean seed:
     normalisation divided each root by its length about (0, 0), so their bases moved too."""
-    if not pop.normalised:
-        return tree
+    if not pop.normalised or pop.mixed_units:
+        return tree  # mixed units: no common size to restore
     return rs.scale_tree(tree, pop.mean_length if lengths is None else lengths, base=pop.mean_seed)
 
 

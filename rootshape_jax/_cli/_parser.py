@@ -40,6 +40,13 @@ def _count(text: str) -> int:
     return _whole_number(text, 0)
 
 
+def _steps(text: str) -> int:
+    value = _positive_int(text)
+    if value < 2:
+        raise argparse.ArgumentTypeError(f"a path needs at least 2 roots (its two ends), got {value}")
+    return value
+
+
 def _points(text: str) -> int:
     value = _positive_int(text)
     if value < 5:
@@ -253,7 +260,9 @@ def _add_common(p: argparse.ArgumentParser, *, inputs: bool = True, default_out:
         action=argparse.BooleanOptionalAction,
         default=True,
         help="scale every root to the same main-root length, so only shape counts "
-        "(default on; use --no-normalise-scale for growth studies where size matters)",
+        "(default on; use --no-normalise-scale for growth studies where size matters: the shape "
+        "terms then grow with the length unit and the lateral-position term does not, so keep one "
+        "unit, --unit, for everything you compare)",
     )
     g.add_argument("--seed", type=int, default=0, help="random seed (synthetic and random roots; default 0)")
     r = p.add_argument_group("computation")
@@ -361,7 +370,7 @@ def _add_geodesic_options(p):
     g = p.add_argument_group("geodesic")
     g.add_argument(
         "--steps",
-        type=_positive_int,
+        type=_steps,
         default=7,
         metavar="N",
         help="number of intermediate roots drawn, including both ends (default 7)",

@@ -109,7 +109,12 @@ def run_distances(ctx: Context, out: Output, args) -> None:
             [[n] + list(row) for n, row in zip(pop.names, D)],
             f"elastic distance between every pair of roots ({len(D)} × {len(D)})",
         )
-        fig, _ = plot_distance_matrix(D, labels=pop.names, strips=pop.labels or None)
+        # Ordered by the linkage `cluster` uses (--linkage), so heat map and dendrogram agree.
+        method = getattr(args, "linkage", None) or "average"
+        fig, axes = plot_distance_matrix(D, labels=pop.names, strips=pop.labels or None, method=method)
+        axes["colorbar"].set_ylabel(
+            "distance (scale normalised)" if pop.normalised else f"distance (lengths in {unit_label(pop.unit)})"
+        )
         out.figure(
             sec,
             fig,
@@ -131,6 +136,14 @@ def run_distances(ctx: Context, out: Output, args) -> None:
                 f"of {STORE_BLOCK} pairs read from earlier runs, {stats['blocks_computed']} computed"
             )
         sec.notes.append(note + ".")
+        if not pop.normalised:
+            # The metric's shape terms are lengths (|q|² of a branch is its length); its
+            # lateral-position term is a fraction of the main root, unitless.
+            sec.notes.append(
+                f"without scale normalisation the shape terms grow with the length unit ({unit_label(pop.unit)} "
+                "here) while the lateral-position term is unitless, so the balance of the terms, and the "
+                "distances, depend on the unit: compare distances computed in the same unit."
+            )
 
 
 def run_mean(ctx: Context, out: Output, args) -> None:
@@ -157,7 +170,7 @@ def run_mean(ctx: Context, out: Output, args) -> None:
         ctx.mean = km
         trace = np.asarray(km.energy_trace, dtype=np.float64)
         mean_roots = to_output_roots(in_input_units(rs.stack([km.mean]), pop, mean_size(km.mean, pop)), pop, ["mean"])
-        out.rsml(sec, mean_roots, "mean.rsml", "the mean root (RSML)", unit=pop.unit)
+        out.rsml(sec, mean_roots, "mean.rsml", "the mean root (RSML)", unit=pop.output_unit)
         out.csv(
             sec, "mean_energy.csv", ["step", "energy"], list(enumerate(trace)), "Karcher energy F(μ) after each step"
         )
@@ -254,7 +267,7 @@ def run_sample(ctx: Context, out: Output, args) -> None:
         d = np.sqrt(np.sum(np.asarray(b, np.float64) ** 2 * sigma, axis=1))
         names = [f"random_{i:03d}" for i in range(n)]
         roots = to_output_roots(in_input_units(trees, pop, mean_size(ctx.mean.mean, pop)), pop, names)
-        out.rsml(sec, roots, "random_roots.rsml", f"{n} random roots (RSML)", unit=pop.unit)
+        out.rsml(sec, roots, "random_roots.rsml", f"{n} random roots (RSML)", unit=pop.output_unit)
         out.csv(
             sec,
             "random_roots.csv",
@@ -487,7 +500,7 @@ def run_traits(roots: list, out: Output, args) -> None:
         flat = all(root.dim == 2 for root in roots)
         window = getattr(args, "angle_window", None)
         if window is None and unit is not None and unit.lower() in ("pixel", "pixels", "px"):
-            warn(
+            sec.notes.append(
                 "insertion angles come from each lateral's first segment, a few pixels long on pixel "
                 "tracings, so they take few values (e.g. 45, 90 degrees); set --angle-window (e.g. 20, "
                 "in pixels) to measure them over a chord, or --pixel-size to work in mm."
@@ -529,7 +542,7 @@ def run_geodesic(a_root, b_root, out: Output, args) -> None:
         a, b = rs.unstack(pop.tree)
         reg = rs.register(a, b, weights=make_weights(args))
         sizes = None
-        if pop.normalised:
+        if pop.normalised and not pop.mixed_units:
             # The lengths batch() divided out (a plant's: its longest axis), so the path is
             # scaled back exactly: it starts at a and ends at b, in the input's units.
             sizes = tuple(normalising_length(r, args.points) for r in pair)
@@ -539,7 +552,7 @@ def run_geodesic(a_root, b_root, out: Output, args) -> None:
         )
         names = [f"step_{i:02d}" for i in range(args.steps)]
         for i, r in enumerate(to_output_roots(path_out, pop, names)):
-            out.rsml(None, [r], f"geodesic_step_{i:02d}.rsml", "", unit=pop.unit)
+            out.rsml(None, [r], f"geodesic_step_{i:02d}.rsml", "", unit=pop.output_unit)
         out.file(
             sec,
             "geodesic_step_00.rsml",
@@ -548,7 +561,7 @@ def run_geodesic(a_root, b_root, out: Output, args) -> None:
         fig, _ = plot_geodesic(
             path_out,
             title=f"{pair[0].name} → {pair[1].name}: optimal deformation (colour = corresponding lateral)",
-            unit=unit_label(pop.unit),
+            unit=figure_unit(pop) if pop.mixed_units else unit_label(pop.unit),
         )
         out.figure(
             sec,

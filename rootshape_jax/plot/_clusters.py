@@ -7,8 +7,8 @@ from typing import Any
 
 import numpy as np
 from scipy.cluster import hierarchy
-from scipy.spatial.distance import squareform
 
+from .._cluster import linkage_matrix
 from ._draw import (
     NEUTRAL_COLOR,
     add_scale_bar,
@@ -31,8 +31,6 @@ from ._labels import check_strips, draw_strip
 # Beyond these sizes tick labels overlap; they are left out.
 _MAX_TICK_LABELS = 50
 _MAX_LEAF_LABELS = 80
-# Optimal leaf ordering gives cleaner heat maps but costs O(N^3); skip it for large N.
-_MAX_OPTIMAL_ORDERING = 300
 
 
 def check_distance_matrix(D: Any, *, what: str) -> np.ndarray:
@@ -53,14 +51,6 @@ def check_distance_matrix(D: Any, *, what: str) -> np.ndarray:
     if np.any(D < -1e-12 * scale) or np.any(np.abs(np.diag(D)) > 1e-9 * scale):
         raise ValueError(f"{what}: distances must be >= 0 with a zero diagonal.")
     return np.clip((D + D.T) / 2, 0.0, None)
-
-
-def _linkage_from(D: np.ndarray, method: str) -> np.ndarray:
-    return hierarchy.linkage(
-        squareform(D, checks=False),
-        method=method,
-        optimal_ordering=D.shape[0] <= _MAX_OPTIMAL_ORDERING,
-    )
 
 
 def _check_linkage(Z: Any, n: int | None, *, what: str) -> np.ndarray:
@@ -123,7 +113,7 @@ def plot_distance_matrix(
     strips = check_strips(strips, n, "plot_distance_matrix")
     if strips and ax is not None:
         raise ValueError("plot_distance_matrix: colour strips need their own figure; pass ax=None.")
-    Z = _linkage_from(D, method) if linkage is None else _check_linkage(linkage, n, what="linkage")
+    Z = linkage_matrix(D, method) if linkage is None else _check_linkage(linkage, n, what="linkage")
     order = hierarchy.leaves_list(Z)
     ordered = D[np.ix_(order, order)]
 
@@ -192,7 +182,7 @@ def _as_linkage(D_or_linkage: Any, method: str, what: str) -> np.ndarray:
     if arr.ndim == 2 and arr.shape[0] == arr.shape[1]:
         diag0 = np.all(np.abs(np.diag(arr)) <= 1e-9 * max(float(np.abs(arr).max()), 1e-300))
         if diag0 or arr.shape[1] != 4:
-            return _linkage_from(check_distance_matrix(arr, what=what), method)
+            return linkage_matrix(check_distance_matrix(arr, what=what), method)
     return _check_linkage(arr, None, what=what)
 
 
@@ -373,6 +363,9 @@ def plot_dendrogram(
         leaf_font_size=max(5, min(9, int(500 / n))),
     )
     centers = 10.0 * np.arange(n) + 5.0  # scipy puts leaf i at 10 i + 5
+    # A dot in its cluster's colour under every leaf: a one-root cluster has no link of its own,
+    # so without it the tree would show that cluster only in the neutral colour.
+    ax.scatter(centers, np.zeros(n), s=12, c=[cluster_color(int(ids[i])) for i in order], zorder=3, clip_on=False)
     for name, sx in sax.items():
         draw_strip(sx, lax[name], [strips[name][i] for i in order], name, centers=centers, width=10.0)
         sx.set_xlim(ax.get_xlim())
