@@ -231,6 +231,13 @@ def test_out_is_a_file(rsml_files, tmp_path):
 def test_unknown_condition(tmp_path):
     proc = run_cli("traits", "--synthetic", 2, "--condition", "flooded", "--out", tmp_path / "o")
     assert_one_line_error(proc, "flooded")
+    # The run created its output folder and wrote nothing: no empty folder stays behind; a
+    # folder that was there before stays.
+    assert not (tmp_path / "o").exists()
+    (tmp_path / "mine").mkdir()
+    proc = run_cli("traits", "--synthetic", 2, "--condition", "flooded", "--out", tmp_path / "mine")
+    assert_one_line_error(proc, "flooded")
+    assert (tmp_path / "mine").is_dir()
 
 
 def test_bad_requested_csv_fails_before_computing(rsml_files, tmp_path):
@@ -282,6 +289,7 @@ def test_geodesic_steps_below_two_is_a_usage_error(rsml_files, capsys):
         ["--weights", "a,b,c"],
         ["--weights", "-1,1,1"],
         ["--weights", "0,0,0"],
+        ["--unit", "furlong"],
         ["--points", "1"],
         ["--samples", "0"],
     ],

@@ -164,6 +164,20 @@ def test_compare_needs_two_groups(tmp_path, monkeypatch):
         group_labels(prepare(roots, args))
 
 
+def test_compare_warns_about_one_root_groups(capsys):
+    from rootshape_jax._cli._inputs import prepare
+    from rootshape_jax._cli._steps import group_labels
+
+    roots = labelled_roots()
+    batches = ["b1"] * (len(roots) - 1) + ["b2"]
+    roots = [dataclasses.replace(r, metadata=dict(r.metadata, batch=b)) for r, b in zip(roots, batches)]
+    args = argparse.Namespace(laterals=4, points=12, normalise_scale=True, by="batch", command="compare")
+    capsys.readouterr()
+    assert group_labels(prepare(roots, args)) == batches
+    err = capsys.readouterr().err
+    assert "group(s) 'b2' have one root" in err and "'b1'" not in err
+
+
 # --------------------------------------------------------------------------------------------
 # End to end, on a folder with a bad file (compiles registrations: slow)
 

@@ -19,7 +19,7 @@ from collections.abc import Sequence
 
 from ._common import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, PROG, CLIError, heartbeat
 from ._parser import build_parser
-from ._report import OPENED, remove_pending, unfinished_note
+from ._report import OPENED, remove_empty_outputs, remove_pending, unfinished_note
 
 
 def configure_jax(*, devices: int | None, float64: bool) -> None:
@@ -95,6 +95,7 @@ def _on_sigint(signum, frame) -> None:
 def _say_interrupted() -> None:
     print(f"{PROG}: interrupted; every file written so far is complete.", file=sys.stderr)
     _print_unfinished()
+    remove_empty_outputs()
 
 
 def _print_unfinished() -> None:
@@ -144,5 +145,6 @@ def main(argv: Sequence[str] | None = None) -> int:
                 file=sys.stderr,
             )
         _print_unfinished()
+        remove_empty_outputs()
         return EXIT_ERROR
     return EXIT_OK

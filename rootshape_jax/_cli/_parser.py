@@ -40,6 +40,14 @@ def _count(text: str) -> int:
     return _whole_number(text, 0)
 
 
+def _length_unit(text: str) -> str:
+    from rootshape_jax.io._units import MM_PER_UNIT
+
+    if text.strip().lower() not in MM_PER_UNIT:
+        raise argparse.ArgumentTypeError(f"unknown length unit {text!r}; use one of mm, cm, m, um, inch")
+    return text
+
+
 def _steps(text: str) -> int:
     value = _positive_int(text)
     if value < 2:
@@ -198,6 +206,7 @@ def _add_common(p: argparse.ArgumentParser, *, inputs: bool = True, default_out:
         )
         img.add_argument(
             "--unit",
+            type=_length_unit,
             metavar="UNIT",
             help="convert every length to UNIT (mm, cm, m, um, inch): RSML files in inch + dpi, "
             "cm, or pixels with a <resolution>; also the unit of --pixel-size (default mm). "
@@ -421,6 +430,7 @@ def build_parser() -> argparse.ArgumentParser:
     img.add_argument("--pixel-size", type=_positive_float, metavar="SIZE", help=PIXEL_SIZE_HELP)
     img.add_argument(
         "--unit",
+        type=_length_unit,
         metavar="UNIT",
         help="convert both roots to UNIT (mm, cm, m, um, inch); also the unit of --pixel-size (default mm)",
     )
@@ -602,7 +612,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="length of one image pixel in --unit (instead of --pixels-per-mm, as in the other commands); "
         "the RSML is then written in that unit",
     )
-    p.add_argument("--unit", metavar="UNIT", default=None, help="unit of --pixel-size (default mm)")
+    p.add_argument("--unit", type=_length_unit, metavar="UNIT", default=None, help="unit of --pixel-size (default mm)")
     p.add_argument(
         "--root-width",
         dest="root_width",

@@ -103,6 +103,8 @@ class Output:
             raise CLIError(f"--out {folder}: exists and is not a folder.")
         if self.folder.is_dir() and not self.overwrite:
             refuse_earlier_results(folder, [p.name for p in self.folder.iterdir() if is_output_name(p.name)])
+        # A folder this run creates is removed again if the run stops before writing into it.
+        self.created = not self.folder.exists()
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
         except OSError as e:
@@ -230,6 +232,15 @@ def unfinished_note() -> str | None:
     return "; ".join(notes) or None
 
 
+def remove_empty_outputs() -> None:
+    """Remove the output folders this run created and left empty (an input error, Ctrl-C
+    before the first file): no empty folder stays behind."""
+    for out in OPENED:
+        if out.created:
+            with contextlib.suppress(OSError):
+                out.folder.rmdir()  # only succeeds when empty
+
+
 def remove_pending() -> None:
     for tmp in list(PENDING):
         with contextlib.suppress(OSError):
@@ -280,6 +291,8 @@ def cell(v):
         return ""
     if isinstance(v, (bool, np.bool_)):
         return str(bool(v))
+    if isinstance(v, np.floating) and v.dtype.itemsize < 8:
+        return str(v)  # the shortest text that reads back as this float32 (0.02, not 0.0199999995...)
     if isinstance(v, (float, np.floating)):
         return repr(float(v))
     if isinstance(v, (int, np.integer)):

@@ -587,6 +587,14 @@ def group_labels(pop: Population) -> list[str]:
         )
     if len(groups) >= len(labels):
         raise CLIError(f"--by {pop.label_name}: every root is its own group; groups need at least two members to test.")
+    alone = [g for g in groups if labels.count(g) == 1]
+    if alone:
+        # PERMANOVA runs (its permutations move every root), but a one-root group has no spread
+        # of its own, and its pairwise tests have almost no permutations.
+        warn(
+            f"--by {pop.label_name}: group(s) {', '.join(map(repr, alone))} have one root; their tests "
+            "say little (a one-root group has no spread of its own). Add roots or merge groups."
+        )
     return labels
 
 
@@ -709,8 +717,11 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
             "only ratios matter); use them with --weights (and the *_order rows with --level-weights)",
             table_html=html_table(header, rows),
         )
+        from matplotlib.ticker import MaxNLocator
+
         fig, ax = plt.subplots(figsize=(4.5, 3.2))
         ax.plot(np.arange(len(res.loss_trace)), res.loss_trace, "o-")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # registrations are whole numbers
         ax.set_xlabel("registration (0 = starting weights)")
         ax.set_ylabel("soft nearest-neighbour loss")
         ax.set_title("learning the weights")
