@@ -94,9 +94,15 @@ def check_labels(labels, n: int, *, min_per_class: int = 2) -> np.ndarray:
             "(--folds / n_folds), or merge or drop those classes."
         )
     if small:
+        lone = [f"{c!r} ({k})" for c, k in zip(classes.tolist(), counts.tolist()) if k < 2]
         raise LabelError(
-            f"classes {', '.join(small)} have fewer than {min_per_class} members, so there is no "
-            "same-class neighbour to learn from or cross-validate on; merge or drop them."
+            f"classes {', '.join(lone)} have one member, so there is no same-class neighbour to learn "
+            "from or cross-validate on; merge or drop them"
+            + (
+                f" (and the {min_per_class} folds need {min_per_class} members per class)."
+                if min_per_class > 2
+                else "."
+            )
         )
     return y
 

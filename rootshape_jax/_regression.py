@@ -11,7 +11,9 @@ scale normalisation) no longer gets cancelling coefficients of ~10⁶ that ruin 
 synthesis; it is ignored, with a warning. A root with traits p is
 ``reconstruct(pca, M [z; 1])``.
 `TraitRegression.report` measures the traits of synthesised roots and compares them with the
-requested ones.
+requested ones. Plants' systems are measured as plants (`rootshape_jax.traits`: the longest
+axis is the main root, the axes' laterals are the laterals), so their lateral traits need
+trees of depth 3 or more; at depth 2 (axes only) they are 0, constant, and ignored.
 """
 
 from __future__ import annotations

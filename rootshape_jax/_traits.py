@@ -144,8 +144,8 @@ def deepest_order(root: Root) -> int:
 def _axes(root: Root) -> tuple[Root, ...]:
     """The top-level branches a root's traits describe: its own main root, or a plant's
     axes (`is_plant_system`; an axis known only as a polyline has no laterals)."""
-    if not is_plant_system(root):
-        return (root,)
+    if not is_plant_system(root) or not root.n_laterals:
+        return (root,)  # a plant without axes: its (virtual) main root alone
     if root.children:
         return tuple(root.children)
     return tuple(Root(main=lat) for lat in root.laterals)
@@ -272,7 +272,10 @@ def traits(
     roots = [root_or_roots] if single else list(root_or_roots)
     rows = [_root_traits(r, window) for r in roots]
     if any(is_plant_system(r) for r in roots):
-        rows = [{"name": row.pop("name"), "n_axes": len(_axes(r)), **row} for row, r in zip(rows, roots)]
+        rows = [
+            {"name": row.pop("name"), "n_axes": r.n_laterals if is_plant_system(r) else 1, **row}
+            for row, r in zip(rows, roots)
+        ]
     n = max((_lateral_order(r) for r in roots), default=0) if orders is None else orders
     if orders is not None or n >= 2:
         for row, r in zip(rows, roots):

@@ -1198,8 +1198,10 @@ def scale_tree(tree: RootTree, scales, *, base=None) -> RootTree:
     `base`: where each scaled root's base goes (``[d]``, or ``[*B, d]`` one per root); default
     None keeps it where it is. `batch(normalise_scale=True)` divides each root by its length
     about (0, 0), so its base moves too: ``scale_tree(t, length, base=seed)`` puts a
-    normalised root (or a mean, a mode) back at its real size where the data are, e.g. a mean
-    at the roots' mean seed ``np.mean([r.main[0] for r in roots], axis=0)``.
+    normalised root (or a mode) back at its real size where the data are, e.g. at the roots'
+    mean seed ``np.mean([r.main[0] for r in roots], axis=0)``. A Karcher mean of normalised
+    roots is a little shorter than 1 (averaging shapes shrinks them): divide the length by its
+    own, ``curve_length(mean.main)``, to give it the roots' mean length.
     """
     if not isinstance(tree, RootTree):
         raise TypeError(f"scale_tree: expected a RootTree, got {type(tree).__name__}.")

@@ -139,6 +139,16 @@ def test_traits_angle_window_on_pixel_tracings(tmp_path):
     assert want != pytest.approx(first, rel=1e-6)  # the option changes what is measured
 
 
+def test_angle_window_needs_one_unit(tmp_path):
+    d = tmp_path / "mixed"
+    d.mkdir()
+    write_rsml(synthetic_roots(1, seed=1), d / "mm.rsml", unit="mm")
+    px = [dataclasses.replace(r, metadata={"unit": "pixel"}) for r in synthetic_roots(1, seed=2)]
+    write_rsml(px, d / "px.rsml")
+    proc = run_cli("traits", d, "--angle-window", 5, "--out", tmp_path / "o")
+    assert_one_line_error(proc, "--angle-window 5", "different units", "--unit")
+
+
 def test_traits_samples_subsamples_evenly(tmp_path):
     out = tmp_path / "out"
     proc = run_cli(

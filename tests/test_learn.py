@@ -409,7 +409,7 @@ def no_registration(monkeypatch):
     "labels, match",
     [
         (["a"] * 6, "same label"),
-        (["a", "a", "a", "b", "b", "c"], "fewer than 2"),
+        (["a", "a", "a", "b", "b", "c"], "have one member"),
         (["a", "a", "b", "b", "a"], "5 labels for 6 roots"),
         ([0.0, 0.0, 1.0, np.nan, 1.0, 1.0], "missing"),
         (["a", "a", None, "b", "b", "b"], "missing"),

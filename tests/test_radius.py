@@ -401,3 +401,19 @@ def test_cli_speaks_of_radii_only_when_the_metric_weighs_them(rng, tmp_path):
     proc = run_cli(*common, "--weights", "0.02,1,1,1", "--out", tmp_path / "c")
     assert proc.returncode == 0, proc.stderr
     assert "no root has radius data" in proc.stderr and "the thickness term is 0" in proc.stderr, proc.stderr
+
+
+def test_learn_weights_keeps_the_radius_warning(rng, capsys):
+    """learn-weights learns the thickness weight whenever radii exist (from 1), so roots
+    without radii matter there even at the default weights: the warning stays."""
+    import argparse
+
+    from rootshape_jax._cli._inputs import prepare
+
+    roots = [with_radii(random_root(rng, n_laterals=2), rng), dataclasses.replace(random_root(rng), name="thin")]
+    base = dict(laterals=None, points=10, normalise_scale=True, weights=(0.02, 1.0, 1.0, 0.0))
+    with pytest.warns(UserWarning, match="root 'thin' has no radius data"):
+        prepare(roots, argparse.Namespace(command="learn-weights", **base))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        prepare(roots, argparse.Namespace(command="distances", **base))

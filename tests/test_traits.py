@@ -271,7 +271,12 @@ def test_plant_systems_are_described_as_plants():
     assert row["convex_hull_area"] == pytest.approx(_shoelace_hull_area(pts), rel=1e-10)
     # One axis: the axis's own traits, plus n_axes = 1.
     one = traits(plant_system(axes[:1], name=axes[0].name))
-    assert one.pop("n_axes") == 1 and one == traits(axes[0])
+    alone = traits(axes[0])
+    assert math.isnan(one.pop("convex_hull_volume")) and math.isnan(alone.pop("convex_hull_volume"))  # 2D
+    assert one.pop("n_axes") == 1 and one == alone
+    # A plant without axes (all dropped) is its virtual main root alone, not an error.
+    empty = traits(plant.select_laterals([]))
+    assert empty["n_axes"] == 0 and empty["n_laterals"] == 0 and empty["main_length"] == 0.0
     # A table mixing plants and single roots stays rectangular; single roots have one axis.
     rows = traits([plant, axes[1]])
     assert list(rows[0]) == list(rows[1]) and rows[1]["n_axes"] == 1

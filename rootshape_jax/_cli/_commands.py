@@ -72,9 +72,9 @@ def cmd_regress(args) -> None:
     # Check the request before the long computation.
     if getattr(args, "per", "root") == "plant":
         raise CLIError(
-            "regress predicts roots from the paper's traits (main-root length, mean and spread of "
-            "the lateral lengths), which a plant's system (--per plant: several axes under a "
-            "virtual main root) does not have; run regress with --per root (one system per axis)."
+            "regress scales each predicted root to its requested main-root length, and a plant's "
+            "system (--per plant: several axes under a virtual main root of zero length) has none; "
+            "run regress with --per root (one system per axis)."
         )
     names = list(PAPER_TRAITS) + covariate_columns(args)
     args.requested_values = read_requested(args.requested, names) if args.requested else None

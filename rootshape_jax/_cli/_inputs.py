@@ -179,7 +179,8 @@ def prepare(roots: list, args, *, min_roots: int = 1, samples: int | None = None
     conditions = io.labels_of(roots, by) if by else [r.metadata.get("condition") for r in roots]
     thickness = dict(zip((t.name for t in rs.TERMS), getattr(args, "weights", ()))).get("thickness", 0.0)
     with warnings.catch_warnings():
-        if not thickness:
+        # learn-weights learns the thickness weight whenever radii exist: missing ones matter there.
+        if not thickness and getattr(args, "command", None) != "learn-weights":
             # Radii taken as 0 where a file has none matter only when the metric weighs them.
             warnings.filterwarnings("ignore", message=r"batch\(\): root .* radi", category=UserWarning)
         # depth None (no --depth) is batch's default: depth 2, deeper orders ignored silently.
@@ -263,8 +264,8 @@ def _check_units(roots: list, normalised: bool, command: str | None = None) -> b
         )
     warn(
         f"the roots are in different units ({listed}); their shapes are compared (scale-normalised), and "
-        "the roots this run makes (mean, random, geodesic) stay at the normalised scale (main-root length "
-        f"1), as the inputs share no unit. To keep sizes, {fix}."
+        "any roots this run writes (mean, random roots, geodesics) stay at the normalised scale (main-root "
+        f"length 1), as the inputs share no unit. To keep sizes, {fix}."
     )
     return True
 

@@ -41,11 +41,13 @@ def _count(text: str) -> int:
 
 
 def _length_unit(text: str) -> str:
-    from rootshape_jax.io._units import MM_PER_UNIT
+    from rootshape_jax.io._units import _known
 
-    if text.strip().lower() not in MM_PER_UNIT:
-        raise argparse.ArgumentTypeError(f"unknown length unit {text!r}; use one of mm, cm, m, um, inch")
-    return text
+    try:
+        _known(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e).split(" (or ")[0]) from None
+    return text.strip()
 
 
 def _steps(text: str) -> int:

@@ -15,6 +15,7 @@ import numpy as np
 import rootshape_jax as rs
 from rootshape_jax._tree import normalising_length
 from rootshape_jax.io import NORMALISED_UNIT, is_plant_system, unit_label
+from rootshape_jax.io._units import PIXEL_UNITS
 
 from ._common import PAPER_TRAITS, CLIError, fmt, make_weights, say, ticking, warn
 from ._inputs import (
@@ -375,12 +376,14 @@ def run_regress(ctx: Context, out: Output, args) -> None:
         for j, name in enumerate(PAPER_TRAITS):
             if vary is not None and j != vary:
                 continue  # traits held at their median are not requested
-            miss = float(np.mean(np.abs(measured[:, j] - values[:, j]) / np.maximum(np.abs(values[:, j]), 1e-12)))
+            # Relative to the requested value, or to the inputs' typical value where that is ~0.
+            scale = np.maximum(np.abs(values[:, j]), np.median(np.abs(T[:, j])))
+            miss = float(np.mean(np.abs(measured[:, j] - values[:, j]) / np.maximum(scale, 1e-12)))
             if miss > REGRESSION_MISS:
                 warn(
                     f"the predicted roots miss the requested {name.replace('_', ' ')} by {100 * miss:.0f} % on "
                     f"average (requested vs measured in predicted_roots.csv; on the input roots the model "
-                    f"reproduces it with R² {report[j][1]:.2f}): treat these roots as the model's trend, "
+                    f"reproduces it with R² {fmt(report[j][1])}): treat these roots as the model's trend, "
                     "not as roots with those traits."
                 )
         rows = [[n] + list(v) + list(m) for n, v, m in zip(names, values, measured)]
@@ -484,6 +487,12 @@ def run_cluster(ctx: Context, out: Output, args) -> None:
 def run_traits(roots: list, out: Output, args) -> None:
     with out.step("Root traits") as sec:
         unit = common_unit(roots)
+        window = getattr(args, "angle_window", None)
+        if window is not None and unit is None:
+            raise CLIError(
+                f"--angle-window {window:g} is a length in the roots' unit, and these roots are in different "
+                "units; convert them to one with --unit (and --pixel-size for pixels) first."
+            )
         if unit is None:
             warn(
                 "the roots are in different units ("
@@ -498,8 +507,7 @@ def run_traits(roots: list, out: Output, args) -> None:
         plants = any(is_plant_system(r) for r in roots)
         orders = None if depth is None else max(depth - (2 if plants else 1), 0)
         flat = all(root.dim == 2 for root in roots)
-        window = getattr(args, "angle_window", None)
-        if window is None and unit is not None and unit.lower() in ("pixel", "pixels", "px"):
+        if window is None and unit is not None and unit.lower() in PIXEL_UNITS:
             sec.notes.append(
                 "insertion angles come from each lateral's first segment, a few pixels long on pixel "
                 "tracings, so they take few values (e.g. 45, 90 degrees); set --angle-window (e.g. 20, "

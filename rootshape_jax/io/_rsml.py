@@ -933,7 +933,7 @@ def write_rsml(
         tops = []
         for r in members:
             # A plant's system (virtual main root of zero length) is written as its axes.
-            tops.extend(_axes_of(r) if is_plant_system(r) else [(r.main, r, r.main_radius)])
+            tops.extend(_axes_of(r) if is_plant_system(r) and r.n_laterals else [(r.main, r, r.main_radius)])
         for k, (poly, r, radius) in enumerate(tops):
             _write_root(plant_el, poly, r, f"{pid}.{k + 1}", None, resolution, dim3, used_ids, radius)
 
