@@ -41,10 +41,10 @@ def _count(text: str) -> int:
 
 
 def _length_unit(text: str) -> str:
-    from rootshape_jax.io._units import _known
+    from rootshape_jax.io._units import check_length_unit
 
     try:
-        _known(text)
+        check_length_unit(text)
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e).split(" (or ")[0]) from None
     return text.strip()

@@ -17,7 +17,7 @@ import numpy as np
 
 from .._errors import ImageError, RSMLError
 from .._root import Root
-from ._units import _known
+from ._units import check_length_unit
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 _COLOURS = ("#e41a1c", "#ff7f00", "#ffff33", "#4daf4a", "#f781bf", "#a65628", "#984ea3", "#00e5ff")
@@ -144,7 +144,7 @@ def extract_images(
     if pixel_size is not None:
         if not (math.isfinite(pixel_size) and pixel_size > 0):
             raise ValueError(f"pixel_size must be a positive number, got {pixel_size!r}.")
-        _known(unit)  # an unknown unit fails here, not once per image
+        check_length_unit(unit)  # an unknown unit fails here, not once per image
         scale, scaled = 1.0 / float(pixel_size), {"pixel_size": pixel_size, "unit": unit}
     rows = []
     bar = tqdm(files, desc="extract", unit="image", disable=not progress)

@@ -41,7 +41,8 @@ def unit_label(unit: str | None) -> str:
     return "px" if unit.lower() in PIXEL_UNITS else unit
 
 
-def _known(unit: str) -> str:
+def check_length_unit(unit: str) -> str:
+    """The unit's key in `MM_PER_UNIT` (lower case), or `UnitError` naming the known units."""
     key = unit.strip().lower()
     if key not in MM_PER_UNIT:
         raise UnitError(
@@ -68,7 +69,7 @@ def convert_units(roots: Root | Sequence[Root], unit: str) -> list[Root]:
     """
     if isinstance(roots, Root):
         roots = [roots]
-    target = _known(unit)
+    target = check_length_unit(unit)
     out = []
     for r in roots:
         src = r.metadata.get("unit")
@@ -89,9 +90,9 @@ def convert_units(roots: Root | Sequence[Root], unit: str) -> list[Root]:
                     "file's <metadata>, give the pixel size (--pixel-size, or pixel_size= when "
                     "reading), or leave out the unit option to keep pixels."
                 )
-            factor = MM_PER_UNIT[_known(str(file_unit))] / float(resolution) / MM_PER_UNIT[target]
+            factor = MM_PER_UNIT[check_length_unit(str(file_unit))] / float(resolution) / MM_PER_UNIT[target]
         else:
-            factor = MM_PER_UNIT[_known(str(src))] / MM_PER_UNIT[target]
+            factor = MM_PER_UNIT[check_length_unit(str(src))] / MM_PER_UNIT[target]
         if str(src).lower() == target:
             out.append(r)
             continue
