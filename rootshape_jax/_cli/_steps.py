@@ -714,7 +714,9 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
             )
         # The terms, then (λs, λp) per order from the second where --level-weights gave them.
         learned, given = res.weights.to_dict(), start.to_dict()
-        rows = [[name, given[name], v] for name, v in learned.items()]
+        # In the computation's precision, so a float32 0.02 is written as 0.02 (`cell`).
+        real = np.float64 if getattr(args, "float64", False) else np.float32
+        rows = [[name, real(given[name]), real(v)] for name, v in learned.items()]
         header = ["term", "start", "learned"]
         out.csv(
             sec,
