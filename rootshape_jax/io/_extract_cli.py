@@ -128,7 +128,7 @@ def extract_images(
     from tqdm.auto import tqdm
 
     from ._compare import compare_to_tracing
-    from ._image import roots_from_image
+    from ._image import image_scale, roots_from_image
     from ._rsml import read_rsml, write_rsml
 
     out = Path(out)
@@ -136,23 +136,19 @@ def extract_images(
     files = expand_images(images)
     if not files:
         raise FileNotFoundError(f"no image files in {list(map(str, images))} (looked for {', '.join(IMAGE_SUFFIXES)}).")
-    if pixels_per_mm is not None and pixel_size is not None:
-        raise ValueError("give pixels_per_mm or pixel_size, not both.")
-    # Pixels per output unit: the overlay and the tracing comparison work in pixels.
-    scale = 1.0 if pixels_per_mm is None else float(pixels_per_mm)
-    scaled = {"pixels_per_mm": pixels_per_mm}
+    # Checked here, not once per image (where a ValueError would only skip that image).
+    pixel_size, unit = image_scale(pixels_per_mm, pixel_size, unit if pixel_size is not None else "pixel")
     if pixel_size is not None:
-        if not (math.isfinite(pixel_size) and pixel_size > 0):
-            raise ValueError(f"pixel_size must be a positive number, got {pixel_size!r}.")
-        check_length_unit(unit)  # an unknown unit fails here, not once per image
-        scale, scaled = 1.0 / float(pixel_size), {"pixel_size": pixel_size, "unit": unit}
+        check_length_unit(unit)
+    # Pixels per output unit: the overlay and the tracing comparison work in pixels.
+    scale = 1.0 if pixel_size is None else 1.0 / pixel_size
     rows = []
     bar = tqdm(files, desc="extract", unit="image", disable=not progress)
     for path in bar:
         bar.set_postfix_str(path.name)
         row: dict = {"image": str(path), "status": "ok", "reason": None}
         try:
-            roots = roots_from_image(path, **scaled, **options)
+            roots = roots_from_image(path, pixel_size=pixel_size, unit=unit, **options)
         except (ImageError, OSError, ValueError) as e:
             reason = str(e) if str(path) in str(e) else f"{path}: {e}"
             warnings.warn(f"skipped {path.name}: {reason}", stacklevel=2)

@@ -647,6 +647,22 @@ def _plant_checks(nodes, rc, sub, base_local, gray, halfwidth, axis_sign):
     return dict(length=length, heading=heading, frame=frame, edge=edge, border=border, tip=tip, dist=dist, pred=pred)
 
 
+def image_scale(pixels_per_mm: float | None, pixel_size: float | None, unit: str) -> tuple[float | None, str]:
+    """``(pixel_size, unit)`` from either way of giving an image's scale (`pixels_per_mm`, or
+    `pixel_size` in `unit`); `ValueError` naming a bad or doubled value."""
+    if pixels_per_mm is not None:
+        if pixel_size is not None:
+            raise ValueError("give pixels_per_mm or pixel_size, not both.")
+        if not (math.isfinite(pixels_per_mm) and pixels_per_mm > 0):
+            raise ValueError(f"pixels_per_mm must be a positive number, got {pixels_per_mm!r}.")
+        return 1.0 / float(pixels_per_mm), "mm"
+    if pixel_size is not None and not (math.isfinite(pixel_size) and pixel_size > 0):
+        raise ValueError(f"pixel_size must be a positive number, got {pixel_size!r}.")
+    if pixel_size is not None and unit.lower() in ("pixel", "pixels", "px"):
+        raise ValueError("pixel_size given: pass the physical unit too, e.g. unit='mm'.")
+    return pixel_size, unit
+
+
 def roots_from_image(
     image: Any,
     *,
@@ -754,20 +770,11 @@ def roots_from_image(
     """
     if isinstance(base, str) and base.lower() not in ("top", "bottom", "left", "right"):
         raise ValueError(f"base must be 'top', 'bottom', 'left', 'right' or (x, y) point(s), got {base!r}.")
-    if pixels_per_mm is not None:
-        if pixel_size is not None:
-            raise ValueError("give pixels_per_mm or pixel_size, not both.")
-        if not (math.isfinite(pixels_per_mm) and pixels_per_mm > 0):
-            raise ValueError(f"pixels_per_mm must be a positive number, got {pixels_per_mm!r}.")
-        pixel_size, unit = 1.0 / float(pixels_per_mm), "mm"
+    pixel_size, unit = image_scale(pixels_per_mm, pixel_size, unit)
     arr, stem = _load(image)
     source = str(image) if isinstance(image, (str, os.PathLike)) else "array"
     if arr.size == 0:
         raise ImageError(f"{source}: the image is empty (shape {arr.shape}).")
-    if pixel_size is not None and not (math.isfinite(pixel_size) and pixel_size > 0):
-        raise ValueError(f"pixel_size must be a positive number, got {pixel_size!r}.")
-    if pixel_size is not None and unit.lower() in ("pixel", "pixels", "px"):
-        raise ValueError("pixel_size given: pass the physical unit too, e.g. unit='mm'.")
     for opt, val in (
         ("close_gaps", close_gaps),
         ("min_object_size", min_object_size),
