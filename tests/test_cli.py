@@ -162,6 +162,16 @@ def test_traits_samples_subsamples_evenly(tmp_path):
     assert {r["condition"] for r in rows} == {"control", "drought"}
 
 
+@pytest.mark.parametrize("option", [["--weights", "1,1,1"], ["--points", "50"], ["--laterals", "3"], ["--float64"]])
+def test_traits_refuses_options_of_the_distance(option, tmp_path, capsys):
+    # traits measures roots without comparing them: a metric option would be silently ignored.
+    from rootshape_jax._cli import main
+
+    assert main(["traits", "--synthetic", "2", *option, "--out", str(tmp_path / "o")]) == 2
+    assert f"unrecognized arguments: {option[0]}" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
 # --------------------------------------------------------------------------------------------
 # Bad input: one clear line, non-zero exit code, no traceback
 
@@ -959,3 +969,51 @@ def test_a_run_that_fails_midway_says_what_it_left_in_out(tmp_path, monkeypatch,
     assert main(["traits", "--synthetic", "2", "--quiet", "--out", str(out)]) == 1
     assert "--overwrite" in capsys.readouterr().err
     assert main(["traits", "--synthetic", "2", "--quiet", "--overwrite", "--out", str(out)]) == 0
+
+
+def test_progress_bars_in_a_log_are_whole_lines():
+    # stderr redirected to a file: no carriage returns or cursor codes, one line per bar unless
+    # it runs long, and the text around the bars keeps its own lines.
+    import io
+
+    from tqdm import tqdm
+
+    from rootshape_jax._cli._common import LogStream
+
+    sink = io.StringIO()
+    log = LogStream(sink, interval=3600.0)
+    print("Registering...", file=log)
+    with tqdm(total=5, desc="distances", file=log, mininterval=0) as bar:
+        for _ in range(5):
+            bar.update()
+    log.write("\x1b[A")  # a nested bar's cursor move
+    with tqdm(total=2, desc="mean", file=log, mininterval=0, leave=False) as bar:
+        bar.update()
+        print("rootshape: warning: something", file=log)
+        bar.update()
+    print("done", file=log)
+    log.close_line()
+    text = sink.getvalue()
+    assert "\r" not in text and "\x1b" not in text
+    lines = text.splitlines()
+    assert lines[0] == "Registering..."
+    assert lines[1].startswith("distances: 100%") and "5/5" in lines[1]
+    # The warning interrupts the running bar: its state so far, then the warning on its own line.
+    assert lines[2].startswith("mean:  50%") and lines[3] == "rootshape: warning: something"
+    assert lines[-1] == "done" and len(lines) == 5
+
+    # With no interval every redraw is kept, as a line of its own (tqdm redraws its last state
+    # when it closes).
+    sink = io.StringIO()
+    log = LogStream(sink, interval=0.0)
+    with tqdm(total=3, desc="d", file=log, mininterval=0) as bar:
+        for _ in range(3):
+            bar.update()
+    lines = sink.getvalue().splitlines()
+    assert [line.split("|")[0] for line in lines] == ["d:   0%", "d:  33%", "d:  67%", "d: 100%", "d: 100%"]
+
+
+def test_cli_log_has_no_carriage_returns(tmp_path):
+    proc = run_cli("distances", "--synthetic", 3, "--points", 20, "--out", tmp_path / "o")
+    assert proc.returncode == 0, proc.stderr
+    assert "\r" not in proc.stderr and "distances: 100%" in proc.stderr

@@ -401,6 +401,27 @@ def test_round_trip_fixtures_with_children(tmp_path):
     assert r1.find("root/root/properties/parent-node").get("value") == "1"
 
 
+def test_float32_roots_are_written_with_float32_digits(tmp_path):
+    main = np.array([[921.4, 10.1], [921.4, 30.7]], dtype=np.float32)
+    lat = np.array([[921.4, 20.3], [930.2, 25.9]], dtype=np.float32)
+    r = Root(
+        main=main,
+        laterals=[lat],
+        main_radius=np.full(2, 0.3, np.float32),
+        lateral_radii=[np.full(2, 0.1, np.float32)],
+        metadata={"unit": "mm"},
+    )
+    path = tmp_path / "single.rsml"
+    write_rsml(r, path)
+    text = path.read_text()
+    assert 'x="921.4"' in text and 'y="30.7"' in text and 'value="0.6"' in text
+    assert "921.40002" not in text
+    (back,) = _read_quiet(path)
+    # The shortest float32 text reads back as the same float32.
+    np.testing.assert_array_equal(np.asarray(back.main, np.float32), main)
+    np.testing.assert_array_equal(np.asarray(back.laterals[0], np.float32), lat)
+
+
 def test_write_errors(tmp_path):
     r = Root(main=np.array([[0.0, 0.0], [0.0, 1.0]]), metadata={"unit": "mm"})
     s = Root(main=np.array([[0.0, 0.0], [0.0, 1.0]]), metadata={"unit": "inch"})

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import contextlib
+import re
 import sys
 import threading
+import time
 
 PROG = "rootshape"
 RSML_SUFFIXES = (".rsml",)
@@ -58,6 +60,84 @@ def heartbeat(interval: float = HEARTBEAT):
     finally:
         stop.set()
         thread.join()
+
+
+# Cursor movements tqdm uses to stack nested bars on a terminal.
+_ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
+
+
+class LogStream:
+    """stderr redirected to a file or pipe: progress bars as whole lines, no cursor codes.
+
+    A bar redraws itself in place ("\\r" + its new state) many times a second, which in a
+    log file is one endless line of carriage returns. Here each redraw replaces the pending
+    line, which is written out when the bar ends ("\\n"), when other text follows, or when
+    `interval` seconds have passed since the last line (so a long step still shows progress).
+    """
+
+    def __init__(self, stream, interval: float = 30.0):
+        self._stream = stream
+        self._interval = interval
+        self._line = ""
+        self._redrawn = False  # the pending line is a bar's state
+        self._last = -float("inf")
+        self._lock = threading.Lock()
+
+    def write(self, text: str) -> int:
+        with self._lock:
+            clean = _ANSI.sub("", text)
+            if not clean:
+                return len(text)
+            if self._redrawn and clean[:1] not in ("\r", "\n"):
+                self._emit()  # other text after a bar: the bar's state stays on its own line
+            for piece in re.split(r"([\r\n])", clean):
+                if piece == "\n":
+                    self._emit(blank_ok=not self._redrawn)
+                elif piece == "\r":
+                    if self._redrawn and time.monotonic() - self._last >= self._interval:
+                        self._emit()
+                    self._line, self._redrawn = "", True
+                else:
+                    self._line += piece
+        return len(text)
+
+    def _emit(self, blank_ok: bool = False) -> None:
+        line = self._line.rstrip()  # a bar pads over its longer previous state with spaces
+        if line or blank_ok:
+            self._stream.write(line + "\n")
+            self._last = time.monotonic()
+        self._line, self._redrawn = "", False
+
+    def flush(self) -> None:
+        with self._lock:
+            self._stream.flush()
+
+    def close_line(self) -> None:
+        """Write out what is pending (the last state of a bar still running)."""
+        with self._lock:
+            self._emit()
+            self._stream.flush()
+
+    def isatty(self) -> bool:
+        return False
+
+    def __getattr__(self, name):  # encoding, fileno, ... of the real stream
+        return getattr(self._stream, name)
+
+
+@contextlib.contextmanager
+def log_friendly_stderr():
+    """`LogStream` on stderr while a command runs, unless stderr is a terminal."""
+    real = sys.stderr
+    if real is None or real.isatty():
+        yield
+        return
+    sys.stderr = stream = LogStream(real)
+    try:
+        yield
+    finally:
+        stream.close_line()
+        sys.stderr = real
 
 
 @contextlib.contextmanager

@@ -17,7 +17,7 @@ import sys
 import warnings
 from collections.abc import Sequence
 
-from ._common import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, PROG, CLIError, heartbeat
+from ._common import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, PROG, CLIError, heartbeat, log_friendly_stderr
 from ._parser import build_parser
 from ._report import OPENED, remove_empty_outputs, remove_pending, unfinished_note
 
@@ -122,6 +122,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     if argv is None:  # the program: Ctrl-C ends the process (`_on_sigint`)
         with contextlib.suppress(ValueError):  # not the main thread: keep KeyboardInterrupt
             signal.signal(signal.SIGINT, _on_sigint)
+    with log_friendly_stderr():
+        return _run(args, argv)
+
+
+def _run(args, argv) -> int:
     try:
         with _plain_warnings(), heartbeat():
             args.func(args)

@@ -129,8 +129,9 @@ PIXEL_SIZE_HELP = (
 )
 
 
-def _add_system_options(p: argparse.ArgumentParser) -> None:
-    """What one root system is and how many orders of laterals the analysis keeps."""
+def _add_system_options(p: argparse.ArgumentParser, *, metric: bool = True) -> None:
+    """What one root system is and how many orders of laterals the analysis keeps (and, for
+    commands that compare roots, how much each order weighs)."""
     g = p.add_argument_group("whole root systems")
     g.add_argument(
         "--depth",
@@ -150,6 +151,8 @@ def _add_system_options(p: argparse.ArgumentParser) -> None:
         "around a zero-length main root at the collar; use with --depth 3 to keep the axes' "
         "laterals)",
     )
+    if not metric:
+        return
     g.add_argument(
         "--level-weights",
         type=_level_weights,
@@ -176,7 +179,11 @@ Try:  rootshape demo          (everything on a bundled set of 53 roots)
 _EPILOG = "Run 'rootshape COMMAND --help' for the options of one command."
 
 
-def _add_common(p: argparse.ArgumentParser, *, inputs: bool = True, default_out: str = "rootshape_output") -> None:
+def _add_common(
+    p: argparse.ArgumentParser, *, inputs: bool = True, metric: bool = True, default_out: str = "rootshape_output"
+) -> None:
+    """The options every command shares; `metric=False` leaves out those of the distance (points,
+    weights, scale, precision, devices) for commands that measure roots without comparing them."""
     if inputs:
         p.add_argument(
             "inputs",
@@ -226,7 +233,7 @@ def _add_common(p: argparse.ArgumentParser, *, inputs: bool = True, default_out:
             action="store_true",
             help="stop at the first unreadable file of a folder (default: skip it, name it, and go on with the others)",
         )
-        _add_system_options(p)
+        _add_system_options(p, metric=metric)
     g = p.add_argument_group("analysis")
     g.add_argument(
         "--out",
@@ -243,6 +250,12 @@ def _add_common(p: argparse.ArgumentParser, *, inputs: bool = True, default_out:
             metavar="N",
             help="use only N of the roots, evenly spread through the input order (faster)",
         )
+    g.add_argument("--seed", type=int, default=0, help="random seed (synthetic and random roots; default 0)")
+    r = p.add_argument_group("computation")
+    r.add_argument("--quiet", action="store_true", help="no progress messages or bars")
+    r.add_argument("--debug", action="store_true", help="show the full Python traceback on errors")
+    if not metric:
+        return
     g.add_argument(
         "--laterals",
         type=_positive_int,
@@ -275,8 +288,6 @@ def _add_common(p: argparse.ArgumentParser, *, inputs: bool = True, default_out:
         "terms then grow with the length unit and the lateral-position term does not, so keep one "
         "unit, --unit, for everything you compare)",
     )
-    g.add_argument("--seed", type=int, default=0, help="random seed (synthetic and random roots; default 0)")
-    r = p.add_argument_group("computation")
     r.add_argument("--float64", action="store_true", help="compute in double precision (slower)")
     r.add_argument(
         "--devices",
@@ -285,8 +296,6 @@ def _add_common(p: argparse.ArgumentParser, *, inputs: bool = True, default_out:
         help="split each computation over N XLA CPU devices (default: one device, with the work's "
         "blocks on one worker thread per core, which is faster on a busy machine)",
     )
-    r.add_argument("--quiet", action="store_true", help="no progress messages or bars")
-    r.add_argument("--debug", action="store_true", help="show the full Python traceback on errors")
 
 
 def _add_store_option(p):
@@ -569,7 +578,7 @@ def build_parser() -> argparse.ArgumentParser:
         "traits.csv, in the input's units.",
         cmd_traits,
     )
-    _add_common(p)
+    _add_common(p, metric=False)
     p.add_argument(
         "--angle-window",
         dest="angle_window",

@@ -132,7 +132,7 @@ class _Problems:
         warnings.warn(
             RSMLWarning(
                 f"{self.source}: skipped {len(self.items)} unreadable part(s) "
-                f"(pass strict=True to raise instead): " + "; ".join(shown) + more
+                f"(strict=True, or --strict on the command line, raises instead): " + "; ".join(shown) + more
             ),
             stacklevel=stacklevel,
         )
@@ -796,8 +796,15 @@ def _nothing(problems: _Problems, message: str) -> list[Root]:
 # Writing.
 
 
-def _fmt(v: float) -> str:
-    return repr(float(v))  # shortest exact round-trip form
+def _fmt(v: float, single: bool = False) -> str:
+    # The shortest text that reads back as the value, at the precision it was computed in: a
+    # float32 921.4 is written "921.4", not its float64 expansion 921.4000244140625.
+    return str(np.float32(v)) if single else repr(float(v))
+
+
+def _is_single(a) -> bool:
+    dtype = np.asarray(a).dtype
+    return dtype.kind == "f" and dtype.itemsize < 8
 
 
 def _common(roots: Sequence[Root], key: str):
@@ -1012,11 +1019,12 @@ def _write_one_root(
         props = ET.SubElement(el, "properties")
         ET.SubElement(props, "parent-node", {"value": str(parent_node)})
     geom = ET.SubElement(ET.SubElement(el, "geometry"), "polyline")
+    single = _is_single(polyline)
     pts = np.asarray(polyline, dtype=np.float64) * resolution
     for p in pts:
-        a = {"x": _fmt(p[0]), "y": _fmt(p[1])}
+        a = {"x": _fmt(p[0], single), "y": _fmt(p[1], single)}
         if dim3:
-            a["z"] = _fmt(p[2]) if p.shape[0] == 3 else "0.0"
+            a["z"] = _fmt(p[2], single) if p.shape[0] == 3 else "0.0"
         ET.SubElement(geom, "point", a)
     functions = dict(meta.get("functions") or {})
     if radius is not None:
@@ -1025,6 +1033,7 @@ def _write_one_root(
         functions["diameter"] = {
             "domain": "polyline",
             "values": 2.0 * np.asarray(radius, dtype=np.float64) * resolution,
+            "single": _is_single(radius),
         }
     written = {
         name: f
@@ -1040,7 +1049,7 @@ def _write_one_root(
             fn = ET.SubElement(fns, "function", fa)
             positions = f.get("positions")
             for j, v in enumerate(f["values"]):
-                sa = {"value": _fmt(v)}
+                sa = {"value": _fmt(v, f.get("single", False))}
                 if positions is not None and not math.isnan(positions[j]):
                     sa["position"] = _fmt(positions[j])
                 ET.SubElement(fn, "sample", sa)
