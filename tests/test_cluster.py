@@ -171,3 +171,44 @@ def test_heat_map_and_dendrogram_show_one_leaf_order(method):
     assert len(dots) == len(D) and len({tuple(c) for c in dots}) == 3  # a colour per cluster
     plt.close(fig1)
     plt.close(fig2)
+
+
+def test_dendrogram_clusters_take_the_colour_of_their_label():
+    """With a label strip, a cluster made mostly of one label value is drawn in that value's
+    strip colour (one-to-one pairing); the clusters left over get colours no value uses."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.colors as mcolors
+    import matplotlib.pyplot as plt
+
+    from rootshape_jax.plot import label_colors, plot_dendrogram
+    from rootshape_jax.plot._clusters import cluster_colors
+
+    # Four groups; the labels name three of them in an order unlike the clusters' left-to-right one.
+    X, y = _points(3, (5, 6, 4, 3), sep=6.0)
+    names = np.array(["zinc", "alpha", "mid", "mid"])[y]
+    names[y == 3] = np.array(["zinc", "alpha", "mid"])[np.arange(3)]  # the 4th group is mixed
+    res = cluster(_D(X), n_clusters=4)
+    fig, axes = plot_dendrogram(
+        res.linkage, labels=[f"r{i}" for i in range(len(y))], n_clusters=4, strips={"treatment": list(names)}
+    )
+    colors = axes["cluster_colors"]
+    strip = label_colors(names)
+    for c in range(4):
+        members = names[res.labels == c]
+        values, counts = np.unique(members, return_counts=True)
+        if counts.max() == len(members):  # a pure cluster: its value's colour
+            assert colors[c] == strip[values[0]]
+    assert len(set(colors)) == 4
+    # "mid" pairs with its pure cluster, so the mixed one takes a colour no value uses.
+    mixed = [c for c in range(4) if len(set(names[res.labels == c])) > 1]
+    assert len(mixed) == 1 and colors[mixed[0]] not in strip.values()
+    # The tree's dots under the leaves use the same colours.
+    dots = [mcolors.to_hex(c) for c in axes["dendrogram"].collections[-1].get_facecolors()]
+    assert dots == [colors[res.labels[i]] for i in res.order]
+    plt.close(fig)
+    # Without a strip: the fixed palette in cluster order.
+    from rootshape_jax.plot import slot_color
+
+    assert cluster_colors(np.array([0, 1, 2, 1])) == [slot_color(k) for k in range(3)]

@@ -11,6 +11,7 @@ from scipy.cluster import hierarchy
 from .._cluster import linkage_matrix
 from ._draw import (
     NEUTRAL_COLOR,
+    SLOT_PALETTE,
     add_scale_bar,
     apply_frame,
     as_drawing_list,
@@ -25,8 +26,9 @@ from ._draw import (
     resolve_projection,
     slot_color,
     subplot_kw,
+    wrap_name,
 )
-from ._labels import check_strips, draw_strip
+from ._labels import check_strips, draw_strip, label_colors
 
 # Beyond these sizes tick labels overlap; they are left out.
 _MAX_TICK_LABELS = 50
@@ -211,8 +213,31 @@ def _clusters(Z: np.ndarray, n_clusters: int | None) -> tuple[np.ndarray, float 
     return ids, cut
 
 
-def cluster_color(c: int) -> str:
-    return slot_color(c)
+def cluster_colors(ids: np.ndarray, strip: Sequence[str] | None = None) -> list[str]:
+    """One colour per flat cluster (ids 0..k-1).
+
+    Without a label strip, the fixed categorical palette in cluster order. With one, clusters
+    and label values are paired one-to-one by how many roots they share (an optimal assignment),
+    and a paired cluster takes its value's strip colour: a cluster made of one condition is drawn
+    in that condition's colour, so the tree and the strip read together. The other clusters take
+    palette colours that no value of the strip uses.
+    """
+    k = int(ids.max()) + 1
+    if strip is None:
+        return [slot_color(c) for c in range(k)]
+    from scipy.optimize import linear_sum_assignment
+
+    by_value = label_colors(strip)
+    values = list(by_value)
+    shared = np.zeros((k, len(values)), dtype=int)
+    for c, v in zip(ids, strip):
+        shared[int(c), values.index(str(v))] += 1
+    colors: list[str | None] = [None] * k
+    for c, j in zip(*linear_sum_assignment(-shared)):
+        if shared[c, j] > 0:
+            colors[c] = by_value[values[j]]
+    spare = iter([col for col in SLOT_PALETTE if col not in by_value.values()] * (k + 1))
+    return [col if col is not None else next(spare) for col in colors]
 
 
 def plot_dendrogram(
@@ -247,10 +272,12 @@ def plot_dendrogram(
     - `linewidth`, `invert_y`, `projection`, `unit`: root drawing options, as in `plot_root`.
     - `strips`: ``{label name: one value per root}``: one colour strip per label under the
       leaves, with a legend (needs ``ax=None``); the leaf names then label the last strip.
+      Clusters are then coloured to agree with the first strip: a cluster paired with a label
+      value (one-to-one, by the roots they share) takes that value's colour (`cluster_colors`).
 
     **Returns** ``(fig, axes)`` with ``axes = {"dendrogram": ax, "roots": rows of Axes,
-    "strips": {name: Axes}, "legends": {name: Axes}}`` (a strip's legend is
-    ``axes["legends"][name].get_legend()``).
+    "strips": {name: Axes}, "legends": {name: Axes}, "cluster_colors": [colour of cluster 1,
+    ...]}`` (a strip's legend is ``axes["legends"][name].get_legend()``).
     """
     Z = _as_linkage(D_or_linkage, method, "plot_dendrogram")
     n = Z.shape[0] + 1
@@ -263,6 +290,7 @@ def plot_dendrogram(
     lax: dict = {}
     ids, cut = _clusters(Z, n_clusters)
     k = int(ids.max()) + 1
+    colors = cluster_colors(ids, next(iter(strips.values())) if strips else None)
     drawings = None
     if roots is not None:
         if ax is not None:
@@ -281,7 +309,7 @@ def plot_dendrogram(
 
     def link_color(node: int) -> str:
         c = np.unique(ids[members[node]])
-        return cluster_color(int(c[0])) if c.size == 1 else NEUTRAL_COLOR
+        return colors[int(c[0])] if c.size == 1 else NEUTRAL_COLOR
 
     order = hierarchy.leaves_list(Z)
     rows: list[list] = []
@@ -304,6 +332,11 @@ def plot_dendrogram(
         ncols = max(len(p) for p in per)
         frame = base_frame(drawings, projection, False)
         w, h = panel_size(frame, 1.5)
+        # Room for each member's name above its panel, on up to two lines (about 0.055 inch per
+        # character at 7 pt), so long names do not run into their neighbours.
+        longest = max((len(str(x)) for x in labels), default=0) if labels else 4
+        w = max(w, min(0.055 * (longest + 1) / 2 + 0.05, 2.0))
+        name_chars = int((w - 0.05) / 0.055)
         fig_w = max(7.0, ncols * w + 1.6)
         fig = new_figure((fig_w + (2.0 if ns else 0.0), 3.8 + 0.3 * ns + k * (h + 0.15)))
         # With strips, a last narrow column holds their legends (widened by the layout to fit).
@@ -326,7 +359,7 @@ def plot_dendrogram(
                     rax,
                     drawings[i],
                     projection=projection,
-                    colors=cluster_color(c),
+                    colors=colors[c],
                     linewidth=linewidth,
                 )
                 apply_frame(
@@ -337,13 +370,13 @@ def plot_dendrogram(
                     offset=panel_offset(drawings[i], projection),
                 )
                 clean_panel(rax, projection)
-                rax.set_title(labels[i] if labels else f"#{i}", fontsize=7, pad=2)
+                rax.set_title(wrap_name(labels[i], name_chars) if labels else f"#{i}", fontsize=7, pad=2)
                 row.append(rax)
             size = int(np.sum(ids == c))
             if projection != "3d":
                 row[0].set_ylabel(
                     f"cluster {c + 1}\nn = {size}",
-                    color=cluster_color(c),
+                    color=colors[c],
                     fontsize=9,
                     rotation=0,
                     ha="right",
@@ -365,7 +398,7 @@ def plot_dendrogram(
     centers = 10.0 * np.arange(n) + 5.0  # scipy puts leaf i at 10 i + 5
     # A dot in its cluster's colour under every leaf: a one-root cluster has no link of its own,
     # so without it the tree would show that cluster only in the neutral colour.
-    ax.scatter(centers, np.zeros(n), s=12, c=[cluster_color(int(ids[i])) for i in order], zorder=3, clip_on=False)
+    ax.scatter(centers, np.zeros(n), s=12, c=[colors[int(ids[i])] for i in order], zorder=3, clip_on=False)
     for name, sx in sax.items():
         draw_strip(sx, lax[name], [strips[name][i] for i in order], name, centers=centers, width=10.0)
         sx.set_xlim(ax.get_xlim())
@@ -381,4 +414,4 @@ def plot_dendrogram(
     ax.tick_params(axis="x", length=0)
     if title:
         ax.set_title(f"{title} ({k} clusters)" if k > 1 else title, fontsize=11)
-    return fig, {"dendrogram": ax, "roots": rows, "strips": sax, "legends": lax}
+    return fig, {"dendrogram": ax, "roots": rows, "strips": sax, "legends": lax, "cluster_colors": colors}

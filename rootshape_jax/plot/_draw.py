@@ -609,6 +609,24 @@ def add_scale_bar(ax, frame: Frame, unit: str | None, *, projection: str) -> Non
     ax.add_artist(bar)
 
 
+def wrap_name(text: str, width: int) -> str:
+    """`text` on at most two lines of about `width` characters, broken after a separator
+    (``/ _ - .`` or a space) where there is one; a second line still too long loses its middle
+    to "…". Long file-derived root names (``2012_11_21_09h00_chl110_1_1/3/415``) then fit a
+    narrow panel instead of running into their neighbours' titles."""
+    text = str(text)
+    width = max(int(width), 4)
+    if len(text) <= width:
+        return text
+    cut = max(text.rfind(sep, 0, width) for sep in "/_-. ")
+    cut = cut + 1 if cut > 0 else width
+    first, rest = text[:cut].rstrip(), text[cut:].lstrip()
+    if len(rest) > width:
+        keep = width - 1
+        rest = rest[: keep // 2] + "\u2026" + rest[len(rest) - (keep - keep // 2) :]
+    return first + "\n" + rest
+
+
 def panel_size(frame: Frame, height: float) -> tuple[float, float]:
     """Inches (width, height) of one panel holding ``frame`` at equal aspect."""
     width = float(np.clip(height * frame.aspect, 0.35 * height, 2.5 * height))
