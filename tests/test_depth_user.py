@@ -126,6 +126,35 @@ def test_deeper_branches_are_thinner_and_shades_of_their_parent():
     assert {c for v in drawn(ax).values() for c, _ in v} == {"#123456"}
 
 
+def test_a_plant_draws_its_axes_dark_and_their_laterals_in_slot_colours():
+    # A plant (axes around a zero-length main root): with the usual rule every lateral of an
+    # axis would be a shade of the axis's one colour, so matched laterals (a geodesic between
+    # plants) could not be told apart.
+    from rootshape_jax.plot._draw import MAIN_COLOR, as_drawing, plant_stride
+
+    axes = synthetic_roots(2, seed=7)
+    plant = rs.io.plant_system(axes, name="p")
+    _, ax = P.plot_root(plant)
+    d = drawn(ax)
+    assert {c for c, _ in d[1]} == {MAIN_COLOR}  # the axes
+    n0, n1 = (len(a.laterals) for a in axes)
+    stride = max(n0, n1)
+    expected = [P.slot_color(k) for k in range(n0)] + [P.slot_color(stride + k) for k in range(n1)]
+    assert sorted(c for c, _ in d[2]) == sorted(expected)
+    # A padded tree of the plant (every frame of a geodesic) steps by its slot capacity, the
+    # same in every frame, so a lateral keeps its colour along the deformation.
+    padded = rs.unstack(rs.batch([plant], depth=3, n_points=20))[0]
+    cap = plant_stride(as_drawing(padded, what="t"))
+    assert cap >= stride
+    _, ax = P.plot_root(padded)
+    expected = [P.slot_color(k) for k in range(n0)] + [P.slot_color(cap + k) for k in range(n1)]
+    assert sorted(c for c, _ in drawn(ax)[2]) == sorted(expected)
+    # An ordinary root keeps the usual rule; one colour stays one colour.
+    assert plant_stride(as_drawing(axes[0], what="t")) is None
+    _, ax = P.plot_root(plant, colors="#123456")
+    assert {c for v in drawn(ax).values() for c, _ in v} == {"#123456"}
+
+
 def test_branch_color_is_a_shade_of_the_parents():
     for slot in [(0,), (3, 1), (5, 2, 4)]:
         parent = P.branch_color(slot[:-1]) if len(slot) > 1 else None

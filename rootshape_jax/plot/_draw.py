@@ -366,7 +366,9 @@ def draw(
     """Draw one root on ``ax``: laterals first, main root on top, nulls as hollow circles.
 
     Every order is drawn: second-order laterals and below (`Drawing.deeper`) under their
-    parents, thinner, each in a `shade` of its parent's colour. Each order is one line
+    parents, thinner, each in a `shade` of its parent's colour. A plant's system (axes around
+    a zero-length main root) has its axes dark and their laterals in slot colours
+    (`plant_stride`). Each order is one line
     collection whose ``gid`` is ``"order ℓ"`` (0 main root, 1 laterals, 2 their laterals, ...).
 
     Where the radius is known, each segment's width follows it (`segment_widths`: relative to
@@ -374,11 +376,12 @@ def draw(
     ``linewidth`` wide and the main root 1.6 times that."""
     cols = list(COLUMNS[projection])
     main_color = colors if _is_single_color(colors) else MAIN_COLOR
+    stride = plant_stride(drawing) if colors is None and slot_colors else None
     reference = _radius_reference(drawing)
     lat_radius = dict(drawing.lateral_radii) if reference > 0 else {}
     segs, lat_colors, lat_widths = [], [], []
     for k, lat in drawing.laterals:
-        c = _lateral_color(k, colors, slot_colors)
+        c = MAIN_COLOR if stride is not None else _lateral_color(k, colors, slot_colors)
         if k in lat_radius and lat.shape[0] >= 2:
             pieces = _split(lat[:, cols])
             segs += pieces
@@ -416,7 +419,7 @@ def draw(
     # Second-order laterals and below: one collection per level, under their parents, each
     # level thinner and (by its shade of the parent's colour) lighter.
     for level, (segs, cs, widths) in sorted(
-        _deeper_segments(drawing, cols, colors, slot_colors, linewidth, reference).items()
+        _deeper_segments(drawing, cols, colors, slot_colors, linewidth, reference, stride).items()
     ):
         add(segs, cs, widths, zorder - 0.01 * level, level)
     if reference > 0 and drawing.main_radius is not None:
@@ -428,8 +431,8 @@ def draw(
         add([drawing.main[:, cols]], [main_color], 1.6 * linewidth, zorder + 0.1, 0)
     if show_nulls and (drawing.nulls or drawing.deeper_nulls):
         pts = np.stack([p[cols] for _, p in drawing.nulls] + [p[cols] for _, p in drawing.deeper_nulls])
-        ncol = [_lateral_color(k, colors, slot_colors) for k, _ in drawing.nulls]
-        ncol += [deeper_color(slot, colors, slot_colors) for slot, _ in drawing.deeper_nulls]
+        ncol = [MAIN_COLOR if stride is not None else _lateral_color(k, colors, slot_colors) for k, _ in drawing.nulls]
+        ncol += [deeper_color(slot, colors, slot_colors, stride) for slot, _ in drawing.deeper_nulls]
         ax.scatter(
             *pts.T,
             s=(3.5 * linewidth) ** 2,
@@ -445,23 +448,44 @@ def draw(
 DEEPER_WIDTH = 0.6
 
 
-def deeper_color(slot: Sequence[int], colors: Any, slot_colors: bool) -> Any:
+def plant_stride(drawing: Drawing) -> int | None:
+    """For a plant's whole system (`rootshape_jax.io.plant_system`: a zero-length main root at
+    the collar, the plant's axes as its laterals), the number of lateral slots per axis;
+    None for any other root.
+
+    A plant is drawn with its axes dark, like main roots, and each axis's laterals in slot
+    colours of their own (`deeper_color`), so matched laterals can be told apart: with the
+    usual rule every lateral of an axis would be a shade of one colour."""
+    if not drawing.laterals or np.ptp(drawing.main, axis=0).max() > 0:
+        return None
+    second = [s[1] for s, _, _ in drawing.deeper if len(s) >= 2] + [
+        s[1] for s, _ in drawing.deeper_nulls if len(s) >= 2
+    ]
+    return max(second, default=-1) + 1
+
+
+def deeper_color(slot: Sequence[int], colors: Any, slot_colors: bool, stride: int | None = None) -> Any:
     """Colour of the deeper branch at ``slot``: one colour for the whole root when `colors` is
-    one colour, otherwise a `shade` of its parent's colour at every level (`branch_color`)."""
-    color = _lateral_color(slot[0], colors, slot_colors)
-    if _is_single_color(colors):
-        return color
-    for k in slot[1:]:
+    one colour, otherwise a `shade` of its parent's colour at every level (`branch_color`).
+    In a plant (`stride` from `plant_stride`) an axis's lateral ``(a, k)`` takes slot colour
+    ``a * stride + k`` and its own branches shades of it."""
+    if stride is not None:
+        color, below = slot_color(slot[0] * stride + slot[1]), slot[2:]
+    else:
+        color, below = _lateral_color(slot[0], colors, slot_colors), slot[1:]
+        if _is_single_color(colors):
+            return color
+    for k in below:
         color = shade(color, k)
     return color
 
 
-def _deeper_segments(drawing: Drawing, cols, colors, slot_colors, linewidth, reference) -> dict:
+def _deeper_segments(drawing: Drawing, cols, colors, slot_colors, linewidth, reference, stride=None) -> dict:
     """{order ℓ: (segments, colours, widths)} of the branches below the first-order laterals."""
     out: dict[int, tuple[list, list, list]] = {}
     for slot, line, radius in drawing.deeper:
         segs, cs, widths = out.setdefault(len(slot), ([], [], []))
-        c = deeper_color(slot, colors, slot_colors)
+        c = deeper_color(slot, colors, slot_colors, stride)
         if radius is not None and reference > 0 and line.shape[0] >= 2:
             pieces = _split(line[:, cols])
             segs += pieces
