@@ -972,6 +972,22 @@ def test_a_run_that_fails_midway_says_what_it_left_in_out(tmp_path, monkeypatch,
     assert main(["traits", "--synthetic", "2", "--quiet", "--overwrite", "--out", str(out)]) == 0
 
 
+def test_overwrite_names_earlier_results_it_did_not_replace(tmp_path, capsys):
+    # --overwrite into a folder of another command's results: the files this run does not write
+    # stay, so the run says which, instead of leaving them to pass for its own.
+    from rootshape_jax._cli import main
+
+    out = str(tmp_path / "o")
+    assert main(["traits", "--synthetic", "3", "--out", out, "--quiet"]) == 0
+    assert main(["traits", "--synthetic", "2", "--out", out, "--quiet", "--overwrite"]) == 0
+    assert "earlier run" not in capsys.readouterr().err  # everything rewritten
+    (tmp_path / "o" / "notes.txt").write_text("mine")  # not a result: never named
+    assert main(["distances", "--synthetic", "2", "--points", "12", "--out", out, "--quiet", "--overwrite"]) == 0
+    err = capsys.readouterr().err
+    assert "also holds 1 file of an earlier run that this run did not replace (traits.csv)" in err
+    assert "notes.txt" not in err and (tmp_path / "o" / "traits.csv").exists()
+
+
 def test_progress_bars_in_a_log_are_whole_lines():
     # stderr redirected to a file: no carriage returns or cursor codes, one line per bar unless
     # it runs long, and the text around the bars keeps its own lines.

@@ -40,6 +40,21 @@ def _finish(out: Output, reading: Reading) -> None:
     out.print_summary()
     if reading.files or reading.skipped:
         print(reading.summary())
+    _warn_stale(out)
+
+
+def _warn_stale(out: Output) -> None:
+    stale = out.stale()
+    if stale:
+        shown = ", ".join(stale[:6]) + (f" and {len(stale) - 6} more" if len(stale) > 6 else "")
+        warn(
+            f"--out {out.folder} also holds {len(stale)} file{'s' if len(stale) > 1 else ''} of an earlier run "
+            f"that this run did not replace ({shown}); "
+            + ("they were" if len(stale) > 1 else "it was")
+            + " not made from this run's inputs: delete "
+            + ("them" if len(stale) > 1 else "it")
+            + ", or use a new --out folder."
+        )
 
 
 def _pipeline(args, steps, *, min_roots: int = 2) -> None:
@@ -235,6 +250,7 @@ def cmd_demo(args) -> None:
     write_index(out, title="rootshape demo", intro=intro, settings=settings(args, pop))
     print(f"Open {out.path('index.html').resolve()} in a web browser.")
     print(f"Results are in {out.folder.resolve()}")
+    _warn_stale(out)
 
 
 def _demo_pair(ctx: Context):

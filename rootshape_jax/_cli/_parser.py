@@ -242,7 +242,12 @@ def _add_common(
         help=f"folder for the results (created if needed; default {default_out}); a "
         "folder holding earlier results is refused unless --overwrite",
     )
-    g.add_argument("--overwrite", action="store_true", help="replace the results of an earlier run in the --out folder")
+    g.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the results of an earlier run in the --out folder (earlier results this "
+        "run does not write again are kept, and named at the end)",
+    )
     if inputs:
         g.add_argument(
             "--samples",

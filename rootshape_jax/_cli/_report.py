@@ -101,8 +101,13 @@ class Output:
         self.overwrite = bool(getattr(args, "overwrite", False))
         if self.folder.exists() and not self.folder.is_dir():
             raise CLIError(f"--out {folder}: exists and is not a folder.")
-        if self.folder.is_dir() and not self.overwrite:
-            refuse_earlier_results(folder, [p.name for p in self.folder.iterdir() if is_output_name(p.name)])
+        # Results of an earlier run in the folder: refused, or (--overwrite) those this run does
+        # not write again are named at its end (`stale`).
+        self.earlier = (
+            {p.name for p in self.folder.iterdir() if is_output_name(p.name)} if self.folder.is_dir() else set()
+        )
+        if not self.overwrite:
+            refuse_earlier_results(folder, list(self.earlier))
         # A folder this run creates is removed again if the run stops before writing into it.
         self.created = not self.folder.exists()
         try:
@@ -194,6 +199,12 @@ class Output:
         item = Item(kind, name, caption, table_html)
         section.items.append(item)
         return item
+
+    def stale(self) -> list[str]:
+        """Earlier results still in the folder that this run did not replace (with --overwrite,
+        e.g. a cluster run's dendrogram.png beside new distances, or geodesic steps beyond
+        this run's last): still there after this run ends, though not made from its inputs."""
+        return sorted(n for n in self.earlier - self.written if os.path.lexists(self.path(n)))
 
     def files(self) -> list[Item]:
         return [i for s in self.sections for i in s.items]
