@@ -9,6 +9,7 @@ import sys
 import warnings
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import rootshape_jax as rs
@@ -189,3 +190,26 @@ def test_cli_metadata_missing_row_is_one_line_error(folder, tmp_path):
 def test_cli_metadata_with_synthetic_is_refused(tmp_path):
     proc = run_cli("traits", "--synthetic", "2", "--metadata", tmp_path / "m.csv", "--out", tmp_path / "o")
     assert proc.returncode == 1 and "--metadata labels files" in proc.stderr
+
+
+def test_labels_written_in_every_file_get_their_file_name(tmp_path):
+    # SmartRoot labels its roots root_1, root_2, ... in every file: read from several files the
+    # names carry the file (lupin/root_1, maize/root_1); one file keeps the plain labels, and a
+    # table's root column still matches the label.
+    from rootshape_jax._root import Root
+
+    main = np.array([[0.0, 0.0], [0.0, 5.0]])
+    for stem in ("lupin", "maize"):
+        io.write_rsml(
+            [Root(main=main, name="root_1"), Root(main=main + 1.0, name="root_2")], tmp_path / f"{stem}.rsml", unit="mm"
+        )
+    roots = io.read_folder(tmp_path)
+    assert sorted(r.name for r in roots) == ["lupin/root_1", "lupin/root_2", "maize/root_1", "maize/root_2"]
+    assert [r.name for r in io.read_folder(tmp_path / "lupin.rsml")] == ["root_1", "root_2"]
+    table = [
+        {"file": "maize", "root": "root_2", "genotype": "B73"},
+        {"file": "lupin", "root": "", "genotype": "x"},
+        {"file": "maize", "root": "root_1", "genotype": "B73"},
+    ]
+    out = io.attach_metadata(roots, table)
+    assert {r.name: r.metadata["genotype"] for r in out}["maize/root_2"] == "B73"

@@ -188,12 +188,17 @@ def expand(paths: Sequence[str | os.PathLike]) -> list[tuple[Path, bool]]:
 
 def unique_names(roots: list[Root]) -> list[Root]:
     """Names that tell roots apart: a name shared by several roots gets its file name in front,
-    and a number behind if that is not enough."""
+    and a number behind if that is not enough. Roots read from several files all carry their
+    file's name: a label a tracing tool writes in every file (SmartRoot's ``root_1``) says
+    nothing about which file, so ``lupin/root_1`` and ``maize/root_1`` are kept apart."""
     counts: dict[str, int] = {}
     for r in roots:
         counts[r.name] = counts.get(r.name, 0) + 1
+    stems = [Path(r.metadata.get("source_file", "")).stem for r in roots]
+    several = len({s for s in stems if s}) > 1
     names = [
-        f"{Path(r.metadata.get('source_file', '')).stem}/{r.name}" if counts[r.name] > 1 else r.name for r in roots
+        f"{stem}/{r.name}" if stem and (counts[r.name] > 1 or (several and stem not in r.name)) else r.name
+        for r, stem in zip(roots, stems)
     ]
     seen: dict[str, int] = {}
     out = []
