@@ -158,6 +158,46 @@ def test_several_roots_sorted_and_base_points():
     np.testing.assert_allclose([t.main[0] for t in two], [m2[0], m1[0]], atol=3)
 
 
+def _seedling_photo(seed: int):
+    """uint8 RGB: a grey root of the agar's hue below a dark green shoot (hypocotyl from y = 40
+    to 72, two cotyledons touching its top), as on a plate photograph. Returns (image, main)."""
+    from skimage.draw import ellipse
+
+    t = np.linspace(0, 1, 200)
+    main = np.stack([150 + 8 * np.sin(2.5 * t), 70 + 290 * t], axis=1)
+    lat = main[90] + np.linspace(0, 1, 50)[:, None] * np.array([60.0, 35.0])
+    _, root = render_root_image([main, lat], shape=(400, 300), width=4, noise=0.0)
+    _, shoot = render_root_image([[[150, 40], [150, 72]]], shape=(400, 300), width=5, noise=0.0)
+    for r, c, rot in ((40, 137, 0.5), (36, 163, -0.5)):
+        shoot[ellipse(r, c, 6, 15, shape=shoot.shape, rotation=rot)] = True
+    img = np.empty((400, 300, 3))
+    img[:] = np.array([115, 156, 140]) / 255  # green-grey agar
+    img[root] = np.array([88, 126, 110]) / 255  # root: darker, the agar's own hue
+    img[shoot] = np.array([45, 80, 30]) / 255  # shoot: dark green
+    img += np.random.default_rng(seed).normal(0, 4 / 255, img.shape)
+    return (np.clip(img, 0, 1) * 255).astype(np.uint8), main
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_green_shoot_is_not_part_of_the_main_root(seed):
+    from skimage.color import rgb2gray
+
+    img, main = _seedling_photo(seed)
+    # The root starts where the hypocotyl ends, at (150, 72): measured 7-8 px below it (the
+    # shoot is removed grown by root_width / 2), and the cotyledons are not laterals.
+    (r,) = roots_from_image(img)
+    assert np.linalg.norm(r.main[0] - [150, 72]) < 12
+    assert r.n_laterals == 1
+    assert r.main_length == pytest.approx(polyline_length(main), rel=0.05)
+    # Without the colour cue (disabled, or a grayscale image) the main root starts at the top
+    # of a cotyledon and the other cotyledon and the hypocotyl's top are laterals.
+    for kept in (roots_from_image(img, shoot_green=None)[0], roots_from_image(rgb2gray(img))[0]):
+        assert kept.main[0, 1] < 40 and kept.n_laterals == 3
+    for bad in (0, -1.0, float("nan"), float("inf"), True, "green"):
+        with pytest.raises(ValueError, match="shoot_green"):
+            roots_from_image(img, shoot_green=bad)
+
+
 def test_roi_and_pixel_size_keep_full_frame_coordinates():
     main, lats, _ = _synthetic_root(3)
     img, _ = render_root_image([main, *lats], shape=(400, 300), seed=4)

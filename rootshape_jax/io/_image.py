@@ -9,6 +9,7 @@ plate has increasing y). This is the one place where ``(row, col)`` becomes ``(x
 from __future__ import annotations
 
 import math
+import numbers
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -136,13 +137,16 @@ def _fill_small_holes(mask: np.ndarray, max_size: int) -> np.ndarray:
     return mask | fill[lab]
 
 
+def _disk(radius: int) -> np.ndarray:
+    yy, xx = np.mgrid[-radius : radius + 1, -radius : radius + 1]
+    return xx * xx + yy * yy <= radius * radius
+
+
 def _close(mask: np.ndarray, radius: int) -> np.ndarray:
     if radius <= 0:
         return mask
-    yy, xx = np.mgrid[-radius : radius + 1, -radius : radius + 1]
-    disk = xx * xx + yy * yy <= radius * radius
     padded = np.pad(mask, radius + 1)
-    closed = ndi.binary_closing(padded, structure=disk)
+    closed = ndi.binary_closing(padded, structure=_disk(radius))
     return closed[radius + 1 : -radius - 1, radius + 1 : -radius - 1]
 
 
@@ -344,6 +348,66 @@ def halfwidth_map(mask: np.ndarray) -> np.ndarray:
         r1 = min(r0 + _BAND, H)
         p0, p1 = max(r0 - margin, 0), min(r1 + margin, H)
         out[r0:r1] = ndi.distance_transform_edt(mask[p0:p1])[r0 - p0 : r1 - p0]
+    return out
+
+
+# Yellow-green, about the hue of leaves and other chlorophyll-bearing tissue (CIELAB hue angle 120°).
+_FOLIAGE = np.array([math.cos(math.radians(120.0)), math.sin(math.radians(120.0))], dtype=np.float32)
+
+
+def shoot_mask(rgb: np.ndarray, *, green: float, root_width: float) -> np.ndarray | None:
+    """Green shoot (cotyledons, hypocotyl, leaves) of a colour photograph, or None if there is none.
+
+    Seedlings on a plate are photographed with their shoot above the root; the shoot is dark
+    and elongated too, so the line filter keeps it and the main root would start at the tip
+    of a cotyledon. Roots carry no chlorophyll: on agar they take the background's colour, on
+    paper they are white. A pixel is shoot when it is green (CIELAB ``a* <= -green``) *and*
+    at least `green` units further along the yellow-green foliage hue than its background:
+    the first test spares white roots on blue paper (which are "greener" than the paper), the
+    second spares roots on green-tinted agar (as green as the agar). The background is local,
+    a median over about 36 root widths, because a plate's tint drifts across a photograph by
+    more than the shoot's contrast. Green regions count only where they are wider than the
+    widest root somewhere (a thin green line may be a root in the light; a leaf is a blob),
+    and are grown by the ridge filter's largest scale, ``root_width / 2``, which is how far
+    the filter's response to their dark outline reaches beyond them.
+    """
+    from skimage.color import rgb2lab
+
+    H, W = rgb.shape[:2]
+    scale = 1.0 / float(np.iinfo(rgb.dtype).max) if rgb.dtype.kind in "iu" else 1.0
+    # Chroma along the foliage hue (float16: differences of a few units matter, not their
+    # decimals), and which pixels are green at all; in row bands, so no full-size Lab copy.
+    foliage = np.empty((H, W), dtype=np.float16)
+    is_green = np.empty((H, W), dtype=bool)
+    for r0 in range(0, H, _BAND):
+        block = rgb[r0 : r0 + _BAND, :, :3].astype(np.float32) * np.float32(scale)
+        lab = rgb2lab(np.clip(block, 0.0, 1.0, out=block))
+        foliage[r0 : r0 + _BAND] = lab[..., 1] * _FOLIAGE[0] + lab[..., 2] * _FOLIAGE[1]
+        is_green[r0 : r0 + _BAND] = lab[..., 1] <= -green
+    # Local background: median of 4-root-width block means over 9 × 9 blocks.
+    f = max(1, int(round(4 * root_width)))
+    bg = ndi.median_filter(_block_mean(foliage, f), size=9, mode="nearest")
+    for r0 in range(0, H, _BAND):
+        r1 = min(r0 + _BAND, H)
+        local = np.repeat(bg[np.arange(r0, r1) // f], f, axis=1)[:, :W]
+        is_green[r0:r1] &= foliage[r0:r1] - local >= green
+    del foliage
+    if not is_green.any():
+        return None
+    rows, cols = np.nonzero(is_green.any(axis=1))[0], np.nonzero(is_green.any(axis=0))[0]
+    grow = int(math.ceil(root_width / 2.0))
+    r0, r1 = max(rows[0] - grow - 1, 0), min(rows[-1] + grow + 2, H)
+    c0, c1 = max(cols[0] - grow - 1, 0), min(cols[-1] + grow + 2, W)
+    crop = is_green[r0:r1, c0:c1]
+    del is_green
+    lab, n = ndi.label(crop, structure=np.ones((3, 3), bool))
+    wide = np.zeros(n + 1, dtype=bool)
+    wide[np.unique(lab[ndi.binary_erosion(crop, structure=_disk(grow))])] = True
+    wide[0] = False
+    if not wide.any():
+        return None
+    out = np.zeros((H, W), dtype=bool)
+    out[r0:r1, c0:c1] = ndi.binary_dilation(wide[lab], structure=_disk(grow))
     return out
 
 
@@ -647,6 +711,13 @@ def _plant_checks(nodes, rc, sub, base_local, gray, halfwidth, axis_sign):
     return dict(length=length, heading=heading, frame=frame, edge=edge, border=border, tip=tip, dist=dist, pred=pred)
 
 
+def _shoot(arr: np.ndarray, green: float | None, root_width: float) -> np.ndarray | None:
+    """`shoot_mask` of a colour image; None for grayscale (no colour cue) or when disabled."""
+    if green is None or arr.ndim != 3 or arr.shape[-1] not in (3, 4):
+        return None
+    return shoot_mask(arr, green=float(green), root_width=float(root_width))
+
+
 def image_scale(pixels_per_mm: float | None, pixel_size: float | None, unit: str) -> tuple[float | None, str]:
     """``(pixel_size, unit)`` from either way of giving an image's scale (`pixels_per_mm`, or
     `pixel_size` in `unit`); `ValueError` naming a bad or doubled value."""
@@ -685,6 +756,7 @@ def roots_from_image(
     spacing: float | None = 2.0,
     refine_junctions: bool = True,
     split_touching: bool = True,
+    shoot_green: float | None = 6.0,
     pixels_per_mm: float | None = None,
     pixel_size: float | None = None,
     unit: str = "pixel",
@@ -750,11 +822,21 @@ def roots_from_image(
       (seedlings): a true second-order lateral becomes a lateral of the main root that repeats
       its parent's stretch. False keeps one lateral per attachment (its longest path) and drops
       the other tips.
+    - `shoot_green`: colour images: a seedling's green shoot (cotyledons, hypocotyl) is dark
+      and elongated like a root, so without this the main root starts at a cotyledon's tip.
+      Pixels that are green (CIELAB ``a* <= -shoot_green``) and at least `shoot_green` CIELAB
+      units further along the yellow-green hue than their local background, in regions wider
+      than `root_width` somewhere, are shoot and are removed from the root mask (grown by
+      ``root_width / 2``), so each main root starts where it leaves the shoot (see
+      `shoot_mask`). Default 6: a clearly visible difference (about 2.5 just-noticeable
+      differences, 5 standard deviations of a JPEG photograph's chroma noise). Higher values
+      keep pale shoots; None keeps the shoot. Grayscale and binary images are unaffected.
     - `pixels_per_mm`: the image's scale; coordinates are then in mm. Or `pixel_size` with
       `unit` (e.g. ``pixel_size=0.05, unit="mm"``). Default: pixels.
 
     **Pipeline** (ridge mode): luminance → multi-scale Hessian line filter for both polarities
-    (`ridge_filter`) → polarity → hysteresis → closing, hole filling, small-object removal →
+    (`ridge_filter`) → polarity → hysteresis → minus the green shoot (colour images,
+    `shoot_mask`) → closing, hole filling, small-object removal →
     skeleton (scikit-image) → spur pruning on the `skan` skeleton graph → gap bridging →
     8-connected pixel graph (`skan`) → plants (connected pieces passing the tests above) →
     main root = longest shortest path from the base; every side subtree gives one lateral =
@@ -794,6 +876,10 @@ def roots_from_image(
             raise ValueError(f"{opt} must be a non-negative number, got {val!r}.")
     if not (0.0 <= min_plant_fraction <= 1.0):
         raise ValueError(f"min_plant_fraction must lie in [0, 1], got {min_plant_fraction!r}.")
+    if shoot_green is not None and (
+        isinstance(shoot_green, bool) or not isinstance(shoot_green, numbers.Real) or not 0 < shoot_green < math.inf
+    ):
+        raise ValueError(f"shoot_green must be a positive number (CIELAB units) or None, got {shoot_green!r}.")
 
     r0 = c0 = 0
     if roi is not None:  # crop first: a photograph's full-size float copy is large
@@ -844,17 +930,24 @@ def roots_from_image(
         roots_dark = bool(bright.mean() > 0.5) if invert is None else bool(invert)
         mask = ~bright if roots_dark else bright
         del bright
+        shoot = _shoot(arr, shoot_green, root_width)
+        if shoot is not None:
+            mask &= ~shoot
     else:
         gray = gray_float32(arr, source)
-        del arr
         if float(gray.max() - gray.min()) <= 1e-6:
             raise ImageError(f"{source}: the image is uniform; it contains no root.")
+        shoot = _shoot(arr, shoot_green, root_width)
+        del arr
         sigmas = _ridge_sigmas(root_width)
         z_bright, z_dark = ridge_filter(gray, sigmas)
         masks = {True: _hysteresis(z_dark, low, high)}
         del z_dark
         masks[False] = _hysteresis(z_bright, low, high)
         del z_bright
+        if shoot is not None:
+            for m in masks.values():
+                m &= ~shoot
         t = "ridge"
 
     opts = dict(
