@@ -988,6 +988,60 @@ def test_overwrite_names_earlier_results_it_did_not_replace(tmp_path, capsys):
     assert "notes.txt" not in err and (tmp_path / "o" / "traits.csv").exists()
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_generated_roots_are_turned_upright_like_the_inputs(dim):
+    # The mean's orientation is the solver's starting root's, moved by the fit; the CLI turns
+    # the mean (and the roots built on it) about their bases so the main root points the
+    # inputs' mean direction. Shapes, bases and attachments are unchanged.
+    from types import SimpleNamespace
+
+    from scipy.spatial.transform import Rotation
+
+    from rootshape_jax._cli._inputs import turn, upright_rotation
+
+    rng = np.random.default_rng(dim)
+
+    def rot(deg):
+        if dim == 2:
+            t = np.radians(deg)
+            return np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+        return Rotation.from_rotvec(np.radians(deg) * np.array([0.6, 0.0, 0.8])).as_matrix()
+
+    def turned_root(r, deg, shift):
+        R = rot(deg)
+        f = lambda x: (np.asarray(x) - r.main[0]) @ R.T + shift  # noqa: E731
+        return dataclasses.replace(r, main=f(r.main), laterals=tuple(f(x) for x in r.laterals))
+
+    base = synthetic_roots(5, seed=2, dim=dim)
+    inputs = [turned_root(r, a, rng.normal(size=dim) * 50) for r, a in zip(base, [10, 15, 20, 25, 30])]
+    tree = rs.batch(inputs, n_points=20)
+    pop = SimpleNamespace(tree=tree)
+    mean = rs.unstack(rs.batch([turned_root(base[0], -40, np.zeros(dim))], n_points=20))[0]
+    R = upright_rotation(mean, pop)
+    out = turn(mean, R)
+    chords = np.asarray(tree.main)[:, -1] - np.asarray(tree.main)[:, 0]
+    target = np.sum(chords / np.linalg.norm(chords, axis=1, keepdims=True), axis=0)
+    m = np.asarray(out.main)[-1] - np.asarray(out.main)[0]
+    assert np.dot(m, target) / np.linalg.norm(m) / np.linalg.norm(target) == pytest.approx(1.0, abs=1e-9)
+    np.testing.assert_allclose(R @ R.T, np.eye(dim), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    # About the base: base kept, every distance from it kept, lateral bases stay on the main root.
+    np.testing.assert_allclose(np.asarray(out.main)[0], np.asarray(mean.main)[0], atol=1e-12)
+    for a, b in [(out.main, mean.main), (out.laterals, mean.laterals)]:
+        da = np.linalg.norm(np.asarray(a) - np.asarray(mean.main)[0], axis=-1)
+        np.testing.assert_allclose(da, np.linalg.norm(np.asarray(b) - np.asarray(mean.main)[0], axis=-1), atol=1e-9)
+    np.testing.assert_array_equal(np.asarray(out.attach), np.asarray(mean.attach))
+    # A batch turns root by root, each about its own base; None leaves the tree unchanged.
+    both = turn(rs.stack([mean, mean]), R)
+    np.testing.assert_allclose(np.asarray(both.main)[1], np.asarray(out.main), atol=1e-12)
+    assert turn(mean, None) is mean
+    # A plant (axes around a zero-length main root) has no main direction: not turned.
+    from rootshape_jax.io import plant_system
+
+    plant = rs.batch([plant_system(inputs[:2])], n_points=20, depth=3)
+    assert upright_rotation(rs.unstack(plant)[0], SimpleNamespace(tree=plant)) is None
+
+
 def test_progress_bars_in_a_log_are_whole_lines():
     # stderr redirected to a file: no carriage returns or cursor codes, one line per bar unless
     # it runs long, and the text around the bars keeps its own lines.

@@ -176,6 +176,13 @@ def test_cli_mean_rsml_is_in_the_data_frame_and_unit(tmp_path, normalise):
     (mean,) = io.read_rsml(out / "mean.rsml")
     assert mean.metadata["unit"] == "mm"
     check_mean_in_place(back, mean.main, real_size=True)
+    # Upright like the inputs: its main root points their mean direction (the metric ignores
+    # rotation, so the fit alone leaves it at the starting root's tilt, moved by the fit).
+    chords = np.array([r.main[-1] - r.main[0] for r in back])
+    target = np.sum(chords / np.linalg.norm(chords, axis=1, keepdims=True), axis=0)
+    m = mean.main[-1] - mean.main[0]
+    cos = float(m @ target / np.linalg.norm(m) / np.linalg.norm(target))
+    assert np.degrees(np.arccos(min(cos, 1.0))) < 0.5
     if normalise == "--normalise-scale":
         # The normalised mean (shorter than 1: averaging shrinks) gets the inputs' mean length.
         from rootshape_jax._tree import normalising_length

@@ -27,6 +27,8 @@ from ._inputs import (
     mean_size,
     prepare,
     to_output_roots,
+    turn,
+    upright_rotation,
 )
 from ._report import Output, html_table, write_dict_csv
 
@@ -39,6 +41,9 @@ class Context:
     distances: np.ndarray | None = None
     mean: object = None  # KarcherMean
     pca: object = None  # TangentPCA
+    # The rotation that sets the mean upright like the inputs (`upright_rotation`); the roots
+    # built on the mean (modes, random and predicted roots) turn with it.
+    turn: object = None
 
 
 @contextlib.contextmanager
@@ -169,15 +174,17 @@ def run_mean(ctx: Context, out: Output, args) -> None:
                 progress=not args.quiet,
             )
         ctx.mean = km
+        ctx.turn = upright_rotation(km.mean, pop)
+        mean_tree = turn(km.mean, ctx.turn)
         trace = np.asarray(km.energy_trace, dtype=np.float64)
-        mean_roots = to_output_roots(in_input_units(rs.stack([km.mean]), pop, mean_size(km.mean, pop)), pop, ["mean"])
+        mean_roots = to_output_roots(in_input_units(rs.stack([mean_tree]), pop, mean_size(km.mean, pop)), pop, ["mean"])
         out.rsml(sec, mean_roots, "mean.rsml", "the mean root (RSML)", unit=pop.output_unit)
         out.csv(
             sec, "mean_energy.csv", ["step", "energy"], list(enumerate(trace)), "Karcher energy F(μ) after each step"
         )
         fig, _ = plot_mean(
             pop.tree,
-            km.mean,
+            mean_tree,
             names=pop.names,
             max_samples=len(pop.names),
             title=f"Mean of {len(pop.names)} roots",
@@ -234,7 +241,7 @@ def run_pca(ctx: Context, out: Output, args) -> None:
         )
         n_modes = max(1, min(args.modes, len(eig)))
         alphas = [-2.0, -1.0, 0.0, 1.0, 2.0]
-        trees = rs.modes(pc, alphas, component=list(range(n_modes)))
+        trees = turn(rs.modes(pc, alphas, component=list(range(n_modes))), ctx.turn)
         fig, _ = plot_modes(trees, alphas, explained=ratio[:n_modes], unit=figure_unit(ctx.pop))
         out.figure(
             sec,
@@ -263,7 +270,7 @@ def run_sample(ctx: Context, out: Output, args) -> None:
             b = jax.random.normal(key, (n, m), pc.mean.q0.dtype)
         else:
             b = jax.random.truncated_normal(key, -args.truncate, args.truncate, (n, m), pc.mean.q0.dtype)
-        trees = rs.reconstruct(pc, b)
+        trees = turn(rs.reconstruct(pc, b), ctx.turn)
         sigma = np.asarray(pc.eigenvalues, np.float64)[:m]
         d = np.sqrt(np.sum(np.asarray(b, np.float64) ** 2 * sigma, axis=1))
         names = [f"random_{i:03d}" for i in range(n)]
@@ -316,7 +323,7 @@ def run_regress(ctx: Context, out: Output, args) -> None:
         reg = rs.TraitRegression.fit(ctx.pca, None, traits=(), covariates=P, covariate_names=names_all)
 
         def predict(values: np.ndarray, names: list[str]):
-            trees = reg.synthesize(values)
+            trees = turn(reg.synthesize(values), ctx.turn)
             if pop.normalised:
                 lengths = np.linalg.norm(np.diff(np.asarray(trees.main, np.float64), axis=1), axis=-1).sum(-1)
                 trees = in_input_units(trees, pop, values[:, 0] / np.maximum(lengths, 1e-12))
