@@ -70,16 +70,18 @@ class LogStream:
     """stderr redirected to a file or pipe: progress bars as whole lines, no cursor codes.
 
     A bar redraws itself in place ("\\r" + its new state) many times a second, which in a
-    log file is one endless line of carriage returns. Here each redraw replaces the pending
-    line, which is written out when the bar ends ("\\n"), when other text follows, or when
-    `interval` seconds have passed since the last line (so a long step still shows progress).
+    log file is one endless line of carriage returns. Here a bar's first state is written at
+    once (the step has started), then each redraw replaces the pending line, which is written
+    out when the bar ends ("\\n"), when other text follows, or when `interval` seconds have
+    passed since the last line (so a long step still shows progress).
     """
 
     def __init__(self, stream, interval: float = 30.0):
         self._stream = stream
         self._interval = interval
         self._line = ""
-        self._redrawn = False  # the pending line is a bar's state
+        self._bar = False  # the pending line is a bar's state
+        self._first = False  # the running bar's first state is still to be written
         self._last = -float("inf")
         self._lock = threading.Lock()
 
@@ -88,25 +90,30 @@ class LogStream:
             clean = _ANSI.sub("", text)
             if not clean:
                 return len(text)
-            if self._redrawn and clean[:1] not in ("\r", "\n"):
+            if self._bar and clean[:1] not in ("\r", "\n"):
                 self._emit()  # other text after a bar: the bar's state stays on its own line
             for piece in re.split(r"([\r\n])", clean):
                 if piece == "\n":
-                    self._emit(blank_ok=not self._redrawn)
+                    self._emit(blank_ok=not self._bar)
                 elif piece == "\r":
-                    if self._redrawn and time.monotonic() - self._last >= self._interval:
-                        self._emit()
-                    self._line, self._redrawn = "", True
+                    if not self._bar:
+                        self._first = True  # a bar starts (or starts again after other text)
+                    elif time.monotonic() - self._last >= self._interval:
+                        self._emit(bar=True)
+                    self._line, self._bar = "", True
                 else:
                     self._line += piece
+            if self._bar and self._first and self._line.strip():
+                self._emit(bar=True)
+                self._first = False
         return len(text)
 
-    def _emit(self, blank_ok: bool = False) -> None:
+    def _emit(self, blank_ok: bool = False, bar: bool = False) -> None:
         line = self._line.rstrip()  # a bar pads over its longer previous state with spaces
         if line or blank_ok:
             self._stream.write(line + "\n")
             self._last = time.monotonic()
-        self._line, self._redrawn = "", False
+        self._line, self._bar = "", bar
 
     def flush(self) -> None:
         with self._lock:
