@@ -331,3 +331,36 @@ def test_smooth_keeps_ends_and_straight_lines():
     s = _smooth(wiggly, 2.0)
     np.testing.assert_array_equal(s[[0, -1]], wiggly[[0, -1]])
     assert polyline_length(s) < polyline_length(wiggly)
+
+
+def test_cli_extract_leaves_the_shoot_out_unless_told(tmp_path):
+    # rootshape extract: the shoot is left out by default; --keep-shoot keeps it (roots that are
+    # green themselves); --shoot-green sets the threshold; the two are one choice.
+    import skimage.io
+
+    from rootshape_jax._cli import main as cli
+    from rootshape_jax.io import read_rsml
+
+    img, _ = _seedling_photo(0)
+    skimage.io.imsave(tmp_path / "seedling.png", img, check_contrast=False)
+    tops = {}
+    for name, extra in (("default", []), ("keep", ["--keep-shoot"]), ("pale", ["--shoot-green", "200"])):
+        out = tmp_path / name
+        assert cli(["extract", str(tmp_path / "seedling.png"), "--out", str(out), "--quiet", *extra]) == 0
+        (r,) = read_rsml(out / "seedling.rsml")
+        tops[name] = float(r.main[0, 1])
+    assert tops["default"] > 72 and tops["keep"] < 40 and tops["pale"] < 40
+    assert (
+        cli(
+            [
+                "extract",
+                str(tmp_path / "seedling.png"),
+                "--keep-shoot",
+                "--shoot-green",
+                "6",
+                "--out",
+                str(tmp_path / "x"),
+            ]
+        )
+        == 2
+    )

@@ -163,6 +163,10 @@ def cmd_extract(args) -> None:
             ],
         )
     options = {} if args.root_width is None else {"root_width": args.root_width}
+    if args.keep_shoot:
+        options["shoot_green"] = None
+    elif args.shoot_green is not None:
+        options["shoot_green"] = args.shoot_green
     with warnings.catch_warnings():
         # A skipped image is named in its row and summarised below: one line each, no repeat.
         warnings.simplefilter("ignore", UserWarning)

@@ -636,6 +636,22 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="PX",
         help="typical root width in pixels (default 6; set it for thick roots)",
     )
+    shoot = p.add_mutually_exclusive_group()
+    shoot.add_argument(
+        "--shoot-green",
+        dest="shoot_green",
+        type=_positive_float,
+        metavar="G",
+        help="colour photographs: how much greener than its background (CIELAB units) a "
+        "seedling's shoot (cotyledons, hypocotyl) is, to be left out so the main root starts "
+        "where the root starts (default 6; higher keeps pale shoots)",
+    )
+    shoot.add_argument(
+        "--keep-shoot",
+        dest="keep_shoot",
+        action="store_true",
+        help="keep green parts in the extraction (roots that are green themselves)",
+    )
     p.add_argument(
         "--elastic",
         action="store_true",
