@@ -364,3 +364,15 @@ def test_cli_extract_leaves_the_shoot_out_unless_told(tmp_path):
         )
         == 2
     )
+
+
+def test_a_file_that_is_not_an_image_says_so(tmp_path):
+    # imageio suggests installing plugins (pyav, opencv) for a file it cannot open; no plugin
+    # opens a text file named .jpg, so the message says what is wrong with the file instead.
+    from rootshape_jax import RootShapeError
+
+    for name, content in (("notes.jpg", b"not an image"), ("empty.png", b"")):
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(RootShapeError, match="cannot be read as an image") as info:
+            roots_from_image(tmp_path / name)
+        assert "pip install" not in str(info.value) and "broken, empty or misnamed" in str(info.value)

@@ -40,7 +40,12 @@ def _load(image: Any) -> tuple[np.ndarray, str]:
         try:
             arr = skimage.io.imread(p)
         except Exception as e:  # the reader's own errors vary by plugin
-            raise ImageError(f"{p}: cannot be read as an image ({e}).") from e
+            # imageio's message for a file that is not an image of its kind suggests plugins
+            # to install (pyav, opencv): no plugin opens a broken or mislabelled file.
+            why = str(e).split("\n")[0].strip()
+            if "backend" in why.lower() or not why:
+                why = f"its content is not a {p.suffix.lstrip('.').upper() or 'known'} image: broken, empty or misnamed"
+            raise ImageError(f"{p}: cannot be read as an image ({why}).") from e
         return np.asarray(arr), p.stem
     return np.asarray(image), "image"
 
