@@ -43,6 +43,7 @@ from ._errors import (
     LabelError as LabelError,
     MetadataError as MetadataError,
     MissingDependencyError as MissingDependencyError,
+    MissingRadiusWarning as MissingRadiusWarning,
     RootShapeError as RootShapeError,
     RSMLError as RSMLError,
     RSMLWarning as RSMLWarning,

@@ -65,6 +65,12 @@ class RSMLWarning(UserWarning):
     """Part of an RSML file was skipped (non-strict reading): the message names file and root."""
 
 
+class MissingRadiusWarning(UserWarning):
+    """Some roots of a batch have radii (diameters) and others not: theirs are taken as 0.
+
+    It matters only when the metric weighs thickness; filter it by this class otherwise."""
+
+
 class LabelError(RootShapeError, ValueError):
     """Labels unusable for learning or cross-validation: wrong length, missing (NaN) values, a
     single class, or a class too small for a same-class neighbour or for the folds."""

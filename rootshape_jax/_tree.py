@@ -26,7 +26,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._curves import interpolate_at_fraction, srvf, srvf_to_curve
-from ._errors import CapacityError, InvalidRootError
+from ._errors import CapacityError, InvalidRootError, MissingRadiusWarning
 from ._root import Root, check_range, coordinate_limit, is_plant_system, polyline_length
 from ._thickness import extended_srvf, integrate_branch, wants_thickness
 from ._traits import deepest_order
@@ -887,7 +887,7 @@ def _warn_missing_radius(roots: Sequence[Root]) -> None:
         more = f"; ... and {len(missing) - 10} more" if len(missing) > 10 else ""
         warnings.warn(
             f"batch(): {shown}{more}. Give every root radii (or none) to avoid this.",
-            UserWarning,
+            MissingRadiusWarning,
             stacklevel=3,
         )
 

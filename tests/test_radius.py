@@ -14,7 +14,7 @@ import pytest
 from helpers import random_root
 from matplotlib.collections import LineCollection
 
-from rootshape_jax._errors import InvalidRootError, RSMLError, RSMLWarning
+from rootshape_jax._errors import InvalidRootError, MissingRadiusWarning, RSMLError, RSMLWarning
 from rootshape_jax._root import Root
 from rootshape_jax._tree import RootTree, batch, to_roots
 from rootshape_jax.io import read_rsml, write_rsml
@@ -141,7 +141,7 @@ def test_batch_without_radii_is_unchanged(rng):
 def test_mixed_batch_warns_and_pads_with_zero(rng):
     a = with_radii(dataclasses.replace(random_root(rng, n_laterals=2), name="thick"), rng)
     b = dataclasses.replace(random_root(rng, n_laterals=2), name="thin")
-    with pytest.warns(UserWarning, match="root 'thin' has no radius data; its radius is taken as 0"):
+    with pytest.warns(MissingRadiusWarning, match="root 'thin' has no radius data; its radius is taken as 0"):
         tree = batch([a, b], n_points=10)
     assert np.all(np.asarray(tree.main_radius[1]) == 0) and np.all(np.asarray(tree.lateral_radius[1]) == 0)
     assert np.all(np.asarray(tree.main_radius[0]) > 0)

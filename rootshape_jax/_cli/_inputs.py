@@ -183,7 +183,7 @@ def prepare(roots: list, args, *, min_roots: int = 1, samples: int | None = None
         # learn-weights learns the thickness weight whenever radii exist: missing ones matter there.
         if not thickness and getattr(args, "command", None) != "learn-weights":
             # Radii taken as 0 where a file has none matter only when the metric weighs them.
-            warnings.filterwarnings("ignore", message=r"batch\(\): root .* radi", category=UserWarning)
+            warnings.simplefilter("ignore", rs.MissingRadiusWarning)
         # depth None (no --depth) is batch's default: depth 2, deeper orders ignored silently.
         tree = rs.batch(roots, n_points=args.points, normalise_scale=normalised, depth=getattr(args, "depth", None))
     if thickness and not any(r.has_radius for r in roots):
