@@ -266,6 +266,14 @@ def is_plant_system(root: "Root") -> bool:
     )
 
 
+def plant_axes(plant: "Root") -> tuple["Root", ...]:
+    """The axes of a plant's system, one `Root` per lateral slot: its child (with the axis's
+    own laterals), or the bare polyline as a root when the system has no children."""
+    if plant.children:
+        return tuple(plant.children)
+    return tuple(Root(main=lat) for lat in plant.laterals)
+
+
 def limit_laterals(root: Root, n: int | None) -> Root:
     """The root with only its `n` longest laterals, kept in their original order.
 

@@ -16,7 +16,7 @@ import numpy as np
 import scipy.spatial
 
 from ._errors import InvalidRootError
-from ._root import Root, is_plant_system, polyline_length
+from ._root import Root, is_plant_system, plant_axes, polyline_length
 
 TRAIT_NAMES: tuple[str, ...] = (
     "main_length",
@@ -146,9 +146,7 @@ def _axes(root: Root) -> tuple[Root, ...]:
     axes (`is_plant_system`; an axis known only as a polyline has no laterals)."""
     if not is_plant_system(root) or not root.n_laterals:
         return (root,)  # a plant without axes: its (virtual) main root alone
-    if root.children:
-        return tuple(root.children)
-    return tuple(Root(main=lat) for lat in root.laterals)
+    return plant_axes(root)
 
 
 def order_traits(root: Root, orders: int) -> dict:

@@ -419,3 +419,36 @@ def test_cli_extract_writes_rsml_overlay_and_names_a_bad_image(tmp_path):
     ):
         proc = subprocess.run(cmd + ["--overwrite", *extra], capture_output=True, text=True, timeout=600)
         assert proc.returncode != 0 and words in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_extract_interrupted_while_writing_leaves_no_half_written_file(tmp_path, monkeypatch):
+    # Ctrl-C while the second image's overlay is being written: the first image's files are
+    # complete, the second image's overlay is absent (not half a PNG), no temporary file stays.
+    import skimage.io
+
+    from rootshape_jax.io import _extract_cli
+
+    src = tmp_path / "photos"
+    src.mkdir()
+    for k, x0 in enumerate((120, 180)):
+        main, lats = _seedling(k, x0=x0)
+        img = _draw([main, *lats], shape=(380, 300), width=3, contrast=0.3, noise=0.03, seed=k)
+        skimage.io.imsave(src / f"p{k}.png", (img * 255).astype(np.uint8))
+    draw = _extract_cli.draw_overlay
+    calls = []
+
+    def interrupted(image, roots, out_png, **kw):
+        calls.append(out_png)
+        if len(calls) == 2:
+            Path(out_png).write_bytes(b"\x89PNG half")  # part of the file, then Ctrl-C
+            raise KeyboardInterrupt
+        return draw(image, roots, out_png, **kw)
+
+    monkeypatch.setattr(_extract_cli, "draw_overlay", interrupted)
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt):
+        extract_images([src], out, progress=False)
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["p0.rsml", "p0_overlay.png", "p1.rsml"]
+    assert skimage.io.imread(out / "p0_overlay.png").ndim == 3
+    assert len(read_rsml(out / "p1.rsml")) == 1

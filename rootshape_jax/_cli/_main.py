@@ -17,9 +17,11 @@ import sys
 import warnings
 from collections.abc import Sequence
 
+from rootshape_jax._atomic import remove_pending
+
 from ._common import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, PROG, CLIError, heartbeat, log_friendly_stderr
 from ._parser import build_parser
-from ._report import OPENED, remove_empty_outputs, remove_pending, unfinished_note
+from ._report import OPENED, remove_empty_outputs, unfinished_note
 
 
 def configure_jax(*, devices: int | None, float64: bool) -> None:

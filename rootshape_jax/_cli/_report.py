@@ -10,12 +10,13 @@ import html
 import os
 import re
 import sys
-import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
+
+from rootshape_jax._atomic import atomic_write
 
 from ._common import CLIError, fmt, version
 
@@ -119,9 +120,6 @@ class Output:
         self.sections: list[Section] = []
         self.written: set[str] = set()
         self.log: list[str] = []
-        mask = os.umask(0)
-        os.umask(mask)
-        self._mode = 0o666 & ~mask  # what a plainly created file would get
 
     @contextlib.contextmanager
     def step(self, title: str):
@@ -142,20 +140,11 @@ class Output:
         existed = os.path.lexists(path)
         if existed and not self.overwrite and name not in self.written:
             raise CLIError(f"{path}: exists already (an earlier result); give --overwrite to replace it.")
-        fd, tmp = tempfile.mkstemp(dir=self.folder, prefix=f".{name}.", suffix=".tmp")
-        os.close(fd)
-        PENDING.add(tmp)
         try:
-            os.chmod(tmp, self._mode)
-            write_to(Path(tmp))
-            os.replace(tmp, path)
+            atomic_write(path, write_to)
         except OSError as e:
             kept = f"the earlier {name} is unchanged" if existed else "nothing was written"
             raise CLIError(f"cannot write {path}: {os_reason(e)} ({kept}).") from None
-        finally:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(tmp)
-            PENDING.discard(tmp)
         self.written.add(name)
         return path
 
@@ -218,8 +207,6 @@ class Output:
         print(f"Results are in {self.folder.resolve()}")
 
 
-# Temporary files being written, removed by the Ctrl-C handler before it ends the process.
-PENDING: set[str] = set()
 # The output folders of the running command, for the message when it stops early.
 OPENED: list[Output] = []
 
@@ -250,12 +237,6 @@ def remove_empty_outputs() -> None:
         if out.created:
             with contextlib.suppress(OSError):
                 out.folder.rmdir()  # only succeeds when empty
-
-
-def remove_pending() -> None:
-    for tmp in list(PENDING):
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
 
 
 def os_reason(e: OSError) -> str:

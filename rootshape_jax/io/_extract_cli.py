@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._atomic import atomic_write
 from .._errors import ImageError, RSMLError
 from .._root import Root
 from ._units import check_length_unit
@@ -89,7 +90,7 @@ def draw_overlay(
     for r in tracing:  # on top, dashed, so both stay visible
         for br in (r.main, *r.laterals):
             ax.plot(br[:, 0], br[:, 1], "--", color="white", lw=0.5, alpha=0.9)
-    fig.savefig(out_png)
+    fig.savefig(out_png, format="png")
     plt.close(fig)
 
 
@@ -156,7 +157,8 @@ def extract_images(
             rows.append(row)
             continue
         rsml_path = out / f"{path.stem}.rsml"
-        write_rsml(roots, rsml_path)
+        # Each file whole or not at all: a Ctrl-C leaves every image done complete.
+        atomic_write(rsml_path, lambda p: write_rsml(roots, p))
         traced: list[Root] = []
         tpath = _tracing_for(path, tracing, len(files))
         if tpath is not None:
@@ -167,7 +169,7 @@ def extract_images(
             except (RSMLError, OSError) as e:
                 warnings.warn(f"{path.name}: tracing {tpath} not read ({e}); overlay without it.", stacklevel=2)
         png = out / f"{path.stem}_overlay.png"
-        draw_overlay(path, roots, png, tracing=traced, scale=scale)
+        atomic_write(png, lambda p: draw_overlay(path, roots, p, tracing=traced, scale=scale))
         row.update(
             plants=len(roots),
             laterals=[r.n_laterals for r in roots],
@@ -181,7 +183,8 @@ def extract_images(
             row.update(tracing=str(tpath), comparison=cmp.as_dict())
         rows.append(row)
     # Strict JSON: a value not computed (NaN) is written as null.
-    (out / "summary.json").write_text(json.dumps(_json_safe(rows), indent=2, allow_nan=False, default=float))
+    text = json.dumps(_json_safe(rows), indent=2, allow_nan=False, default=float)
+    atomic_write(out / "summary.json", lambda p: p.write_text(text))
     return rows
 
 

@@ -29,7 +29,7 @@ import numpy as np
 from defusedxml import DefusedXmlException, ElementTree as DET
 
 from .._errors import InvalidRootError, RSMLError, RSMLWarning
-from .._root import ROOT_COORDINATE_LIMIT, Root, check_range, is_plant_system
+from .._root import ROOT_COORDINATE_LIMIT, Root, check_range, is_plant_system, plant_axes
 
 _PO_NS = "http://www.plantontology.org/xml-dtd/po.dtd"
 _PIXEL_UNITS = ("pixel", "pixels", "px")
@@ -761,8 +761,7 @@ def plant_system(axes: Sequence[Root], *, name: str = "", metadata: dict | None 
 def _axes_of(r: Root) -> list[tuple]:
     """(polyline, Root, radius) of each axis of a plant's system, to write as top-level roots."""
     out = []
-    for k, lat in enumerate(r.laterals):
-        child = r.children[k] if r.children else Root(main=lat)
+    for k, (lat, child) in enumerate(zip(r.laterals, plant_axes(r))):
         radius = child.main_radius
         if radius is None and r.lateral_radii is not None:
             radius = r.lateral_radii[k]
