@@ -19,10 +19,11 @@ def _umask_mode() -> int:
     return 0o666 & ~mask  # what a plainly created file would get
 
 
-def atomic_write(path: str | os.PathLike, write_to: Callable[[Path], object]) -> Path:
+def atomic_write(path: str | os.PathLike, write_to: Callable[[Path], object], *, durable: bool = False) -> Path:
     """Write `path` by ``write_to(temporary_path)`` in the same folder, then `os.replace`:
     an interrupted or failed write leaves the earlier file (or none) intact, and a symlink at
-    `path` is replaced, never written through. `OSError` from the write propagates."""
+    `path` is replaced, never written through. `durable` also flushes the file to disk before
+    the rename (a store that must survive a crash). `OSError` from the write propagates."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(fd)
@@ -30,6 +31,9 @@ def atomic_write(path: str | os.PathLike, write_to: Callable[[Path], object]) ->
     try:
         os.chmod(tmp, _umask_mode())
         write_to(Path(tmp))
+        if durable:
+            with open(tmp, "rb+") as f:
+                os.fsync(f.fileno())
         os.replace(tmp, path)
     finally:
         with contextlib.suppress(FileNotFoundError):

@@ -20,7 +20,6 @@ import hashlib
 import json
 import os
 import re
-import uuid
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
@@ -30,6 +29,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
+from ._atomic import atomic_write
 from ._devices import usable_cores
 from ._errors import StoreMismatchError
 
@@ -39,21 +39,6 @@ _BLOCK = re.compile(r"^block_(\d+)\.npz$")
 
 # --------------------------------------------------------------------------------------------
 # Store
-
-
-def atomic_write(path: Path, write: Callable) -> None:
-    """Write a file whole or not at all: a temporary file in the same folder, then a rename."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def fingerprint(*parts) -> str:
@@ -107,7 +92,8 @@ class BlockStore:
                 "Give a new or empty directory."
             )
         p.mkdir(parents=True, exist_ok=True)
-        atomic_write(mf, lambda f: f.write(json.dumps(self.manifest, indent=1).encode()))
+        text = json.dumps(self.manifest, indent=1)
+        atomic_write(mf, lambda p: p.write_text(text), durable=True)
 
     def block_path(self, b: int) -> Path:
         return self.path / f"block_{b:07d}.npz"
@@ -124,7 +110,11 @@ class BlockStore:
             return None
 
     def write(self, b: int, result: dict) -> None:
-        atomic_write(self.block_path(b), lambda f: np.savez(f, **result))
+        def save(p: Path) -> None:
+            with open(p, "wb") as f:  # a file object: np.savez would add ".npz" to a path
+                np.savez(f, **result)
+
+        atomic_write(self.block_path(b), save, durable=True)
 
 
 # --------------------------------------------------------------------------------------------
