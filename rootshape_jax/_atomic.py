@@ -13,10 +13,18 @@ from pathlib import Path
 PENDING: set[str] = set()
 
 
-def _umask_mode() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return 0o666 & ~mask  # what a plainly created file would get
+_MODE: list[int] = []  # the file mode, found once
+
+
+def _plain_mode() -> int:
+    """The mode a plainly created file gets (0o666 less the umask). mkstemp makes 0o600 files;
+    the result should look like any other file the user writes. Found once: reading the umask
+    means setting it, which must not happen while other threads create files."""
+    if not _MODE:
+        mask = os.umask(0o022)
+        os.umask(mask)
+        _MODE.append(0o666 & ~mask)
+    return _MODE[0]
 
 
 def atomic_write(path: str | os.PathLike, write_to: Callable[[Path], object], *, durable: bool = False) -> Path:
@@ -29,11 +37,11 @@ def atomic_write(path: str | os.PathLike, write_to: Callable[[Path], object], *,
     os.close(fd)
     PENDING.add(tmp)
     try:
-        os.chmod(tmp, _umask_mode())
         write_to(Path(tmp))
         if durable:
             with open(tmp, "rb+") as f:
                 os.fsync(f.fileno())
+        os.chmod(tmp, _plain_mode())  # after writing: a mode without write permission is allowed
         os.replace(tmp, path)
     finally:
         with contextlib.suppress(FileNotFoundError):

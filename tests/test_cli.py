@@ -1067,9 +1067,8 @@ def test_progress_bars_in_a_log_are_whole_lines():
     text = sink.getvalue()
     assert "\r" not in text and "\x1b" not in text
     lines = [line.split("|")[0] for line in text.splitlines()]
-    # Each bar's first state at once (the step has started), its last when it ends; the warning
-    # interrupts the running bar: its state so far, the warning on its own line, then the bar
-    # starts again.
+    # Each bar's first state at once (the step has started), its latest before other text (the
+    # warning: the bar's state so far, then the warning on its own line) and when it ends.
     assert lines == [
         "Registering...",
         "distances:   0%",
@@ -1077,8 +1076,7 @@ def test_progress_bars_in_a_log_are_whole_lines():
         "mean:   0%",
         "mean:  50%",
         "rootshape: warning: something",
-        "mean: 100%",
-        "done",
+        "done",  # the mean bar (leave=False) cleared itself: its last state is not written
     ]
 
     # With no interval every redraw is kept, as a line of its own (tqdm redraws its last state
@@ -1090,6 +1088,43 @@ def test_progress_bars_in_a_log_are_whole_lines():
             bar.update()
     lines = sink.getvalue().splitlines()
     assert [line.split("|")[0] for line in lines] == ["d:   0%", "d:  33%", "d:  67%", "d: 100%", "d: 100%"]
+
+
+def test_log_stream_keeps_text_and_throttles_nested_bars():
+    import io
+
+    from tqdm import tqdm
+
+    from rootshape_jax._cli._common import LogStream
+
+    # Text still waiting for its newline when a bar redraws (print writes text and "\n"
+    # separately; the heartbeat thread redraws in between) is kept, and so is "text\r\n".
+    sink = io.StringIO()
+    log = LogStream(sink, interval=3600.0)
+    log.write("rootshape: warning: something important")
+    log.write("\rbar:  10%|#")
+    log.write("\n")
+    log.write("windows line\r\n")
+    log.close_line()
+    assert sink.getvalue().splitlines() == ["rootshape: warning: something important", "bar:  10%|#", "windows line"]
+
+    # An outer bar with a nested (leave=False) inner bar per step, as the Karcher mean draws:
+    # tqdm moves the cursor with newlines and escape codes, which must not make every redraw
+    # a line. Each bar's first state, then only its latest state before other text.
+    sink = io.StringIO()
+    log = LogStream(sink, interval=3600.0)
+    with tqdm(total=3, desc="mean (fixed point)", file=log, mininterval=0) as outer:
+        for _ in range(3):
+            with tqdm(total=50, desc="registering", file=log, mininterval=0, leave=False, position=1) as inner:
+                for _ in range(50):
+                    inner.update()
+            outer.update()
+    print("done", file=log)
+    log.close_line()
+    lines = [line.split("|")[0] for line in sink.getvalue().splitlines()]
+    assert lines[0] == "mean (fixed point):   0%" and lines[1] == "registering:   0%"
+    assert lines[-2] == "mean (fixed point): 100%" and lines[-1] == "done"
+    assert len(lines) <= 5, lines
 
 
 def test_cli_log_has_no_carriage_returns(tmp_path):

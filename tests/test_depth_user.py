@@ -149,6 +149,11 @@ def test_a_plant_draws_its_axes_dark_and_their_laterals_in_slot_colours():
     _, ax = P.plot_root(padded)
     expected = [P.slot_color(k) for k in range(n0)] + [P.slot_color(cap + k) for k in range(n1)]
     assert sorted(c for c, _ in drawn(ax)[2]) == sorted(expected)
+    # Without the axes' laterals (depth 2) the axes themselves correspond: slot colours.
+    flat = rs.unstack(rs.batch([plant], depth=2, n_points=20))[0]
+    assert plant_stride(as_drawing(flat, what="t")) is None
+    _, ax = P.plot_root(flat)
+    assert [c for c, _ in drawn(ax)[1]] == [P.slot_color(k) for k in range(2)]
     # An ordinary root keeps the usual rule; one colour stays one colour.
     assert plant_stride(as_drawing(axes[0], what="t")) is None
     _, ax = P.plot_root(plant, colors="#123456")

@@ -376,3 +376,17 @@ def test_a_file_that_is_not_an_image_says_so(tmp_path):
         with pytest.raises(RootShapeError, match="cannot be read as an image") as info:
             roots_from_image(tmp_path / name)
         assert "pip install" not in str(info.value) and "broken, empty or misnamed" in str(info.value)
+
+
+@pytest.mark.parametrize("f", [8, 24, 37])
+def test_block_mean_matches_a_plain_loop_on_tall_images(f):
+    # Computed in row bands: every band must hold whole blocks, whatever f (the shoot's
+    # background uses f = 4 root widths = 24 by default; bands of 1024 rows are not whole
+    # 24-row blocks).
+    from rootshape_jax.io._image import _block_mean
+
+    a = np.random.default_rng(f).random((2500, 90)).astype(np.float32)
+    got = _block_mean(a, f)
+    n, m = (2500 // f), (90 // f)  # whole blocks (partial edge blocks are padded)
+    ref = a[: n * f, : m * f].reshape(n, f, m, f).mean(axis=(1, 3))
+    np.testing.assert_allclose(got[:n, :m], ref, rtol=1e-5, atol=1e-6)

@@ -205,6 +205,9 @@ def test_labels_written_in_every_file_get_their_file_name(tmp_path):
         )
     roots = io.read_folder(tmp_path)
     assert sorted(r.name for r in roots) == ["lupin/root_1", "lupin/root_2", "maize/root_1", "maize/root_2"]
+    # A short file name inside a label is not the file's name: "1.rsml" still prefixes root_10.
+    io.write_rsml([Root(main=main, name="root_10")], tmp_path / "1.rsml", unit="mm")
+    assert "1/root_10" in {r.name for r in io.read_folder(tmp_path)}
     assert [r.name for r in io.read_folder(tmp_path / "lupin.rsml")] == ["root_1", "root_2"]
     table = [
         {"file": "maize", "root": "root_2", "genotype": "B73"},

@@ -70,59 +70,104 @@ class LogStream:
     """stderr redirected to a file or pipe: progress bars as whole lines, no cursor codes.
 
     A bar redraws itself in place ("\\r" + its new state) many times a second, which in a
-    log file is one endless line of carriage returns. Here a bar's first state is written at
-    once (the step has started), then each redraw replaces the pending line, which is written
-    out when the bar ends ("\\n"), when other text follows, or when `interval` seconds have
-    passed since the last line (so a long step still shows progress).
+    log file is one endless line of carriage returns; nested bars also move the cursor with
+    newlines and escape codes. Here each bar (told apart by its description, the text before
+    its first ":") writes its first state at once (the step has started), then a state at most
+    every `interval` seconds; its latest state is written before any other text and at the
+    end, so a finished bar's last line is there. Other text is written line by line as is.
     """
 
     def __init__(self, stream, interval: float = 30.0):
         self._stream = stream
         self._interval = interval
-        self._line = ""
-        self._bar = False  # the pending line is a bar's state
-        self._first = False  # the running bar's first state is still to be written
-        self._last = -float("inf")
-        self._lock = threading.Lock()
+        self._text = ""  # other text waiting for its newline
+        self._bar = ""  # the bar state being received (after a "\\r")
+        self._in_bar = False
+        self._pending: dict[str, str] = {}  # bar description -> latest state not written
+        self._written: dict[str, float] = {}  # bar description -> when its last line was written
+        self._last_desc = ""  # the bar drawn last
+        # Re-entrant: the Ctrl-C handler writes to stderr from the main thread, which may be
+        # inside `write` already.
+        self._lock = threading.RLock()
 
     def write(self, text: str) -> int:
         with self._lock:
             clean = _ANSI.sub("", text)
             if not clean:
-                return len(text)
-            if self._bar and clean[:1] not in ("\r", "\n"):
-                self._emit()  # other text after a bar: the bar's state stays on its own line
+                return len(text)  # only cursor movements (nested bars)
+            if self._in_bar and clean[:1] not in ("\r", "\n"):
+                self._end_bar()  # a bar writes "\\r" + its state in one call: this is other text
             for piece in re.split(r"([\r\n])", clean):
-                if piece == "\n":
-                    self._emit(blank_ok=not self._bar)
-                elif piece == "\r":
-                    if not self._bar:
-                        self._first = True  # a bar starts (or starts again after other text)
-                    elif time.monotonic() - self._last >= self._interval:
-                        self._emit(bar=True)
-                    self._line, self._bar = "", True
+                if piece == "\r":
+                    self._end_bar()
+                    if self._text.strip():
+                        self._line(self._text)  # text without its newline yet: its own line
+                    self._text, self._in_bar = "", True
+                elif piece == "\n":
+                    if self._in_bar:
+                        self._end_bar()  # a bar's newline ends it or moves the cursor: no line
+                    else:
+                        self._line(self._text)
+                        self._text = ""
+                elif self._in_bar:
+                    self._bar += piece
                 else:
-                    self._line += piece
-            if self._bar and self._first and self._line.strip():
-                self._emit(bar=True)
-                self._first = False
+                    self._text += piece
+            self._end_bar(keep=True)
         return len(text)
 
-    def _emit(self, blank_ok: bool = False, bar: bool = False) -> None:
-        line = self._line.rstrip()  # a bar pads over its longer previous state with spaces
-        if line or blank_ok:
-            self._stream.write(line + "\n")
-            self._last = time.monotonic()
-        self._line, self._bar = "", bar
+    def _end_bar(self, keep: bool = False) -> None:
+        """Take the bar state received so far (`keep`: the bar may still write more of it)."""
+        raw = self._bar
+        state = raw.rstrip()  # a bar pads over its longer previous state with spaces
+        if not keep:
+            self._bar, self._in_bar = "", False
+        if not state:
+            if raw:  # only spaces: a bar cleared (closed with leave=False), gone from the screen
+                self._pending.pop(self._last_desc, None)
+                self._bar = ""
+            return
+        desc = self._last_desc = state.split(":", 1)[0]
+        now = time.monotonic()
+        if desc not in self._written:
+            self._flush_pending()  # a new bar: the others' latest states first
+            self._write(state)
+            self._written[desc] = now
+            self._pending.pop(desc, None)
+        elif now - self._written[desc] >= self._interval:
+            self._write(state)
+            self._written[desc] = now
+            self._pending.pop(desc, None)
+        else:
+            self._pending[desc] = state
+        if keep:
+            self._bar = ""  # taken: what follows in the next write is a new state
+
+    def _flush_pending(self) -> None:
+        for desc, state in list(self._pending.items()):
+            self._write(state)
+            self._written[desc] = time.monotonic()
+        self._pending.clear()
+
+    def _line(self, text: str) -> None:
+        self._flush_pending()
+        self._write(text)
+
+    def _write(self, line: str) -> None:
+        self._stream.write(line + "\n")
 
     def flush(self) -> None:
         with self._lock:
             self._stream.flush()
 
     def close_line(self) -> None:
-        """Write out what is pending (the last state of a bar still running)."""
+        """Write out what is pending: bars' latest states, then text without its newline."""
         with self._lock:
-            self._emit()
+            self._end_bar()
+            self._flush_pending()
+            if self._text.strip():
+                self._write(self._text)
+            self._text = ""
             self._stream.flush()
 
     def isatty(self) -> bool:

@@ -186,6 +186,11 @@ def expand(paths: Sequence[str | os.PathLike]) -> list[tuple[Path, bool]]:
     return files
 
 
+def _names_file(name: str, stem: str) -> bool:
+    """True when `name` already starts with its file's name (``stem/plant/root``)."""
+    return name == stem or name.startswith(stem + "/")
+
+
 def unique_names(roots: list[Root]) -> list[Root]:
     """Names that tell roots apart: a name shared by several roots gets its file name in front,
     and a number behind if that is not enough. Roots read from several files all carry their
@@ -197,7 +202,7 @@ def unique_names(roots: list[Root]) -> list[Root]:
     stems = [Path(r.metadata.get("source_file", "")).stem for r in roots]
     several = len({s for s in stems if s}) > 1
     names = [
-        f"{stem}/{r.name}" if stem and (counts[r.name] > 1 or (several and stem not in r.name)) else r.name
+        f"{stem}/{r.name}" if stem and (counts[r.name] > 1 or (several and not _names_file(r.name, stem))) else r.name
         for r, stem in zip(roots, stems)
     ]
     seen: dict[str, int] = {}

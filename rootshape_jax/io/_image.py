@@ -264,8 +264,9 @@ def _block_mean(a: np.ndarray, f: int) -> np.ndarray:
     H, W = a.shape
     Hf, Wf = -(-H // f), -(-W // f)
     out = np.zeros((Hf, Wf), dtype=np.float32)
-    for r0 in range(0, H, _BAND):  # in bands: no full-size float copy
-        block = a[r0 : r0 + _BAND]
+    band = max(f, _BAND // f * f)  # whole blocks per band, for any f
+    for r0 in range(0, H, band):  # in bands: no full-size float copy
+        block = a[r0 : r0 + band]
         h = block.shape[0]
         padded = np.pad(block, ((0, (-h) % f), (0, (-W) % f)), mode="edge")
         out[r0 // f : r0 // f + padded.shape[0] // f] = padded.reshape(padded.shape[0] // f, f, Wf, f).mean(axis=(1, 3))

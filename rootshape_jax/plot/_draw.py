@@ -450,8 +450,8 @@ DEEPER_WIDTH = 0.6
 
 def plant_stride(drawing: Drawing) -> int | None:
     """For a plant's whole system (`rootshape_jax.io.plant_system`: a zero-length main root at
-    the collar, the plant's axes as its laterals), the number of lateral slots per axis;
-    None for any other root.
+    the collar, the plant's axes as its laterals) drawn with the axes' laterals, the number of
+    lateral slots per axis; None for any other root.
 
     A plant is drawn with its axes dark, like main roots, and each axis's laterals in slot
     colours of their own (`deeper_color`), so matched laterals can be told apart: with the
@@ -461,7 +461,8 @@ def plant_stride(drawing: Drawing) -> int | None:
     second = [s[1] for s, _, _ in drawing.deeper if len(s) >= 2] + [
         s[1] for s, _ in drawing.deeper_nulls if len(s) >= 2
     ]
-    return max(second, default=-1) + 1
+    # Without the axes' laterals (depth 2) the axes are what corresponds: slot colours, as usual.
+    return max(second) + 1 if second else None
 
 
 def deeper_color(slot: Sequence[int], colors: Any, slot_colors: bool, stride: int | None = None) -> Any:

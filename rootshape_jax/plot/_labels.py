@@ -9,7 +9,8 @@ import numpy as np
 
 from ._draw import new_figure
 
-# Categorical colours (matplotlib's tab10, then tab20's lighter halves): distinct, print-safe.
+# Categorical colours (matplotlib's tab10, then tab20's lighter halves, without their greys,
+# which read as the dendrogram's neutral links): distinct, print-safe.
 _GROUP_COLORS = (
     "#1f77b4",
     "#ff7f0e",
@@ -18,7 +19,6 @@ _GROUP_COLORS = (
     "#9467bd",
     "#8c564b",
     "#e377c2",
-    "#7f7f7f",
     "#bcbd22",
     "#17becf",
     "#aec7e8",
@@ -28,7 +28,6 @@ _GROUP_COLORS = (
     "#c5b0d5",
     "#c49c94",
     "#f7b6d2",
-    "#c7c7c7",
     "#dbdb8d",
     "#9edae5",
 )
