@@ -48,8 +48,13 @@ def test_huge_coordinate_skips_that_plant_only(lateral):
         roots = _read(_two_plants("1e300", lateral=lateral))
     assert [r.metadata["plant_id"] for r in roots] == ["good"]
     assert roots[0].main_length == 10.0
-    assert caught and all(issubclass(w.category, RSMLWarning) for w in caught)  # no overflow
-    assert "plant 'bad'" in str(caught[0].message) and "too large" in str(caught[0].message)
+    # The skipped plant is reported, and nothing overflows (no RuntimeWarning). Warnings are
+    # process-wide: another thread of the test process (left by an earlier test in this worker)
+    # can add unrelated ones, so only these two kinds are checked (once 5 others came in CI).
+    shown = [(w.category.__name__, str(w.message)[:80]) for w in caught]
+    rsml = [w for w in caught if issubclass(w.category, RSMLWarning)]
+    assert len(rsml) == 1 and not [w for w in caught if issubclass(w.category, RuntimeWarning)], shown
+    assert "plant 'bad'" in str(rsml[0].message) and "too large" in str(rsml[0].message)
     with pytest.raises(RSMLError, match="plant 'bad'.*too large"):
         _read(_two_plants("1e300", lateral=lateral), strict=True)
 
