@@ -9,7 +9,7 @@ import jax.numpy as jnp
 from ._engine import Registration
 from ._metric import Weights
 from ._registration import register
-from ._tree import RootTree, SRVFLevel, SRVFTree, scale_tree, to_curves, to_srvf
+from ._tree import RootTree, SRVFLevel, SRVFTree, scale_tree, to_curves, to_srvf, turn_about_base
 
 
 def geodesic_srvf(a: SRVFTree, registered_b: SRVFTree, taus) -> SRVFTree:
@@ -142,17 +142,7 @@ def _unrotate(path: RootTree, rotation, taus) -> RootTree:
     """Turn step τ about its base by ``(Rᵀ)^τ``: the last step is b in its own pose (the
     registration put ``o + R (b − o)`` there)."""
     Rs = jax.vmap(lambda t: fractional_rotation(rotation, t))(taus)  # [S, d, d]
-    o = path.main[:, :1, :]  # [S, 1, d]
-    # x' = o + Rᵀ(x − o); with row vectors (x − o) R.
-    main = o + jnp.einsum("spd,sde->spe", path.main - o, Rs)
-    o_lat = o[:, None]
-    laterals = o_lat + jnp.einsum("skpd,sde->skpe", path.laterals - o_lat, Rs)
-    deeper = []
-    for lv in path.deeper:
-        o_lv = o.reshape(o.shape[:1] + (1,) * (lv.curves.ndim - 2) + o.shape[-1:])
-        curves = o_lv + jnp.einsum("s...d,sde->s...e", lv.curves - o_lv, Rs)
-        deeper.append(eqx.tree_at(lambda t: t.curves, lv, curves))
-    return eqx.tree_at(lambda t: (t.main, t.laterals, t.deeper), path, (main, laterals, tuple(deeper)))
+    return turn_about_base(path, jnp.swapaxes(Rs, -1, -2))
 
 
 @eqx.filter_jit

@@ -1188,6 +1188,27 @@ def check_compatible(a: RootTree | SRVFTree, b: RootTree | SRVFTree, what: str =
         )
 
 
+def turn_about_base(tree: RootTree, rotations) -> RootTree:
+    """A (batched) `RootTree` with each root turned about its main-root base,
+    ``x' = o + R (x − o)`` for every point of every level. `rotations`: one ``[d, d]`` rotation
+    for every root, or ``[*B, d, d]`` one per root. Attachments, masks and radii are kept."""
+    R = jnp.asarray(rotations, dtype=tree.main.dtype)
+    R = jnp.broadcast_to(R, tree.batch_shape + (tree.dim, tree.dim))
+    o = tree.main[..., :1, :]  # [*B, 1, d]
+
+    def turned(x):  # x: [*B, (slot axes ...), T, d]
+        extra = x.ndim - o.ndim  # slot axes
+        o_x = o.reshape(o.shape[:-2] + (1,) * extra + o.shape[-2:])
+        R_x = R.reshape(R.shape[:-2] + (1,) * (extra + 1) + R.shape[-2:])  # over slots and points
+        return o_x + jnp.einsum("...j,...ij->...i", x - o_x, R_x)
+
+    out = eqx.tree_at(lambda t: (t.main, t.laterals), tree, (turned(tree.main), turned(tree.laterals)))
+    if tree.deeper:
+        levels = tuple(eqx.tree_at(lambda lv: lv.curves, lv, turned(lv.curves)) for lv in tree.deeper)
+        out = eqx.tree_at(lambda t: t.deeper, out, levels)
+    return out
+
+
 def scale_tree(tree: RootTree, scales, *, base=None) -> RootTree:
     """A (batched) `RootTree` with each root scaled about its main-root base.
 

@@ -8,12 +8,11 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
-import equinox as eqx
 import numpy as np
 
 import rootshape_jax as rs
 from rootshape_jax import io
-from rootshape_jax._tree import normalising_length
+from rootshape_jax._tree import normalising_length, turn_about_base
 
 from ._common import PAPER_TRAITS, CLIError, warn
 
@@ -361,26 +360,11 @@ def upright_rotation(mean, pop: Population) -> np.ndarray | None:
 
 
 def turn(tree, rotation: np.ndarray | None):
-    """`tree` (a `RootTree`, batched or not) with every root turned by `rotation` about its
-    main-root base (None: unchanged). Attachments, masks and radii are kept."""
+    """`tree` (a `RootTree` or `SRVFTree`, batched or not) as curves, every root turned by
+    `rotation` about its main-root base (None: unchanged)."""
     if rotation is None:
         return tree
-    import jax.numpy as jnp
-
-    tree = rs.to_curves(tree)
-    R = jnp.asarray(rotation, dtype=tree.main.dtype)
-    base = tree.main[..., :1, :]  # [*B, 1, d]
-
-    def about_base(x):  # x: [*B, (slot axes...), T, d]
-        extra = x.ndim - base.ndim
-        o = base.reshape(base.shape[:-2] + (1,) * extra + base.shape[-2:])
-        return o + (x - o) @ R.T
-
-    out = eqx.tree_at(lambda t: (t.main, t.laterals), tree, (about_base(tree.main), about_base(tree.laterals)))
-    if out.deeper:
-        levels = tuple(eqx.tree_at(lambda lv: lv.curves, lv, about_base(lv.curves)) for lv in out.deeper)
-        out = eqx.tree_at(lambda t: t.deeper, out, levels)
-    return out
+    return turn_about_base(rs.to_curves(tree), rotation)
 
 
 def mean_size(mean, pop: Population) -> float:
