@@ -378,6 +378,57 @@ def test_a_file_that_is_not_an_image_says_so(tmp_path):
         assert "pip install" not in str(info.value) and "broken, empty or misnamed" in str(info.value)
 
 
+def test_an_unreadable_file_is_closed_at_once(tmp_path):
+    # Given a path, imageio left an unreadable file open; the garbage collector closed it
+    # later, with a ResourceWarning inside whatever code ran then (it broke another test).
+    import gc
+    import warnings
+
+    (tmp_path / "notes.jpg").write_bytes(b"not an image")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with pytest.raises(ImageError):
+            roots_from_image(tmp_path / "notes.jpg")
+        gc.collect()
+    assert not [w for w in caught if issubclass(w.category, ResourceWarning)], [str(w.message) for w in caught]
+
+
+def test_pixel_depths_and_tiff_planes_read_as_the_8_bit_image(tmp_path):
+    # 12-bit camera data in uint16 (maximum 4095) and float images of 0-255 values are scaled
+    # by their bit depth: read as full-range 16-bit or as [0, 1] they were nearly black or
+    # clipped white, and the shoot's colour test (CIELAB) found no green.
+    import tifffile
+
+    img, _ = _seedling_photo(0)
+    (ref,) = roots_from_image(img)
+    assert ref.main[0, 1] > 72  # below the hypocotyl: the shoot was removed
+    twelve = np.round(img.astype(np.float64) * (4095 / 255)).astype(np.uint16)
+    tifffile.imwrite(tmp_path / "planes.tif", np.moveaxis(twelve, -1, 0), photometric="rgb", planarconfig="separate")
+    for other in (twelve, img.astype(np.float64), img.astype(np.float32), tmp_path / "planes.tif"):
+        (got,) = roots_from_image(other)
+        np.testing.assert_allclose(got.main[0], ref.main[0], atol=1.5)
+        assert got.main_length == pytest.approx(ref.main_length, rel=0.01)
+        assert got.n_laterals == ref.n_laterals
+
+
+def test_intensity_scale_by_bit_depth():
+    from rootshape_jax.io._image import intensity_scale
+
+    cases = [
+        (np.array([0, 4], np.uint8), 1 / 255),
+        (np.array([0, 200], np.uint16), 1 / 255),
+        (np.array([0, 1000], np.uint16), 1 / 1023),
+        (np.array([0, 4095], np.uint16), 1 / 4095),
+        (np.array([0, 4096], np.uint16), 1 / 16383),
+        (np.array([0, 65535], np.uint16), 1 / 65535),
+        (np.array([0.0, 0.7]), 1.0),
+        (np.array([0.0, 254.5]), 1 / 255),
+        (np.array([0.0, 3000.0]), 1 / 4095),
+    ]
+    for arr, want in cases:
+        assert intensity_scale(arr) == pytest.approx(want), arr
+
+
 @pytest.mark.parametrize("f", [8, 24, 37])
 def test_block_mean_matches_a_plain_loop_on_tall_images(f):
     # Computed in row bands: every band must hold whole blocks, whatever f (the shoot's

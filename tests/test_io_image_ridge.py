@@ -423,7 +423,10 @@ def test_cli_extract_writes_rsml_overlay_and_names_a_bad_image(tmp_path):
 
 def test_extract_interrupted_while_writing_leaves_no_half_written_file(tmp_path, monkeypatch):
     # Ctrl-C while the second image's overlay is being written: the first image's files are
-    # complete, the second image's overlay is absent (not half a PNG), no temporary file stays.
+    # complete, the second image's overlay is absent (not half a PNG), no temporary file stays,
+    # and summary.json describes the one finished image.
+    import json
+
     import skimage.io
 
     from rootshape_jax.io import _extract_cli
@@ -449,6 +452,8 @@ def test_extract_interrupted_while_writing_leaves_no_half_written_file(tmp_path,
     with pytest.raises(KeyboardInterrupt):
         extract_images([src], out, progress=False)
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["p0.rsml", "p0_overlay.png", "p1.rsml"]
+    assert names == ["p0.rsml", "p0_overlay.png", "p1.rsml", "summary.json"]
     assert skimage.io.imread(out / "p0_overlay.png").ndim == 3
     assert len(read_rsml(out / "p1.rsml")) == 1
+    (row,) = json.loads((out / "summary.json").read_text())
+    assert row["image"] == str(src / "p0.png") and row["status"] == "ok" and row["plants"] == 1

@@ -122,7 +122,9 @@ def extract_images(
     - `**options`: passed to `roots_from_image`.
 
     A bad image (unreadable, truncated, unsupported, no root found) is named in a warning and
-    skipped; the others are still processed. Writes ``OUT/summary.json`` and returns its rows:
+    skipped; the others are still processed. Writes ``OUT/summary.json`` (rewritten whole after
+    each image, so an interrupted run leaves the summary of the images it finished) and
+    returns its rows:
     one dict per image with ``status`` ("ok" or "skipped"), ``reason``, ``plants``,
     ``laterals``, ``rsml``, ``overlay`` and, with a tracing, ``comparison``.
     """
@@ -143,7 +145,13 @@ def extract_images(
         check_length_unit(unit)
     # Pixels per output unit: the overlay and the tracing comparison work in pixels.
     scale = 1.0 if pixel_size is None else 1.0 / pixel_size
-    rows = []
+    rows: list[dict] = []
+
+    def write_summary():
+        # Strict JSON: a value not computed (NaN) is written as null.
+        text = json.dumps(_json_safe(rows), indent=2, allow_nan=False, default=float)
+        atomic_write(out / "summary.json", lambda p: p.write_text(text))
+
     bar = tqdm(files, desc="extract", unit="image", disable=not progress)
     for path in bar:
         bar.set_postfix_str(path.name)
@@ -155,6 +163,7 @@ def extract_images(
             warnings.warn(f"skipped {path.name}: {reason}", stacklevel=2)
             row.update(status="skipped", reason=reason)
             rows.append(row)
+            write_summary()
             continue
         rsml_path = out / f"{path.stem}.rsml"
         # Each file whole or not at all: a Ctrl-C leaves every image done complete.
@@ -182,9 +191,7 @@ def extract_images(
             cmp = compare_to_tracing(px, traced, elastic=elastic)
             row.update(tracing=str(tpath), comparison=cmp.as_dict())
         rows.append(row)
-    # Strict JSON: a value not computed (NaN) is written as null.
-    text = json.dumps(_json_safe(rows), indent=2, allow_nan=False, default=float)
-    atomic_write(out / "summary.json", lambda p: p.write_text(text))
+        write_summary()
     return rows
 
 

@@ -35,10 +35,14 @@ def _load(image: Any) -> tuple[np.ndarray, str]:
         p = Path(image)
         if not p.is_file():
             raise FileNotFoundError(f"image file not found: {p}")
-        import skimage.io
+        import imageio.v3 as iio
 
+        # The bytes are read here and handed over with the suffix as the format hint: given a
+        # path, imageio left the file of an image it could not read open (closed only by a
+        # later garbage collection, with a ResourceWarning wherever that happens to run).
+        data = p.read_bytes()
         try:
-            arr = skimage.io.imread(p)
+            arr = iio.imread(data, extension=p.suffix.lower() or None)
         except Exception as e:  # the reader's own errors vary by plugin
             # imageio's message for a file that is not an image of its kind suggests plugins
             # to install (pyav, opencv): no plugin opens a broken or mislabelled file.
@@ -46,7 +50,10 @@ def _load(image: Any) -> tuple[np.ndarray, str]:
             if "backend" in why.lower() or not why:
                 why = f"its content is not a {p.suffix.lstrip('.').upper() or 'known'} image: broken, empty or misnamed"
             raise ImageError(f"{p}: cannot be read as an image ({why}).") from e
-        return np.asarray(arr), p.stem
+        arr = np.asarray(arr)
+        if arr.ndim == 3 and arr.shape[-1] not in (3, 4) and arr.shape[0] in (3, 4):
+            arr = np.moveaxis(arr, 0, -1)  # a TIFF of separate colour planes, (3|4, H, W)
+        return arr, p.stem
     return np.asarray(image), "image"
 
 
@@ -60,9 +67,9 @@ def _to_gray(arr: np.ndarray, source: str) -> np.ndarray:
         raise ImageError(f"{source}: pixels must be numbers, got dtype {arr.dtype}.")
     if arr.ndim == 3 and arr.shape[-1] in (3, 4):
         from skimage.color import rgb2gray
-        from skimage.util import img_as_float
 
-        arr = rgb2gray(img_as_float(arr[..., :3]))
+        rgb = arr[..., :3]
+        arr = rgb2gray(rgb.astype(np.float64) * intensity_scale(rgb))
     elif arr.ndim == 3 and arr.shape[-1] == 1:
         arr = arr[..., 0]
     if arr.ndim != 2:
@@ -71,11 +78,7 @@ def _to_gray(arr: np.ndarray, source: str) -> np.ndarray:
         )
     if min(arr.shape) < 3:
         raise ImageError(f"{source}: image of shape {arr.shape} is too small.")
-    if arr.dtype.kind in "iu":
-        from skimage.util import img_as_float
-
-        arr = img_as_float(arr)
-    arr = arr.astype(np.float64, copy=False)
+    arr = arr.astype(np.float64) * intensity_scale(arr)
     if not np.all(np.isfinite(arr)):
         raise ImageError(f"{source}: image contains NaN or inf pixels.")
     return arr
@@ -158,6 +161,28 @@ def _close(mask: np.ndarray, radius: int) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # Ridge (line) filter: multi-scale Hessian, tiled so that large scans stay within memory.
 
+def intensity_scale(arr: np.ndarray) -> float:
+    """Factor that brings an image's pixel values to [0, 1].
+
+    Integer images are scaled by their bit depth, the smallest of 8, 10, 12, 14, 16, 24 or 32
+    bits that holds their largest value (uint8 always by 255): a camera's 12-bit data stored in
+    uint16 peaks at 4095, and read as 16-bit it would be nearly black, which the colour test
+    for green shoots (CIELAB) cannot see. Float images in [0, 1] are kept; float images of
+    larger values (8- or 16-bit data converted to float) are scaled the same way as integers.
+    """
+    if arr.dtype == np.uint8:
+        return 1.0 / 255.0
+    if arr.dtype.kind not in "fiu" or arr.size == 0:
+        return 1.0
+    top = float(np.max(arr))
+    if arr.dtype.kind == "f" and top <= 1.0:
+        return 1.0
+    for bits in (8, 10, 12, 14, 16, 24, 32):
+        if top <= 2.0**bits - 1:
+            return 1.0 / (2.0**bits - 1)
+    return 1.0 / top
+
+
 _LUMA = np.array([0.2125, 0.7154, 0.0721], dtype=np.float32)
 _BAND = 1024  # rows per tile of the ridge filter and the distance transform
 
@@ -174,10 +199,7 @@ def gray_float32(arr: np.ndarray, source: str) -> np.ndarray:
         )
     if min(arr.shape[:2]) < 3:
         raise ImageError(f"{source}: image of shape {arr.shape} is too small.")
-    scale = 1.0
-    if arr.dtype.kind in "iu":
-        info = np.iinfo(arr.dtype)
-        scale = 1.0 / float(info.max) if info.min == 0 else 1.0 / float(info.max - info.min)
+    scale = intensity_scale(arr)
     out = np.empty(arr.shape[:2], dtype=np.float32)
     for r0 in range(0, arr.shape[0], _BAND):
         block = arr[r0 : r0 + _BAND]
@@ -380,7 +402,7 @@ def shoot_mask(rgb: np.ndarray, *, green: float, root_width: float) -> np.ndarra
     from skimage.color import rgb2lab
 
     H, W = rgb.shape[:2]
-    scale = 1.0 / float(np.iinfo(rgb.dtype).max) if rgb.dtype.kind in "iu" else 1.0
+    scale = intensity_scale(rgb[..., :3])
     # Chroma along the foliage hue (float16: differences of a few units matter, not their
     # decimals), and which pixels are green at all; in row bands, so no full-size Lab copy.
     foliage = np.empty((H, W), dtype=np.float16)
@@ -772,7 +794,10 @@ def roots_from_image(
     **Arguments**
 
     - `image`: a path, or an array: 2D grayscale, 2D binary (bool, or two values), or
-      (H, W, 3|4) colour (converted to luminance; alpha ignored).
+      (H, W, 3|4) colour (converted to luminance; alpha ignored). Pixel values are brought
+      to [0, 1] by the image's bit depth, found from its largest value (`intensity_scale`:
+      12-bit camera data in uint16 by 4095; float images of 0-255 values by 255), which is
+      also the scale of a numeric `threshold`.
     - `threshold`: None (default) segments with a multi-scale ridge (line) filter, which keeps
       thin faint laterals and ignores smooth lighting changes and edges. A number or one of
       ``"otsu"``, ``"li"``, ``"triangle"``, ``"yen"``, ``"isodata"``, ``"mean"`` instead uses
