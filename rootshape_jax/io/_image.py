@@ -161,6 +161,7 @@ def _close(mask: np.ndarray, radius: int) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # Ridge (line) filter: multi-scale Hessian, tiled so that large scans stay within memory.
 
+
 def intensity_scale(arr: np.ndarray) -> float:
     """Factor that brings an image's pixel values to [0, 1].
 
