@@ -1090,6 +1090,35 @@ def test_progress_bars_in_a_log_are_whole_lines():
     assert [line.split("|")[0] for line in lines] == ["d:   0%", "d:  33%", "d:  67%", "d: 100%", "d: 100%"]
 
 
+def test_log_bars_come_before_stdout_and_a_second_bar_of_one_name_starts_at_once():
+    import io
+
+    from tqdm import tqdm
+
+    from rootshape_jax._cli._common import BarsFirst, LogStream
+
+    # `> log 2>&1`: one file for both streams. A finished bar's last state is written before
+    # the stdout line that reports the step's result, not after it at the end of the run.
+    sink = io.StringIO()
+    log = LogStream(sink, interval=3600.0)
+    out = BarsFirst(sink, log)
+    for depth in (3, 2):  # two bars named alike, one after the other (as in the demo)
+        with tqdm(total=4, desc="distances", file=log, mininterval=0) as bar:
+            for _ in range(4):
+                bar.update()
+        print(f"wrote depth {depth}", file=out)
+    log.close_line()
+    lines = [line.split("|")[0] for line in sink.getvalue().splitlines()]
+    assert lines == [
+        "distances:   0%",
+        "distances: 100%",
+        "wrote depth 3",
+        "distances:   0%",  # the second bar's first state at once, although its name was seen
+        "distances: 100%",
+        "wrote depth 2",
+    ]
+
+
 def test_log_stream_keeps_text_and_throttles_nested_bars():
     import io
 

@@ -73,8 +73,12 @@ class LogStream:
     log file is one endless line of carriage returns; nested bars also move the cursor with
     newlines and escape codes. Here each bar (told apart by its description, the text before
     its first ":") writes its first state at once (the step has started), then a state at most
-    every `interval` seconds; its latest state is written before any other text and at the
-    end, so a finished bar's last line is there. Other text is written line by line as is.
+    every `interval` seconds; its latest state is written before any other text (on stderr, or
+    on stdout through `BarsFirst`) and at the end, so a finished bar's last line is there, in
+    order. A bar whose count or elapsed time goes back is a new bar of the same description
+    (the demo has two "distances"): its first state is written at once too, unless bars of
+    that description clear themselves when done (a nested bar per step of an outer one). Other text is written line
+    by line as is.
     """
 
     def __init__(self, stream, interval: float = 30.0):
@@ -85,6 +89,8 @@ class LogStream:
         self._in_bar = False
         self._pending: dict[str, str] = {}  # bar description -> latest state not written
         self._written: dict[str, float] = {}  # bar description -> when its last line was written
+        self._progress: dict[str, tuple] = {}  # bar description -> (count, elapsed) it last showed
+        self._transient: set[str] = set()  # descriptions of bars that cleared themselves
         self._last_desc = ""  # the bar drawn last
         # Re-entrant: the Ctrl-C handler writes to stderr from the main thread, which may be
         # inside `write` already.
@@ -125,10 +131,16 @@ class LogStream:
         if not state:
             if raw:  # only spaces: a bar cleared (closed with leave=False), gone from the screen
                 self._pending.pop(self._last_desc, None)
+                # Such bars (a nested bar per step) stay throttled when they come back.
+                self._transient.add(self._last_desc)
                 self._bar = ""
             return
         desc = self._last_desc = state.split(":", 1)[0]
         now = time.monotonic()
+        progress = _progress(state)
+        if progress < self._progress.get(desc, progress) and desc not in self._transient:
+            self._written.pop(desc, None)  # a new bar of this description
+        self._progress[desc] = progress
         if desc not in self._written:
             self._flush_pending()  # a new bar: the others' latest states first
             self._write(state)
@@ -160,6 +172,13 @@ class LogStream:
         with self._lock:
             self._stream.flush()
 
+    def flush_bars(self) -> None:
+        """Write the bars' latest states now (before a line on stdout, which may share the log)."""
+        with self._lock:
+            if self._pending:
+                self._flush_pending()
+                self._stream.flush()
+
     def close_line(self) -> None:
         """Write out what is pending: bars' latest states, then text without its newline."""
         with self._lock:
@@ -177,19 +196,54 @@ class LogStream:
         return getattr(self._stream, name)
 
 
+# A bar's count: "| 3/10 [" (a total) or ": 3step [" (none); its elapsed time: "[01:02" or
+# "[1:02:03", or ": 00:12" (`ticking`'s format).
+_COUNT = re.compile(r"(?:\|\s*|:\s+)(\d+(?:\.\d+)?)(?:/|[^\d\s|/:]*\s*\[)")
+_ELAPSED = re.compile(r"(?:\[|: )(?:(\d+):)?(\d+):(\d\d)\b")
+
+
+def _progress(state: str) -> tuple[float, float]:
+    """(count, elapsed seconds) a bar's state shows; 0 for what it does not show."""
+    c = _COUNT.search(state)
+    e = _ELAPSED.search(state)
+    elapsed = 0.0
+    if e is not None:
+        h, mi, se = e.groups()
+        elapsed = 3600.0 * int(h or 0) + 60.0 * int(mi) + int(se)
+    return (float(c.group(1)) if c else 0.0, elapsed)
+
+
+class BarsFirst:
+    """stdout while stderr is a `LogStream`: the bars' pending states are written before each
+    stdout write, so a log of both streams (``> log 2>&1``) keeps a finished step's last bar
+    line before the lines that report its results."""
+
+    def __init__(self, stream, bars: LogStream):
+        self._stream, self._bars = stream, bars
+
+    def write(self, text: str) -> int:
+        self._bars.flush_bars()
+        return self._stream.write(text)
+
+    def __getattr__(self, name):  # flush, encoding, isatty, ... of the real stream
+        return getattr(self._stream, name)
+
+
 @contextlib.contextmanager
 def log_friendly_stderr():
     """`LogStream` on stderr while a command runs, unless stderr is a terminal."""
-    real = sys.stderr
+    real, real_out = sys.stderr, sys.stdout
     if real is None or real.isatty():
         yield
         return
     sys.stderr = stream = LogStream(real)
+    if real_out is not None:
+        sys.stdout = BarsFirst(real_out, stream)
     try:
         yield
     finally:
         stream.close_line()
-        sys.stderr = real
+        sys.stderr, sys.stdout = real, real_out
 
 
 @contextlib.contextmanager
