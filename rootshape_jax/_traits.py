@@ -50,28 +50,37 @@ def _unit(v: np.ndarray) -> np.ndarray | None:
     return v / n if n > 0 else None
 
 
+def _stub(cum: np.ndarray) -> float:
+    """Segments shorter than this are a tracer's stubs, not a direction: half the polyline's
+    median nonzero segment length (RhizoScan starts each lateral with a 1-2 px segment from
+    the parent node, at any angle, before segments of 5-7 px)."""
+    seg = np.diff(cum)
+    seg = seg[seg > 0]
+    return 0.5 * float(np.median(seg)) if seg.size else 0.0
+
+
 def _main_direction(main: np.ndarray, cum: np.ndarray, s: float, window: float | None):
     if window is None:
         # The segment containing arc length s (a vertex belongs to the segment that starts
-        # there; the tip to the last segment), skipping zero-length segments.
+        # there; the tip to the last segment); if it is a stub, a chord of one typical segment
+        # centred at s.
         seg = min(int(np.searchsorted(cum, s, side="right")) - 1, len(main) - 2)
         seg = max(seg, 0)
-        for k in list(range(seg, len(main) - 1)) + list(range(seg - 1, -1, -1)):
-            u = _unit(main[k + 1] - main[k])
-            if u is not None:
-                return u
-        return None
+        stub = _stub(cum)
+        if cum[seg + 1] - cum[seg] >= stub > 0:
+            return _unit(main[seg + 1] - main[seg])
+        window = 2.0 * stub
     return _unit(_point_at(main, cum, s + window / 2) - _point_at(main, cum, s - window / 2))
 
 
 def _lateral_direction(lat: np.ndarray, window: float | None):
+    cum = _cumlen(lat)
     if window is None:
-        for k in range(len(lat) - 1):
-            u = _unit(lat[k + 1] - lat[k])
-            if u is not None:
-                return u
-        return None
-    return _unit(_point_at(lat, _cumlen(lat), window) - lat[0])
+        # To the first vertex past the stubs (the first segment on a regular polyline).
+        far = np.flatnonzero(cum >= _stub(cum))
+        far = far[far > 0]
+        return _unit(lat[far[0]] - lat[0]) if far.size else None
+    return _unit(_point_at(lat, cum, window) - lat[0])
 
 
 def insertion_angles(root: Root, *, window: float | None = None) -> np.ndarray:
@@ -80,7 +89,11 @@ def insertion_angles(root: Root, *, window: float | None = None) -> np.ndarray:
     The angle between the lateral's initial direction and the main root's local direction at
     the lateral's attachment point (arc-length fraction ``root.attach``), in [0, 180].
     With ``window=None`` the directions are those of the lateral's first segment and of the
-    main root's segment containing the attachment point (zero-length segments skipped).
+    main root's segment containing the attachment point. A segment shorter than half the
+    polyline's median segment is a tracer's stub, not a direction (RhizoScan starts every
+    lateral with a 1-2 px segment from the parent node, which made every plate lateral 90°):
+    the lateral's direction then reaches past its stubs, and the main root's is a chord of
+    one median segment centred at the attachment point.
     With a ``window`` (arc length, in the root's units) they are chords: the lateral from its
     base to the point ``window`` along it; the main root from ``window/2`` before to
     ``window/2`` after the attachment point — smoother on noisy tracings.

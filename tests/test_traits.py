@@ -86,6 +86,21 @@ def test_insertion_angle_window():
         insertion_angles(root, window=0.0)
 
 
+def test_insertion_angle_skips_a_tracers_stub():
+    # As in the RhizoScan plate files: each lateral starts with a 1 px segment from the parent
+    # node, at right angles, then runs at 60° in 6 px segments. The stub is not the direction
+    # (the first-segment rule gave 90° for every plate lateral); nor is a stub of the main root.
+    main = np.array([[0.0, 0.0], [0.0, 6.0], [0.0, 6.5], [0.0, 12.0], [0.0, 18.0]])
+    a = math.radians(60.0)
+    d = np.array([math.sin(a), math.cos(a)])
+    lat = np.concatenate([[[0.0, 6.25], [-1.0, 6.25]], [-1.0, 6.25] + 6.0 * np.arange(1, 5)[:, None] * d])
+    root = Root(main=main, laterals=(lat,), attach=[6.25 / 18.0])
+    got = insertion_angles(root)[0]
+    # The chord from the base past the stub: 60° off by the stub's 1 px over 6 px.
+    want = math.degrees(math.acos(float(np.clip((lat[2] - lat[0]) @ [0, 1] / np.linalg.norm(lat[2] - lat[0]), -1, 1))))
+    assert got == pytest.approx(want) and abs(got - 60.0) < 6.0
+
+
 def test_insertion_angle_at_a_vertex_and_zero_length_segments():
     # Attachment exactly at the main root's corner: the segment that starts there is used.
     main = np.array([[0.0, 0.0], [0.0, 5.0], [0.0, 5.0], [5.0, 5.0]])
