@@ -36,6 +36,7 @@ from ._errors import (
     CapacityError as CapacityError,
     ConvergenceError as ConvergenceError,
     CoordinateRangeError as CoordinateRangeError,
+    ExtrapolationWarning as ExtrapolationWarning,
     ImageError as ImageError,
     InputError as InputError,
     InvalidCostError as InvalidCostError,
@@ -96,12 +97,15 @@ from ._tree import (
     SRVFLevel as SRVFLevel,
     SRVFTree as SRVFTree,
     batch as batch,
+    normalising_length as normalising_length,
     scale_tree as scale_tree,
     stack as stack,
     to_curves as to_curves,
     to_roots as to_roots,
     to_srvf as to_srvf,
+    turn_about_base as turn_about_base,
     unstack as unstack,
+    upright_rotation as upright_rotation,
 )
 from ._warp import (
     apply_warp_curve as apply_warp_curve,

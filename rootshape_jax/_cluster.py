@@ -173,6 +173,11 @@ def confusion_matrix(labels, predicted, classes: Sequence | None = None) -> tupl
     """Counts ``C[i, j]`` of roots of class i predicted as class j, with the class order."""
     y = np.asarray(labels)
     p = np.asarray(predicted)
+    if y.shape != p.shape or y.ndim != 1:
+        raise ValueError(
+            f"confusion_matrix: labels and predicted must be two 1-D sequences of one length, got "
+            f"shapes {y.shape} and {p.shape}."
+        )
     classes = np.unique(np.concatenate([y, p])) if classes is None else np.asarray(classes)
     index = {c: k for k, c in enumerate(classes.tolist())}
     C = np.zeros((len(classes), len(classes)), dtype=np.int64)

@@ -23,6 +23,25 @@ def tiny(dtype) -> float:
     return float(jnp.finfo(dtype).tiny) ** 0.5
 
 
+def require_finite(x: Array, what: str) -> None:
+    """`InvalidRootError` when a concrete array holds NaN or inf (traced values are not checked).
+
+    The norms here treat NaN as zero (``NaN > tiny`` is False), so a NaN coordinate would
+    otherwise give a finite, wrong length or distance."""
+    if isinstance(x, jax.core.Tracer):
+        return
+    import numpy as np
+
+    from ._errors import InvalidRootError
+
+    a = np.asarray(x)
+    if a.dtype.kind in "fc" and not np.all(np.isfinite(a)):
+        raise InvalidRootError(
+            f"{what} holds NaN or inf values ({int(np.sum(~np.isfinite(a)))} of {a.size}); "
+            "drop or repair those points before computing lengths, SRVFs or distances."
+        )
+
+
 def _float_dtype(x):
     dtype = jnp.result_type(x)
     return dtype if jnp.issubdtype(dtype, jnp.floating) else jnp.result_type(float)
@@ -68,6 +87,7 @@ def l2_norm_squared(q: Float[Array, "*batch T d"]) -> Float[Array, " *batch"]:
 def curve_length(beta: Float[ArrayLike, "*batch T d"]) -> Float[Array, " *batch"]:
     """Polyline length of a sampled curve (sum of segment lengths)."""
     beta = jnp.asarray(beta)
+    require_finite(beta, "curve_length: the curve")
     return jnp.sum(safe_norm(jnp.diff(beta, axis=-2)), axis=-1)
 
 
@@ -86,6 +106,7 @@ def srvf(beta: Float[ArrayLike, "T d"]) -> Float[Array, "T d"]:
     beta = jnp.asarray(beta)
     if beta.ndim < 2 or beta.shape[-2] < 2:
         raise ValueError(f"srvf needs a (T, d) curve with T >= 2, got shape {beta.shape}.")
+    require_finite(beta, "srvf: the curve")
     n = beta.shape[-2]
     u = jnp.diff(beta, axis=-2) * (n - 1)  # segment velocities
     speed = safe_norm(u)

@@ -20,7 +20,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._curves import l2_norm_squared, resample_curve, srvf
 from ._devices import split_over_devices
-from ._errors import InvalidRootError
+from ._errors import InvalidRootError, as_count
 from ._executor import LocalExecutor
 from ._rotation import optimal_rotation
 from ._warp import check_neighbourhood, dp_warp_if, warp_samples, warp_samples_unchecked
@@ -125,10 +125,8 @@ def _register(q1, q2, *, rotation: bool, neighbourhood: int, max_iterations, rto
 
 
 def _check_options(n_samples, max_iterations, rtol, neighbourhood) -> None:
-    if isinstance(n_samples, bool) or not isinstance(n_samples, int) or n_samples < 2:
-        raise ValueError(f"n_samples must be a Python int >= 2, got {n_samples!r}.")
-    if isinstance(max_iterations, bool) or not isinstance(max_iterations, int) or max_iterations < 1:
-        raise ValueError(f"max_iterations must be a Python int >= 1, got {max_iterations!r}.")
+    as_count(n_samples, "n_samples", minimum=2)
+    as_count(max_iterations, "max_iterations")
     if not isinstance(rtol, (int, float)) or not rtol >= 0:
         raise ValueError(f"rtol must be a float >= 0, got {rtol!r}.")
     check_neighbourhood(neighbourhood)

@@ -43,6 +43,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ._assignment import assignment_cost, linear_assignment
 from ._curves import l2_norm_squared, safe_norm, safe_normalise, safe_sqrt, tiny, trapezoid_weights
 from ._devices import split_over_devices
+from ._errors import as_count
 from ._metric import (
     MetricTerms,
     Weights,
@@ -61,12 +62,6 @@ from ._warp import apply_warp_srvf, dp_warp_if
 
 # --------------------------------------------------------------------------------------------
 # Options and result
-
-
-def _as_int(value, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name} must be an integer >= 1, got {value!r}.")
-    return value
 
 
 class RegistrationOptions(eqx.Module):
@@ -104,9 +99,11 @@ class RegistrationOptions(eqx.Module):
         dp_batch_size: int = 32,
         assignment: str = "callback",
     ):
-        _as_int(max_iterations, "max_iterations")
-        _as_int(neighbourhood, "neighbourhood")
-        _as_int(dp_batch_size, "dp_batch_size")
+        max_iterations = as_count(max_iterations, "max_iterations")
+        neighbourhood = as_count(neighbourhood, "neighbourhood")
+        dp_batch_size = as_count(dp_batch_size, "dp_batch_size")
+        if not isinstance(rotation, (bool, np.bool_)):
+            raise TypeError(f"rotation must be True or False, got {rotation!r}.")
         if assignment not in ("callback", "jax"):
             raise ValueError(f"assignment must be 'callback' or 'jax', got {assignment!r}.")
         if not rtol >= 0:

@@ -66,11 +66,27 @@ class RSMLWarning(UserWarning):
 
 
 class MissingRadiusWarning(UserWarning):
-    """Some roots of a batch have radii (diameters) and others not: theirs are taken as 0.
+    """Some roots of a batch have radii (diameters) and others not: theirs are taken as 0; or
+    the metric weighs thickness on trees without any radii, where that weight has no effect.
 
     It matters only when the metric weighs thickness; filter it by this class otherwise."""
+
+
+class ExtrapolationWarning(UserWarning):
+    """`TraitRegression.synthesize` was asked for trait values far outside its training roots'
+    (more than 3 standard deviations from their mean): the linear model extrapolates there."""
 
 
 class LabelError(RootShapeError, ValueError):
     """Labels unusable for learning or cross-validation: wrong length, missing (NaN) values, a
     single class, or a class too small for a same-class neighbour or for the folds."""
+
+
+def as_count(value, name: str, *, minimum: int = 1) -> int:
+    """`value` as a Python int >= `minimum` (numpy integers accepted, bools and floats not);
+    `ValueError` naming `name` otherwise."""
+    import numbers
+
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}.")
+    return int(value)

@@ -31,7 +31,7 @@ from tqdm.auto import tqdm
 
 from ._atomic import atomic_write
 from ._devices import usable_cores
-from ._errors import StoreMismatchError
+from ._errors import StoreMismatchError, as_count
 
 _FORMAT = "rootshape_jax.pair_blocks/1"
 _BLOCK = re.compile(r"^block_(\d+)\.npz$")
@@ -206,8 +206,8 @@ class LocalExecutor(Executor):
     """
 
     def __init__(self, workers: int | None = None):
-        if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
-            raise ValueError(f"workers must be an integer >= 1 or None, got {workers!r}.")
+        if workers is not None:
+            workers = as_count(workers, "workers (or None)")
         self.workers = workers
 
     def n_workers(self) -> int:

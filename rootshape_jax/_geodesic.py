@@ -7,7 +7,8 @@ import jax
 import jax.numpy as jnp
 
 from ._engine import Registration
-from ._metric import Weights
+from ._errors import as_count
+from ._metric import Weights, as_weights
 from ._registration import register
 from ._tree import RootTree, SRVFLevel, SRVFTree, scale_tree, to_curves, to_srvf, turn_about_base
 
@@ -73,6 +74,12 @@ def geodesic(
 ) -> RootTree:
     """The geodesic from root a to root b as a batched `RootTree` of `n_steps` roots.
 
+    `a`, `b`: two unbatched trees of one `batch` call (`unstack`), as curves or SRVFs.
+    `n_steps` (>= 2): roots along the path, a and b included. `weights`: the metric's λ
+    (default the paper's, `Weights()`): the path is the geodesic of that metric. Returns the
+    roots in the trees' frame and unit: the coordinates of the data, or the normalised ones
+    of `batch(normalise_scale=True)` unless `sizes` is given.
+
     Slot k of every step is the same lateral along the path (the correspondence colour); a
     lateral present on one side only grows from zero length at its partner's position. Pass a
     precomputed `registration` (of b onto a) to skip registering again; other options as in
@@ -89,19 +96,21 @@ def geodesic(
       about its base onto a), the usual picture of a shape-space geodesic. Rotations are
       quotiented out of the shape space, so both are the same shape path.
     - `sizes`: ``(length_a, length_b)``, the lengths `batch(normalise_scale=True)` divided a
-      and b by (`normalising_length`: the main root's, resampled). That division is about
+      and b by: ``normalising_length(root_a, n_points)``, the main root's length resampled at
+      the trees' `n_points` (a little shorter than `Root.main_length`, the raw polyline's,
+      which would shift the path by the difference times the seed's distance from (0, 0)).
+      That division is about
       (0, 0), so a's seed went to ``seed_a / length_a``; here step τ is scaled back about its
       base by ``(1 − τ) length_a + τ length_b`` and its base put at
       ``(1 − τ) seed_a + τ seed_b``: the path runs between the roots at their real sizes and
       positions. Leave it None for roots that were not scale-normalised.
     """
-    if not isinstance(n_steps, int) or n_steps < 2:
-        raise ValueError(f"n_steps must be an integer >= 2, got {n_steps!r}.")
+    n_steps = as_count(n_steps, "n_steps", minimum=2)
     if registration is None:
         registration = register(a, b, weights=weights, **options)
     if a.batch_shape != ():
         raise ValueError("geodesic works on one pair of roots; loop or vmap over pairs.")
-    weights = Weights() if weights is None else weights
+    weights = as_weights(weights)
     # Whether a has a thickness channel is decided here, on concrete weights (static below).
     thick = registration.registered.has_thickness
     path = _geodesic_curves(a, registration.registered, n_steps, weights if thick else None)

@@ -57,7 +57,7 @@ from tqdm.auto import tqdm
 from ._engine import RegistrationOptions, apply_registration, canonical_pairs, register_pairs, registration_options
 from ._errors import LabelError
 from ._executor import LocalExecutor, executor_for
-from ._metric import Weights, preshape_terms, unit_energies_by_level, weights_by_level
+from ._metric import Weights, as_weights, preshape_terms, unit_energies_by_level, weights_by_level
 from ._tree import RootTree, SRVFTree, batch_size, to_srvf
 
 # --------------------------------------------------------------------------------------------
@@ -465,7 +465,7 @@ def _start_value(weights: Weights, name) -> float:
 
 
 def _prepare(trees, weights, registration, options):
-    weights = Weights() if weights is None else weights
+    weights = as_weights(weights)
     zero = [e + 2 for e, pair in enumerate(weights.deeper) if min(float(v) for v in pair) <= 0]
     if zero:
         # λ is learned on a log scale, and a zero weight means "leave this order out".

@@ -75,9 +75,9 @@ from ._engine import (
     registration_options,
     rotate_batch,
 )
-from ._errors import ConvergenceError
+from ._errors import ConvergenceError, as_count
 from ._executor import LocalExecutor, executor_for
-from ._metric import Weights, level_weight, null_costs, pair_lower_bounds, preshape_terms, system_weights
+from ._metric import Weights, as_weights, level_weight, null_costs, pair_lower_bounds, preshape_terms, system_weights
 from ._rotation import optimal_rotation
 from ._tangent import LevelParams, TreeParams, branch_weight, params_of, params_to_tree, unwhiten, whiten, whitening
 from ._tree import RootTree, SRVFLevel, SRVFTree, batch_size, check_compatible, to_curves, to_srvf
@@ -181,7 +181,7 @@ def karcher_objective(
     count as real laterals where ``mu.mask`` is True (`karcher_mean` fits a mean with every
     slot real).
     """
-    weights = Weights() if weights is None else weights
+    weights = as_weights(weights)
     mu = to_srvf(mu, weights=weights)
     samples = to_srvf(samples, weights=weights)
     _check_samples(samples, "karcher_objective: samples")
@@ -867,14 +867,20 @@ def karcher_mean(
       point only. The default medoid start is computed locally (O(n²) assignments): for large
       n pass `distances` or `init`.
     - `progress`: show a progress bar of the fixed point's steps with the current F.
+
+    **Returns** a `KarcherMean`: the mean (`mean`, curves in the trees' frame and unit),
+    each root's squared distance to it (`energies`) at the registrations it was fitted with
+    (`registered`), the objective, the solver's status and steps. The metric ignores
+    rotation, so the mean's orientation is that of its starting root, as moved by the fit:
+    `upright_rotation(result.mean, trees)` and `turn_about_base` point it like the roots.
+    For a root's distance to the mean, read `energies`: `distance(result.mean, x)` registers
+    again with `register`'s options and may land in another local optimum.
     """
-    weights = Weights() if weights is None else weights
+    weights = as_weights(weights)
     if method not in ("fixed_point", "gradient"):
         raise ValueError(f"method must be 'fixed_point' or 'gradient', got {method!r}.")
-    if not isinstance(max_steps, int) or max_steps < 1:
-        raise ValueError(f"max_steps must be an integer >= 1, got {max_steps!r}.")
-    if isinstance(warm_up_steps, bool) or not isinstance(warm_up_steps, int) or warm_up_steps < 0:
-        raise ValueError(f"warm_up_steps must be an integer >= 0, got {warm_up_steps!r}.")
+    max_steps = as_count(max_steps, "max_steps")
+    warm_up_steps = as_count(warm_up_steps, "warm_up_steps", minimum=0)
     if not (rtol >= 0 and atol >= 0):
         raise ValueError(f"rtol and atol must be >= 0, got rtol={rtol!r}, atol={atol!r}.")
     if not isinstance(trees, (RootTree, SRVFTree)):
@@ -888,13 +894,11 @@ def karcher_mean(
     if client is not None:
         if method != "fixed_point":
             raise ValueError(f"karcher_mean: client= runs method='fixed_point' only (got method={method!r}).")
-        if isinstance(block_size, bool) or not isinstance(block_size, int) or block_size < 1:
-            raise ValueError(f"block_size must be an integer >= 1, got {block_size!r}.")
+        block_size = as_count(block_size, "block_size")
     executor = executor_for(client)
     if n_starts is None:
         n_starts = _MULTI_STARTS if n <= _MULTI_START_MAX_N else 1
-    if isinstance(n_starts, bool) or not isinstance(n_starts, int) or n_starts < 1:
-        raise ValueError(f"n_starts must be an integer >= 1, got {n_starts!r}.")
+    n_starts = as_count(n_starts, "n_starts")
     if isinstance(init, (RootTree, SRVFTree)):
         first = _start_tree(init, samples, weights)
         starts, candidates = [None], [first]

@@ -137,6 +137,19 @@ class Weights(_ByTerm):
         return out
 
 
+def as_weights(weights) -> Weights:
+    """`weights`, or the paper's `Weights()` for None; `TypeError` for anything else (a tuple
+    or dict would otherwise fail deep inside the metric)."""
+    if weights is None:
+        return Weights()
+    if not isinstance(weights, Weights):
+        raise TypeError(
+            f"weights must be a rootshape_jax.Weights, got {type(weights).__name__} {weights!r}; "
+            "write Weights(0.02, 1, 1) or Weights(main=0.02, lateral=1, position=1)."
+        )
+    return weights
+
+
 def lateral_weight(weights: Weights, level: int, dtype) -> Array:
     """λs of `level` (`Weights.at_level`) as a `dtype` array."""
     return jnp.asarray(weights.at_level(level)[0], dtype)
@@ -266,7 +279,7 @@ def preshape_terms(a: SRVFTree, b: SRVFTree, weights: Weights | None = None) -> 
     slots are real laterals: a null lateral has no length, so it sits at its partner's
     attachment point (docs/design.md §4: real vs null costs ``λs||q||²`` only).
     """
-    weights = system_weights(Weights() if weights is None else weights, a)
+    weights = system_weights(as_weights(weights), a)
     return MetricTerms(**{t.name: t.energy(weights, a, b) for t in TERMS})
 
 

@@ -20,7 +20,7 @@ from jaxtyping import Array, Float
 
 from ._engine import METRIC_REVISION, RegistrationOptions, pair_distances_squared, registration_options
 from ._executor import BlockStore, LocalExecutor, executor_for, fingerprint
-from ._metric import Weights
+from ._metric import Weights, as_weights
 from ._tree import RootTree, SRVFTree, batch_size, check_compatible, to_srvf
 
 
@@ -165,7 +165,9 @@ def pairwise_distances(
     stops between chunks. The diagonal is 0. With `return_stats=True` also returns a dict with
     the number of pairs, of lateral DPs run and skipped by the exact pruning bound, and of
     blocks computed and read from a store. Registration options: `registration` (a
-    `RegistrationOptions`) or its fields as keywords, as in `register`.
+    `RegistrationOptions`) or its fields as keywords, as in `register`. `weights`: the metric's
+    λ (default the paper's); entries equal `distance`'s, in its units (unitless for
+    scale-normalised trees, else depending on the coordinates' unit).
 
     **Store** (`store=DIR`): every finished block of `block_size` pairs (default: one chunk
     here, ``8 × chunk_size`` on a cluster) is saved; a rerun with ``resume=True`` computes only
@@ -175,7 +177,7 @@ def pairwise_distances(
     ``dask.distributed.Client``) the blocks run on the cluster through the same compiled
     kernel, so the matrix equals the local one bit for bit.
     """
-    weights = Weights() if weights is None else weights
+    weights = as_weights(weights)
     opts = registration_options(registration, **options)
     s = _as_batch(trees, "pairwise_distances: trees", weights)
     n = batch_size(s)
@@ -219,7 +221,7 @@ def cross_distances(
 ) -> Float[Array, "N M"]:
     """(N, M) matrix of distances between every root of batch `A` and every root of batch `B`
     (root ``B[j]`` registered onto ``A[i]``). Other arguments as in `pairwise_distances`."""
-    weights = Weights() if weights is None else weights
+    weights = as_weights(weights)
     opts = registration_options(registration, **options)
     s = _as_batch(A, "cross_distances: A", weights)
     t = _as_batch(B, "cross_distances: B", weights)

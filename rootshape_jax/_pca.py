@@ -39,6 +39,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from ._curves import l2_norm_squared
 from ._engine import RegistrationOptions, registration_options
+from ._errors import as_count
 from ._executor import LocalExecutor
 from ._mean import KarcherMean, register_onto
 from ._metric import Weights, system_weights
@@ -258,6 +259,7 @@ def sample(
     mapped through `reconstruct`. Laterals shorter than `pc.min_lateral_length` are nulls."""
     if not isinstance(n, (int, np.integer)) or n < 1:
         raise ValueError(f"n must be a positive integer, got {n!r}.")
+    _check_key(key)
     m = pc.n_components if n_components is None else int(n_components)
     if not 0 <= m <= pc.components.shape[0]:
         raise ValueError(f"n_components must be in [0, {pc.components.shape[0]}], got {m}.")
@@ -265,6 +267,18 @@ def sample(
         raise ValueError(f"truncate must be positive, got {truncate!r}.")
     t, curves = _sample(pc, key, int(n), m, None if truncate is None else float(truncate))
     return t if srvf else curves
+
+
+def _check_key(key) -> None:
+    """`TypeError` unless `key` is a JAX random key: a typed key (`jax.random.key`) or a legacy
+    uint32 pair (`jax.random.PRNGKey`)."""
+    if isinstance(key, jax.core.Tracer):
+        return
+    dtype, shape = getattr(key, "dtype", None), getattr(key, "shape", None)
+    typed = dtype is not None and jnp.issubdtype(dtype, jax.dtypes.prng_key) and shape == ()
+    legacy = dtype == np.uint32 and shape == (2,)
+    if not (typed or legacy):
+        raise TypeError(f"key must be one JAX random key, e.g. jax.random.key(0), got {key!r}.")
 
 
 @eqx.filter_jit
@@ -320,8 +334,7 @@ def project(
         raise ValueError(f"project: expected one tree or a batch, got batch shape {x.batch_shape}.")
     check_compatible(pc.mean, x, "project: the PCA's mean and trees")
     opts = registration_options(registration, base=pc.registration)
-    if isinstance(block_size, bool) or not isinstance(block_size, int) or block_size < 1:
-        raise ValueError(f"project: block_size must be an integer >= 1, got {block_size!r}.")
+    block_size = as_count(block_size, "project: block_size")
     n = x.batch_shape[0]
     if n <= block_size or isinstance(x.q0, jax.core.Tracer):
         b, _ = _project(pc, x, opts)

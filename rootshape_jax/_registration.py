@@ -15,8 +15,9 @@ from jaxtyping import Array, Float
 
 from ._curves import safe_sqrt
 from ._engine import Registration, RegistrationOptions, pair_distances_squared, register_pairs_jit, registration_options
+from ._errors import as_count
 from ._executor import LocalExecutor
-from ._metric import Weights
+from ._metric import Weights, as_weights
 from ._tree import RootTree, SRVFTree, check_compatible, to_srvf
 
 
@@ -92,10 +93,9 @@ def register(
       blocks of that many on worker threads (every core), with a progress bar that moves
       after every block. Under `jax.jit`/`jax.grad` the batch is one call.
     """
-    weights = Weights() if weights is None else weights
+    weights = as_weights(weights)
     opts = registration_options(registration, **options)
-    if isinstance(block_size, bool) or not isinstance(block_size, int) or block_size < 1:
-        raise ValueError(f"register: block_size must be an integer >= 1, got {block_size!r}.")
+    block_size = as_count(block_size, "register: block_size")
     a, b, single = as_pair_batch(a, b, weights)
     n = a.batch_shape[0]
     traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((a, b, weights)))
@@ -145,8 +145,16 @@ def distance(
     `cross_distances`, which use the same order. Differentiable with respect to both roots'
     coordinates (and the weights): the registration is held fixed under `stop_gradient`
     (envelope theorem).
+
+    `weights`: the metric's λ, a `Weights` (default the paper's, ``Weights(0.02, 1, 1)``).
+    **Units**: the distance is the square root of the weighted sum of the metric's terms,
+    ``λm ||q0a − q0b||² + λs Σ ||qa − qb||² + λp Σ (sa − sb)²``; the SRVF terms scale with the
+    roots' length (``||q||²`` is a length), the position term does not (attachment fractions).
+    For trees of `batch(normalise_scale=True)` (every main root of length 1) it is unitless;
+    otherwise it depends on the coordinates' unit, and so does the balance of the terms:
+    compare distances computed in one unit (docs/metadata.md).
     """
-    weights = Weights() if weights is None else weights
+    weights = as_weights(weights)
     opts = registration_options(registration, **options)
     a, b, single = as_pair_batch(a, b, weights, "distance")
     d = _distances(a, b, weights, opts)

@@ -29,6 +29,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._curves import cumulative_sum, safe_norm, trapezoid_weights
+from ._errors import ExtrapolationWarning
 from ._pca import TangentPCA
 from ._tangent import level_value, limit_lengths, unflatten
 from ._traits import traits as measure_traits
@@ -210,7 +211,33 @@ def _check_values(reg: "TraitRegression", values):
             raise ValueError("trait values contain NaN or inf.")
     if v.ndim == 0 or v.shape[-1] != len(reg.names):
         raise ValueError(f"values must have shape (..., {len(reg.names)}) in the order {reg.names}, got {v.shape}.")
+    if not isinstance(v, jax.Array):
+        _warn_extrapolation(reg, v)
     return v
+
+
+#: Requested values further than this many training standard deviations from the training
+#: mean are named: the linear model is extrapolating there.
+_EXTRAPOLATION_SD = 3.0
+
+
+def _warn_extrapolation(reg: "TraitRegression", v: np.ndarray) -> None:
+    mean, scale = np.asarray(reg.trait_mean), np.asarray(reg.trait_scale)
+    z = np.abs(v - mean) / np.where(scale > 0, scale, np.inf)
+    far = [
+        f"{name} = {float(np.ravel(v[..., i])[np.argmax(np.ravel(z[..., i]))]):.4g} "
+        f"({float(np.max(z[..., i])):.1f} SD from the training mean {float(mean[i]):.4g})"
+        for i, name in enumerate(reg.names)
+        if name not in reg.ignored and np.max(z[..., i]) > _EXTRAPOLATION_SD
+    ]
+    if far:
+        warnings.warn(
+            f"synthesize: requested values far outside the training roots: {'; '.join(far)}. The "
+            "linear model extrapolates there; the roots it gives may be implausible and miss the "
+            "requested values (measure them with rootshape_jax.traits).",
+            ExtrapolationWarning,
+            stacklevel=4,
+        )
 
 
 def _synthesize_method(reg: "TraitRegression", values, *, srvf: bool = False) -> RootTree | SRVFTree:

@@ -245,7 +245,10 @@ def traits(
     - ``main_tortuosity``: main length / straight distance from base to tip (≥ 1; NaN if closed).
     - ``mean_insertion_angle``: mean over laterals of `insertion_angles` (angle between the
       lateral's initial direction and the main root's local direction, degrees, in [0, 180];
-      ``window`` as there); NaN without laterals.
+      ``window`` as there); NaN without laterals. With the default ``window=None`` the
+      directions are the tracing's first segments (past a tracer's stub), which on pixel
+      tracings are a few pixels long and take few values (e.g. 45°, 90°): pass a ``window``
+      (an arc length in the roots' unit, e.g. 20 px) for angles over a chord.
     - ``depth``: extent along the gravity axis (max − min of the last coordinate).
     - ``width``: horizontal extent, the largest distance between two points projected on the
       horizontal line (2D: max x − min x) or plane (3D).

@@ -1,5 +1,7 @@
 """Trait regression: M = B P⁺, synthesis from traits, and the trait report."""
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -89,6 +91,7 @@ def test_synthesis_equals_the_pca_reconstruction(population, request):
     assert tree_allclose(reg.synthesize(new[1]), jax.tree.map(lambda x: x[1], got), rtol=1e-12, atol=1e-14)
 
 
+@pytest.mark.filterwarnings("ignore::rootshape_jax.ExtrapolationWarning")  # random values, some far out
 def test_large_sweeps_are_chunked_and_keep_their_batch_shape(linear):
     # Above _SWEEP_CHUNK roots the synthesis runs in chunks (lax.map, with a remainder): every
     # root must equal its own single-root synthesis, for a flat and a (3, 50) batch shape.
@@ -213,3 +216,18 @@ def test_bad_input(linear, roots_population):
         reg.synthesize(np.zeros(5))
     with pytest.raises(ValueError, match="NaN"):
         reg.synthesize([np.nan, 0.0])
+
+
+def test_requests_far_outside_the_training_roots_are_named(linear):
+    _, coef, pc = linear
+    reg = TraitRegression.fit(pc, traits=(), covariates=coef)
+    mean, sd = coef.mean(axis=0), coef.std(axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", rs.ExtrapolationWarning)
+        reg.synthesize(mean + 2.5 * sd)  # inside 3 SD: nothing to say
+        reg.synthesize(coef)  # the training values themselves
+    far = np.array(mean)
+    far[1] = mean[1] + 22 * sd[1]
+    with pytest.warns(rs.ExtrapolationWarning, match=r"covariate_1 = ") as rec:
+        reg.synthesize(far)
+    assert "22.0 SD" in str(rec[0].message) and len(rec) == 1

@@ -12,7 +12,6 @@ import numpy as np
 
 import rootshape_jax as rs
 from rootshape_jax import io
-from rootshape_jax._tree import normalising_length, turn_about_base
 
 from ._common import PAPER_TRAITS, CLIError, warn
 
@@ -198,7 +197,7 @@ def prepare(roots: list, args, *, min_roots: int = 1, samples: int | None = None
         names=[r.name for r in roots],
         normalised=normalised,
         unit=common_unit(roots),
-        mean_length=float(np.mean([normalising_length(r, args.points) for r in roots])),
+        mean_length=float(np.mean([rs.normalising_length(r, args.points) for r in roots])),
         mean_seed=np.mean([np.asarray(r.main[0], np.float64) for r in roots], axis=0),
         conditions=conditions if all(c is not None for c in conditions) else None,
         label_name=by or "condition",
@@ -326,37 +325,8 @@ def in_input_units(tree, pop: Population, lengths=None):
 
 
 def upright_rotation(mean, pop: Population) -> np.ndarray | None:
-    """The rotation (d × d) that turns the mean root so its main root points where the inputs'
-    main roots point on average, or None (plants, or inputs pointing every way).
-
-    The metric ignores rotation, so the mean's orientation is only that of the root the
-    solver started from, moved by the fit (measured on the 10 RootNav seedlings: the mean
-    tilted 12.4° where the inputs average 3.7°). The roots built around the mean (modes,
-    random and predicted roots) share its frame, so they turn with it (`turn`)."""
-    if pop.tree.virtual_main:
-        return None
-    main = np.asarray(pop.tree.main, np.float64)
-    chords = main[:, -1] - main[:, 0]
-    norms = np.linalg.norm(chords, axis=-1)
-    if not np.any(norms > 0):
-        return None
-    target = np.sum(chords[norms > 0] / norms[norms > 0, None], axis=0) / np.sum(norms > 0)
-    m = np.asarray(rs.to_curves(mean).main, np.float64)
-    m = m[-1] - m[0]
-    if np.linalg.norm(target) < 0.5 or np.linalg.norm(m) == 0:
-        return None  # no common direction to turn to
-    a, b = m / np.linalg.norm(m), target / np.linalg.norm(target)
-    if a.shape[0] == 2:
-        t = np.arctan2(b[1], b[0]) - np.arctan2(a[1], a[0])
-        return np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
-    # 3D: the smallest rotation taking a to b (Rodrigues), about their common normal.
-    v, c = np.cross(a, b), float(a @ b)
-    if c < -1 + 1e-9:
-        axis = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
-        axis /= np.linalg.norm(axis)
-        return 2.0 * np.outer(axis, axis) - np.eye(3)
-    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+    """`rootshape_jax.upright_rotation` of the mean root onto the inputs' mean direction."""
+    return rs.upright_rotation(mean, pop.tree)
 
 
 def turn(tree, rotation: np.ndarray | None):
@@ -364,7 +334,7 @@ def turn(tree, rotation: np.ndarray | None):
     `rotation` about its main-root base (None: unchanged)."""
     if rotation is None:
         return tree
-    return turn_about_base(rs.to_curves(tree), rotation)
+    return rs.turn_about_base(rs.to_curves(tree), rotation)
 
 
 def mean_size(mean, pop: Population) -> float:
@@ -375,5 +345,5 @@ def mean_size(mean, pop: Population) -> float:
     The roots synthesised around it take the same factor."""
     tree = rs.to_curves(mean)
     (root,) = rs.to_roots(rs.stack([tree]))
-    own = normalising_length(root, int(tree.main.shape[-2]))
+    own = rs.normalising_length(root, int(tree.main.shape[-2]))
     return pop.mean_length / own if own > 0 else pop.mean_length

@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
 
 import rootshape_jax as rs
-from rootshape_jax._tree import normalising_length
 from rootshape_jax.io import NORMALISED_UNIT, is_plant_system, unit_label
 from rootshape_jax.io._units import PIXEL_UNITS
 
@@ -323,7 +323,9 @@ def run_regress(ctx: Context, out: Output, args) -> None:
         reg = rs.TraitRegression.fit(ctx.pca, None, traits=(), covariates=P, covariate_names=names_all)
 
         def predict(values: np.ndarray, names: list[str]):
-            trees = turn(reg.synthesize(values), ctx.turn)
+            with warnings.catch_warnings():  # said below, against the inputs' range
+                warnings.simplefilter("ignore", rs.ExtrapolationWarning)
+                trees = turn(reg.synthesize(values), ctx.turn)
             if pop.normalised:
                 lengths = np.linalg.norm(np.diff(np.asarray(trees.main, np.float64), axis=1), axis=-1).sum(-1)
                 trees = in_input_units(trees, pop, values[:, 0] / np.maximum(lengths, 1e-12))
@@ -560,7 +562,7 @@ def run_geodesic(a_root, b_root, out: Output, args) -> None:
         if pop.normalised and not pop.mixed_units:
             # The lengths batch() divided out (a plant's: its longest axis), so the path is
             # scaled back exactly: it starts at a and ends at b, in the input's units.
-            sizes = tuple(normalising_length(r, args.points) for r in pair)
+            sizes = tuple(rs.normalising_length(r, args.points) for r in pair)
         # in_place: the registration's rotation is undone along the path, so it ends at b as given.
         path_out = rs.geodesic(
             a, b, n_steps=args.steps, weights=make_weights(args), registration=reg, in_place=True, sizes=sizes

@@ -13,7 +13,6 @@ import numpy as np
 
 import rootshape_jax as rs
 from rootshape_jax._traits import deepest_order
-from rootshape_jax._tree import normalising_length
 from rootshape_jax.io import unit_label
 
 from ._common import fmt, make_weights, say
@@ -178,7 +177,7 @@ def _pea_section(out: Output, sec, plants: list, args, plot_geodesic) -> None:
     reg = rs.register(ta, tb, weights=make_weights(args))
     sizes = None
     if args.normalise_scale:
-        sizes = (normalising_length(plants[a], T), normalising_length(plants[b], T))
+        sizes = (rs.normalising_length(plants[a], T), rs.normalising_length(plants[b], T))
     path = rs.geodesic(ta, tb, n_steps=args.steps, weights=make_weights(args), registration=reg, sizes=sizes)
     fig, _ = plot_geodesic(
         path,
