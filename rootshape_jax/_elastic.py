@@ -124,12 +124,14 @@ def _register(q1, q2, *, rotation: bool, neighbourhood: int, max_iterations, rto
     return O, gamma, energy, n_it
 
 
-def _check_options(n_samples, max_iterations, rtol, neighbourhood) -> None:
-    as_count(n_samples, "n_samples", minimum=2)
-    as_count(max_iterations, "max_iterations")
+def _check_options(n_samples, max_iterations, rtol, neighbourhood) -> tuple[int, int]:
+    """The counts as Python ints (numpy integers would be traced as static options)."""
+    n_samples = as_count(n_samples, "n_samples", minimum=2)
+    max_iterations = as_count(max_iterations, "max_iterations")
     if not isinstance(rtol, (int, float)) or not rtol >= 0:
         raise ValueError(f"rtol must be a float >= 0, got {rtol!r}.")
     check_neighbourhood(neighbourhood)
+    return n_samples, max_iterations
 
 
 def elastic_curve_distance(
@@ -164,7 +166,7 @@ def elastic_curve_distance(
     `jax.vmap` for curves that share a shape; compiled once per shapes, dtype and static
     options.
     """
-    _check_options(n_samples, max_iterations, rtol, neighbourhood)
+    n_samples, max_iterations = _check_options(n_samples, max_iterations, rtol, neighbourhood)
     return _elastic_curve_distance(
         beta1,
         beta2,
@@ -254,7 +256,7 @@ def elastic_curve_distances(
     n = A.shape[0]
     if n == 0:
         raise ValueError("elastic_curve_distances: empty batch; give at least one pair of curves.")
-    _check_options(n_samples, max_iterations, rtol, neighbourhood)
+    n_samples, max_iterations = _check_options(n_samples, max_iterations, rtol, neighbourhood)
     executor = LocalExecutor(workers)
     n_chunks = min(executor.n_workers(), n)
     size = -(-n // n_chunks)

@@ -271,12 +271,12 @@ def sample(
 
 def _check_key(key) -> None:
     """`TypeError` unless `key` is a JAX random key: a typed key (`jax.random.key`) or a legacy
-    uint32 pair (`jax.random.PRNGKey`)."""
+    uint32 key (`jax.random.PRNGKey`: 2 words, 4 with the "rbg" generator)."""
     if isinstance(key, jax.core.Tracer):
         return
     dtype, shape = getattr(key, "dtype", None), getattr(key, "shape", None)
     typed = dtype is not None and jnp.issubdtype(dtype, jax.dtypes.prng_key) and shape == ()
-    legacy = dtype == np.uint32 and shape == (2,)
+    legacy = dtype == np.uint32 and shape in ((2,), (4,))  # threefry, rbg
     if not (typed or legacy):
         raise TypeError(f"key must be one JAX random key, e.g. jax.random.key(0), got {key!r}.")
 

@@ -211,8 +211,6 @@ def _check_values(reg: "TraitRegression", values):
             raise ValueError("trait values contain NaN or inf.")
     if v.ndim == 0 or v.shape[-1] != len(reg.names):
         raise ValueError(f"values must have shape (..., {len(reg.names)}) in the order {reg.names}, got {v.shape}.")
-    if not isinstance(v, jax.Array):
-        _warn_extrapolation(reg, v)
     return v
 
 
@@ -236,7 +234,7 @@ def _warn_extrapolation(reg: "TraitRegression", v: np.ndarray) -> None:
             "linear model extrapolates there; the roots it gives may be implausible and miss the "
             "requested values (measure them with rootshape_jax.traits).",
             ExtrapolationWarning,
-            stacklevel=4,
+            stacklevel=3,
         )
 
 
@@ -244,6 +242,9 @@ def _synthesize_method(reg: "TraitRegression", values, *, srvf: bool = False) ->
     """Roots with the requested trait values (``(l,)`` for one root, ``(N, l)`` for a
     batch), in the order of `names`."""
     pc = reg.pca
+    v = _check_values(reg, values)
+    if not isinstance(v, jax.Array):
+        _warn_extrapolation(reg, v)
     return _synthesize(
         reg.offset,
         reg.slopes,
@@ -254,7 +255,7 @@ def _synthesize_method(reg: "TraitRegression", values, *, srvf: bool = False) ->
         pc.max_lateral_length,
         reg.trait_mean,
         reg.trait_scale,
-        _check_values(reg, values),
+        v,
         curves=not srvf,
         thick=None if pc.mean.thickness_scale is None else (pc.mean.base_radius, pc.mean.thickness_scale),
         deeper=reg.deeper,
@@ -423,7 +424,9 @@ class TraitRegression(eqx.Module):
             if covariates is None:
                 raise ValueError(f"report needs the covariates {self.names[len(self.trait_names) :]}.")
             values.append(_as_matrix(covariates, n, "covariates"))
-        synth = self.synthesize(np.concatenate(values, axis=1))
+        with warnings.catch_warnings():  # held-out roots may lie outside: that is the report
+            warnings.simplefilter("ignore", ExtrapolationWarning)
+            synth = self.synthesize(np.concatenate(values, axis=1))
         got = _measure(synth, self.trait_names)
         out = {}
         for j, name in enumerate(self.trait_names):

@@ -1210,7 +1210,7 @@ def check_compatible(a: RootTree | SRVFTree, b: RootTree | SRVFTree, what: str =
         )
 
 
-def upright_rotation(tree: RootTree | SRVFTree, like: RootTree) -> np.ndarray | None:
+def upright_rotation(tree: RootTree | SRVFTree, like: RootTree | SRVFTree) -> np.ndarray | None:
     """The rotation ``[d, d]`` that turns `tree` (one root, e.g. a Karcher mean) about its base
     so its main root points where the main roots of `like` (a batch, e.g. the trees the mean
     was fitted to) point on average; None for plants' systems (no main root to point) or when
@@ -1223,7 +1223,8 @@ def upright_rotation(tree: RootTree | SRVFTree, like: RootTree) -> np.ndarray | 
     """
     if like.virtual_main or tree.virtual_main:
         return None
-    main = np.asarray(like.main, np.float64).reshape((-1,) + like.main.shape[-2:])
+    main = np.asarray(to_curves(like).main, np.float64)
+    main = main.reshape((-1,) + main.shape[-2:])
     chords = main[:, -1] - main[:, 0]
     norms = np.linalg.norm(chords, axis=-1)
     if not np.any(norms > 0):

@@ -56,6 +56,10 @@ def test_numpy_integers_are_counts_and_bools_floats_are_not(pair):
             rs.batch(roots, n_points=bad)
     with pytest.raises(ValueError, match="max_iterations must be an integer >= 1"):
         rs.RegistrationOptions(max_iterations=0)
+    b1 = np.stack([np.linspace(0, 1, 20), np.sin(np.linspace(0, 3, 20))], axis=1)
+    got = rs.elastic_curve_distance(b1, b1[::-1].copy(), n_samples=np.int64(30), max_iterations=np.int32(2))
+    ref = rs.elastic_curve_distance(b1, b1[::-1].copy(), n_samples=30, max_iterations=2)
+    assert float(got.distance) == pytest.approx(float(ref.distance))
 
 
 def test_rotation_option_must_be_a_bool():
@@ -95,6 +99,7 @@ def test_scale_and_key_errors_at_the_call(pair):
 
     _check_key(jax.random.key(0))
     _check_key(jax.random.PRNGKey(0))
+    _check_key(jax.random.PRNGKey(0, impl="rbg"))  # 4 words
     for bad in (0, np.uint32(3), jnp.zeros(3, jnp.uint32), jax.random.split(jax.random.key(0), 2)):
         with pytest.raises(TypeError, match=r"key must be one JAX random key, e\.g\. jax\.random\.key\(0\)"):
             _check_key(bad)
@@ -124,3 +129,7 @@ def test_upright_rotation_is_public_and_points_the_mean_like_the_roots():
     assert m @ target / np.linalg.norm(m) / np.linalg.norm(target) == pytest.approx(1.0, abs=1e-9)
     with pytest.raises(ValueError, match="one root"):
         rs.upright_rotation(trees, trees)
+    # SRVF trees (karcher_mean takes them) are taken as their curves (integrated back, which
+    # smooths a wiggly 16-point root a little: its chord turns by a few degrees).
+    R_srvf = rs.upright_rotation(rs.to_srvf(one), rs.to_srvf(trees))
+    assert abs(np.degrees(np.arctan2(R_srvf[1, 0], R_srvf[0, 0]) - np.arctan2(R[1, 0], R[0, 0]))) < 5

@@ -1119,6 +1119,20 @@ def test_log_bars_come_before_stdout_and_a_second_bar_of_one_name_starts_at_once
     ]
 
 
+def test_log_bar_counts_with_unit_scale_and_cut_short():
+    from rootshape_jax._cli._common import _progress, _went_back
+
+    # unit_scale: 999 -> 1.00k is not a count going back; a bar cut short shows no count.
+    assert _progress("d:  10%|#  | 1.50k/10.0k [00:05<00:20, 300it/s]") == (1500.0, 5.0)
+    assert not _went_back(_progress("d: 1.00kit [00:06, 300it/s]"), _progress("d: 999it [00:05, 300it/s]"))
+    assert _progress("distances:  3") == (None, None)
+    assert not _went_back(_progress("distances:  3"), _progress("distances:  50%|##  | 5/10 [00:09<00:09]"))
+    assert _went_back(
+        _progress("distances:   0%|  | 0/10 [00:00<?]"), _progress("distances: 100%|##| 10/10 [00:09<00:00]")
+    )
+    assert _progress("mean: 01:00:12") == (None, 3612.0)
+
+
 def test_log_stream_keeps_text_and_throttles_nested_bars():
     import io
 

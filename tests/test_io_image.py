@@ -411,6 +411,40 @@ def test_pixel_depths_and_tiff_planes_read_as_the_8_bit_image(tmp_path):
         assert got.n_laterals == ref.n_laterals
 
 
+def test_numeric_threshold_means_the_same_on_every_image_of_a_dtype():
+    # Grayscale and thresholds scale integer images by their dtype, not by their brightest
+    # pixel (a bit depth found per image would make threshold=0.1 mean 410 counts on one
+    # uint16 image and 1638 on the next); a float image a little above 1 is used as given.
+    img = np.full((120, 120), 0.8)
+    img[10:110, 58:62] = 0.2
+    for top in (4095, 4096):
+        u16 = np.round(img * 4000).astype(np.uint16)
+        u16[0, 0] = top
+        (r,) = roots_from_image(u16, threshold=0.03, invert=True)
+        assert r.main_length > 90
+    bright = img.copy()
+    bright[0, 0] = 1.02
+    (r,) = roots_from_image(bright, threshold=0.5, invert=True)
+    assert r.main_length > 90
+
+
+def test_extract_reads_what_it_draws(tmp_path):
+    # The overlay is drawn from the same reader as the extraction: a PNG named .tif, which the
+    # reader opens, must not stop the run at the overlay; 12-bit colour is drawn, not clipped.
+    import imageio.v3 as iio
+    import tifffile
+
+    from rootshape_jax.io import extract_images
+
+    img, _ = _seedling_photo(0)
+    iio.imwrite(tmp_path / "misnamed.tif", img, extension=".png")
+    tifffile.imwrite(tmp_path / "twelve.tif", np.round(img.astype(np.float64) * (4095 / 255)).astype(np.uint16))
+    rows = extract_images([tmp_path / "misnamed.tif", tmp_path / "twelve.tif"], tmp_path / "out", progress=False)
+    assert [r["status"] for r in rows] == ["ok", "ok"], rows
+    over = iio.imread(tmp_path / "out" / "twelve_overlay.png")
+    assert over[..., :3].mean() > 60  # the agar's colour, not black
+
+
 def test_intensity_scale_by_bit_depth():
     from rootshape_jax.io._image import intensity_scale
 
@@ -422,6 +456,7 @@ def test_intensity_scale_by_bit_depth():
         (np.array([0, 4096], np.uint16), 1 / 16383),
         (np.array([0, 65535], np.uint16), 1 / 65535),
         (np.array([0.0, 0.7]), 1.0),
+        (np.array([0.0, 1.02]), 1.0),  # a little above 1 after flat-field correction: kept
         (np.array([0.0, 254.5]), 1 / 255),
         (np.array([0.0, 3000.0]), 1 / 4095),
     ]

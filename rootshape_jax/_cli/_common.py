@@ -138,7 +138,7 @@ class LogStream:
         desc = self._last_desc = state.split(":", 1)[0]
         now = time.monotonic()
         progress = _progress(state)
-        if progress < self._progress.get(desc, progress) and desc not in self._transient:
+        if _went_back(progress, self._progress.get(desc)) and desc not in self._transient:
             self._written.pop(desc, None)  # a new bar of this description
         self._progress[desc] = progress
         if desc not in self._written:
@@ -196,21 +196,30 @@ class LogStream:
         return getattr(self._stream, name)
 
 
-# A bar's count: "| 3/10 [" (a total) or ": 3step [" (none); its elapsed time: "[01:02" or
-# "[1:02:03", or ": 00:12" (`ticking`'s format).
-_COUNT = re.compile(r"(?:\|\s*|:\s+)(\d+(?:\.\d+)?)(?:/|[^\d\s|/:]*\s*\[)")
+# A bar's count: "| 3/10 [" or "| 1.50k/10.0k [" (a total), ": 3step [" (none); its elapsed
+# time: "[01:02" or "[1:02:03", or ": 00:12" (`ticking`'s format).
+_COUNT = re.compile(r"(?:\|\s*|:\s+)(\d+(?:\.\d+)?)([kMGTPEZY]?)(?:/|[^\d\s|/:]*\s*\[)")
 _ELAPSED = re.compile(r"(?:\[|: )(?:(\d+):)?(\d+):(\d\d)\b")
+_SI = {"": 1.0, "k": 1e3, "M": 1e6, "G": 1e9, "T": 1e12, "P": 1e15, "E": 1e18, "Z": 1e21, "Y": 1e24}
 
 
-def _progress(state: str) -> tuple[float, float]:
-    """(count, elapsed seconds) a bar's state shows; 0 for what it does not show."""
+def _progress(state: str) -> tuple[float | None, float | None]:
+    """(count, elapsed seconds) a bar's state shows; None for what it does not show (a bar cut
+    short by a narrow terminal, or a format of its own)."""
     c = _COUNT.search(state)
     e = _ELAPSED.search(state)
-    elapsed = 0.0
+    elapsed = None
     if e is not None:
         h, mi, se = e.groups()
         elapsed = 3600.0 * int(h or 0) + 60.0 * int(mi) + int(se)
-    return (float(c.group(1)) if c else 0.0, elapsed)
+    return (float(c.group(1)) * _SI[c.group(2)] if c else None, elapsed)
+
+
+def _went_back(now: tuple, before: tuple | None) -> bool:
+    """True when a bar's count or elapsed time is below what it showed before: a new bar."""
+    if before is None:
+        return False
+    return any(x is not None and y is not None and x < y for x, y in zip(now, before))
 
 
 class BarsFirst:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import time
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -22,6 +23,10 @@ from ._units import check_length_unit
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 _COLOURS = ("#e41a1c", "#ff7f00", "#ffff33", "#4daf4a", "#f781bf", "#a65628", "#984ea3", "#00e5ff")
+
+
+#: Seconds between rewrites of summary.json while images are extracted.
+_SUMMARY_EVERY = 10.0
 
 
 def expand_images(images: Sequence[str | os.PathLike]) -> list[Path]:
@@ -69,12 +74,15 @@ def draw_overlay(
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
-    import skimage.io
 
-    img = np.asarray(skimage.io.imread(image_path))
+    from ._image import intensity_scale, load_image
+
+    img, _ = load_image(image_path)
     H, W = img.shape[:2]
     step = max(1, int(np.ceil(max(H, W) / max_side)))
     shown = img[::step, ::step]
+    if shown.ndim == 3:  # imshow takes colour as 0-255 integers or 0-1 floats: 12-bit data too
+        shown = np.clip(shown[..., :3].astype(np.float32) * np.float32(intensity_scale(shown[..., :3])), 0.0, 1.0)
     fig = plt.figure(figsize=(10, 10 * H / W), dpi=max(100, int(max_side / 10)) if max(H, W) >= max_side else 100)
     ax = fig.add_axes([0, 0, 1, 1])
     ax.imshow(shown, extent=(-0.5, W - 0.5, H - 0.5, -0.5), cmap="gray" if shown.ndim == 2 else None)
@@ -122,9 +130,9 @@ def extract_images(
     - `**options`: passed to `roots_from_image`.
 
     A bad image (unreadable, truncated, unsupported, no root found) is named in a warning and
-    skipped; the others are still processed. Writes ``OUT/summary.json`` (rewritten whole after
-    each image, so an interrupted run leaves the summary of the images it finished) and
-    returns its rows:
+    skipped; the others are still processed. Writes ``OUT/summary.json`` (rewritten as images
+    finish, at most every 10 s, so an interrupted run leaves the summary of the images it
+    finished up to then) and returns its rows:
     one dict per image with ``status`` ("ok" or "skipped"), ``reason``, ``plants``,
     ``laterals``, ``rsml``, ``overlay`` and, with a tracing, ``comparison``.
     """
@@ -146,8 +154,15 @@ def extract_images(
     # Pixels per output unit: the overlay and the tracing comparison work in pixels.
     scale = 1.0 if pixel_size is None else 1.0 / pixel_size
     rows: list[dict] = []
+    written = [-math.inf]  # when summary.json was last written
 
-    def write_summary():
+    def write_summary(final: bool = False):
+        # At most every _SUMMARY_EVERY seconds, and at the end: rewritten whole after every
+        # image, a summary of 20,000 images would write ~200 GB over the run.
+        now = time.monotonic()
+        if not final and now - written[0] < _SUMMARY_EVERY:
+            return
+        written[0] = now
         # Strict JSON: a value not computed (NaN) is written as null.
         text = json.dumps(_json_safe(rows), indent=2, allow_nan=False, default=float)
         atomic_write(out / "summary.json", lambda p: p.write_text(text))
@@ -192,6 +207,7 @@ def extract_images(
             row.update(tracing=str(tpath), comparison=cmp.as_dict())
         rows.append(row)
         write_summary()
+    write_summary(final=True)
     return rows
 
 

@@ -30,19 +30,21 @@ _METHODS = ("otsu", "li", "triangle", "yen", "isodata", "mean")
 # Image → binary mask.
 
 
-def _load(image: Any) -> tuple[np.ndarray, str]:
+def load_image(image: Any) -> tuple[np.ndarray, str]:
+    """``(pixels, stem)`` of an image file (or ``(array, "image")`` for an array); `ImageError`
+    naming the file when it cannot be read as an image."""
     if isinstance(image, (str, os.PathLike)):
         p = Path(image)
         if not p.is_file():
             raise FileNotFoundError(f"image file not found: {p}")
         import imageio.v3 as iio
 
-        # The bytes are read here and handed over with the suffix as the format hint: given a
-        # path, imageio left the file of an image it could not read open (closed only by a
-        # later garbage collection, with a ResourceWarning wherever that happens to run).
-        data = p.read_bytes()
+        # Opened here and handed over with the suffix as the format hint: given a path, imageio
+        # left the file of an image it could not read open (closed only by a later garbage
+        # collection, with a ResourceWarning wherever that happens to run).
         try:
-            arr = iio.imread(data, extension=p.suffix.lower() or None)
+            with open(p, "rb") as f:
+                arr = iio.imread(f, extension=p.suffix.lower() or None)
         except Exception as e:  # the reader's own errors vary by plugin
             # imageio's message for a file that is not an image of its kind suggests plugins
             # to install (pyav, opencv): no plugin opens a broken or mislabelled file.
@@ -67,9 +69,9 @@ def _to_gray(arr: np.ndarray, source: str) -> np.ndarray:
         raise ImageError(f"{source}: pixels must be numbers, got dtype {arr.dtype}.")
     if arr.ndim == 3 and arr.shape[-1] in (3, 4):
         from skimage.color import rgb2gray
+        from skimage.util import img_as_float
 
-        rgb = arr[..., :3]
-        arr = rgb2gray(rgb.astype(np.float64) * intensity_scale(rgb))
+        arr = rgb2gray(img_as_float(arr[..., :3]))
     elif arr.ndim == 3 and arr.shape[-1] == 1:
         arr = arr[..., 0]
     if arr.ndim != 2:
@@ -78,7 +80,11 @@ def _to_gray(arr: np.ndarray, source: str) -> np.ndarray:
         )
     if min(arr.shape) < 3:
         raise ImageError(f"{source}: image of shape {arr.shape} is too small.")
-    arr = arr.astype(np.float64) * intensity_scale(arr)
+    if arr.dtype.kind in "iu":
+        from skimage.util import img_as_float
+
+        arr = img_as_float(arr)
+    arr = arr.astype(np.float64, copy=False)
     if not np.all(np.isfinite(arr)):
         raise ImageError(f"{source}: image contains NaN or inf pixels.")
     return arr
@@ -163,20 +169,23 @@ def _close(mask: np.ndarray, radius: int) -> np.ndarray:
 
 
 def intensity_scale(arr: np.ndarray) -> float:
-    """Factor that brings an image's pixel values to [0, 1].
+    """Factor that brings a colour image's values to [0, 1] for colour measures (CIELAB).
 
     Integer images are scaled by their bit depth, the smallest of 8, 10, 12, 14, 16, 24 or 32
     bits that holds their largest value (uint8 always by 255): a camera's 12-bit data stored in
     uint16 peaks at 4095, and read as 16-bit it would be nearly black, which the colour test
-    for green shoots (CIELAB) cannot see. Float images in [0, 1] are kept; float images of
-    larger values (8- or 16-bit data converted to float) are scaled the same way as integers.
+    for green shoots cannot see. Float images up to 2 are kept (values a little above 1 come
+    from flat-field or colour correction; colour conversions clip them); float images of
+    larger values (8- or 16-bit data converted to float) are scaled as integers are.
+    Grayscale conversion and numeric thresholds do not use this: they scale integer images by
+    their dtype, so a threshold means the same on every image of a batch.
     """
     if arr.dtype == np.uint8:
         return 1.0 / 255.0
     if arr.dtype.kind not in "fiu" or arr.size == 0:
         return 1.0
     top = float(np.max(arr))
-    if arr.dtype.kind == "f" and top <= 1.0:
+    if arr.dtype.kind == "f" and top <= 2.0:
         return 1.0
     for bits in (8, 10, 12, 14, 16, 24, 32):
         if top <= 2.0**bits - 1:
@@ -200,7 +209,10 @@ def gray_float32(arr: np.ndarray, source: str) -> np.ndarray:
         )
     if min(arr.shape[:2]) < 3:
         raise ImageError(f"{source}: image of shape {arr.shape} is too small.")
-    scale = intensity_scale(arr)
+    scale = 1.0
+    if arr.dtype.kind in "iu":
+        info = np.iinfo(arr.dtype)
+        scale = 1.0 / float(info.max) if info.min == 0 else 1.0 / float(info.max - info.min)
     out = np.empty(arr.shape[:2], dtype=np.float32)
     for r0 in range(0, arr.shape[0], _BAND):
         block = arr[r0 : r0 + _BAND]
@@ -795,10 +807,10 @@ def roots_from_image(
     **Arguments**
 
     - `image`: a path, or an array: 2D grayscale, 2D binary (bool, or two values), or
-      (H, W, 3|4) colour (converted to luminance; alpha ignored). Pixel values are brought
-      to [0, 1] by the image's bit depth, found from its largest value (`intensity_scale`:
-      12-bit camera data in uint16 by 4095; float images of 0-255 values by 255), which is
-      also the scale of a numeric `threshold`.
+      (H, W, 3|4) colour (converted to luminance; alpha ignored). Integer images are scaled
+      to [0, 1] by their dtype (a numeric `threshold` is in those units); the shoot's colour
+      test finds the bit depth from the largest value (`intensity_scale`: 12-bit camera data
+      in uint16 by 4095; float images of 0-255 values by 255).
     - `threshold`: None (default) segments with a multi-scale ridge (line) filter, which keeps
       thin faint laterals and ignores smooth lighting changes and edges. A number or one of
       ``"otsu"``, ``"li"``, ``"triangle"``, ``"yen"``, ``"isodata"``, ``"mean"`` instead uses
@@ -885,7 +897,7 @@ def roots_from_image(
     if isinstance(base, str) and base.lower() not in ("top", "bottom", "left", "right"):
         raise ValueError(f"base must be 'top', 'bottom', 'left', 'right' or (x, y) point(s), got {base!r}.")
     pixel_size, unit = image_scale(pixels_per_mm, pixel_size, unit)
-    arr, stem = _load(image)
+    arr, stem = load_image(image)
     source = str(image) if isinstance(image, (str, os.PathLike)) else "array"
     if arr.size == 0:
         raise ImageError(f"{source}: the image is empty (shape {arr.shape}).")
