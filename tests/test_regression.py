@@ -14,6 +14,10 @@ from rootshape_jax._mean import karcher_mean
 from rootshape_jax._pca import tangent_pca
 from rootshape_jax._regression import PAPER_TRAITS, TraitRegression
 
+# The synthesis maths is checked on values far outside the training roots on purpose; the
+# warning about that has its own test (the last one), which records or raises it itself.
+pytestmark = pytest.mark.filterwarnings("ignore::rootshape_jax.ExtrapolationWarning")
+
 T = 30
 
 
@@ -91,7 +95,6 @@ def test_synthesis_equals_the_pca_reconstruction(population, request):
     assert tree_allclose(reg.synthesize(new[1]), jax.tree.map(lambda x: x[1], got), rtol=1e-12, atol=1e-14)
 
 
-@pytest.mark.filterwarnings("ignore::rootshape_jax.ExtrapolationWarning")  # random values, some far out
 def test_large_sweeps_are_chunked_and_keep_their_batch_shape(linear):
     # Above _SWEEP_CHUNK roots the synthesis runs in chunks (lax.map, with a remainder): every
     # root must equal its own single-root synthesis, for a flat and a (3, 50) batch shape.
