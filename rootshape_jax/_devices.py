@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
-from ._errors import InvalidRootError
+from ._errors import InvalidRootError, user_stacklevel
 
 
 def split_over_devices(fn: Callable, batched: tuple, shared: tuple = (), *, devices: Sequence[Any] | None = None):
@@ -133,7 +133,7 @@ def use_all_cores(n: int | None = None) -> int:
                 f"use_all_cores: JAX has already started with {have} device(s), so {want} cannot be "
                 "set now; call rootshape_jax.use_all_cores() right after importing it, before any "
                 "computation (restart the kernel in a notebook).",
-                stacklevel=2,
+                stacklevel=user_stacklevel(),
             )
         return have
     return want

@@ -90,3 +90,18 @@ def as_count(value, name: str, *, minimum: int = 1) -> int:
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}.")
     return int(value)
+
+
+def user_stacklevel() -> int:
+    """The `stacklevel` that attributes a warning to the first caller outside rootshape_jax;
+    pass it from the function that calls `warnings.warn`. A fixed level pointed inside the
+    package when a public call reached the warning through another path (e.g. ``distance`` →
+    ``to_srvf``), and the "once per line" filter then merged the warnings of different calls."""
+    import os
+    import sys
+
+    package = os.path.dirname(os.path.abspath(__file__)) + os.sep
+    frame, level = sys._getframe(1), 1
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(package):
+        frame, level = frame.f_back, level + 1
+    return level

@@ -29,7 +29,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._curves import cumulative_sum, safe_norm, trapezoid_weights
-from ._errors import ExtrapolationWarning
+from ._errors import ExtrapolationWarning, user_stacklevel
 from ._pca import TangentPCA
 from ._tangent import level_value, limit_lengths, unflatten
 from ._traits import traits as measure_traits
@@ -234,7 +234,7 @@ def _warn_extrapolation(reg: "TraitRegression", v: np.ndarray) -> None:
             "linear model extrapolates there; the roots it gives may be implausible and miss the "
             "requested values (measure them with rootshape_jax.traits).",
             ExtrapolationWarning,
-            stacklevel=3,
+            stacklevel=user_stacklevel(),
         )
 
 
@@ -366,7 +366,7 @@ class TraitRegression(eqx.Module):
                 f"trait(s) {ignored} do not vary across the training roots (e.g. main-root "
                 "length after scale normalisation), so they cannot be regressed: synthesize "
                 "ignores their values. Drop them from `traits` to silence this warning.",
-                stacklevel=2,
+                stacklevel=user_stacklevel(),
             )
         z = np.where(constant, 0.0, (p - mu) / sd)
         Z = np.concatenate([z, np.ones((n, 1))], axis=1).T  # (l+1, n)

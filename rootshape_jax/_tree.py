@@ -26,7 +26,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._curves import interpolate_at_fraction, require_finite, srvf, srvf_to_curve
-from ._errors import CapacityError, InvalidRootError, MissingRadiusWarning, as_count
+from ._errors import CapacityError, InvalidRootError, MissingRadiusWarning, as_count, user_stacklevel
 from ._root import Root, check_range, coordinate_limit, is_plant_system, polyline_length
 from ._thickness import extended_srvf, integrate_branch, wants_thickness
 from ._traits import deepest_order
@@ -796,7 +796,7 @@ def _warn_truncated(roots: Sequence[Root], depth: int) -> None:
             f"batch(depth={depth}): {what} were left out ({len(left_out)} roots: {names}{more}). Pass "
             f"depth={need} to keep them all (--depth {need} on the command line).",
             UserWarning,
-            stacklevel=3,
+            stacklevel=user_stacklevel(),
         )
 
 
@@ -842,7 +842,7 @@ def _warn_imprecise(roots, main, lats) -> None:
         "dtype=float64 (jax.config.update('jax_enable_x64', True); on the command line --float64), or "
         "move the roots near (0, 0) first.",
         UserWarning,
-        stacklevel=3,
+        stacklevel=user_stacklevel(),
     )
 
 
@@ -887,7 +887,7 @@ def _warn_missing_radius(roots: Sequence[Root]) -> None:
         warnings.warn(
             f"batch(): {shown}{more}. Give every root radii (or none) to avoid this.",
             MissingRadiusWarning,
-            stacklevel=3,
+            stacklevel=user_stacklevel(),
         )
 
 
@@ -1031,7 +1031,7 @@ def to_srvf(tree: RootTree | SRVFTree, *, weights=None) -> SRVFTree:
             "radii (their roots have no diameters, or batch() dropped them). Read files with diameter "
             "functions, or leave thickness at 0.",
             MissingRadiusWarning,
-            stacklevel=3,
+            stacklevel=user_stacklevel(),
         )
     lam = jnp.asarray(weights.thickness, tree.main.dtype) if wants_thickness(tree, weights) else None
     return _srvf_tree(tree, lam)

@@ -83,7 +83,9 @@ def test_thickness_weight_without_radii_says_it_does_nothing(pair):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         d = rs.distance(a, b, weights=rs.Weights(thickness=1.0))
-    assert any(issubclass(w.category, MissingRadiusWarning) and "no effect" in str(w.message) for w in caught)
+    (w,) = [w for w in caught if issubclass(w.category, MissingRadiusWarning) and "no effect" in str(w.message)][:1]
+    # Attributed to the caller's line (here), not to a line inside the package.
+    assert w.filename == __file__, w.filename
     assert float(d) == pytest.approx(float(rs.distance(a, b)), rel=1e-12)
     with warnings.catch_warnings():
         warnings.simplefilter("error", MissingRadiusWarning)

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from .._atomic import atomic_write
-from .._errors import ImageError, RSMLError
+from .._errors import ImageError, RSMLError, user_stacklevel
 from .._root import Root
 from ._units import check_length_unit
 
@@ -175,7 +175,7 @@ def extract_images(
             roots = roots_from_image(path, pixel_size=pixel_size, unit=unit, **options)
         except (ImageError, OSError, ValueError) as e:
             reason = str(e) if str(path) in str(e) else f"{path}: {e}"
-            warnings.warn(f"skipped {path.name}: {reason}", stacklevel=2)
+            warnings.warn(f"skipped {path.name}: {reason}", stacklevel=user_stacklevel())
             row.update(status="skipped", reason=reason)
             rows.append(row)
             write_summary()
@@ -191,7 +191,9 @@ def extract_images(
                     warnings.simplefilter("ignore")
                     traced = read_rsml(tpath, physical_units=False)
             except (RSMLError, OSError) as e:
-                warnings.warn(f"{path.name}: tracing {tpath} not read ({e}); overlay without it.", stacklevel=2)
+                warnings.warn(
+                    f"{path.name}: tracing {tpath} not read ({e}); overlay without it.", stacklevel=user_stacklevel()
+                )
         png = out / f"{path.stem}_overlay.png"
         atomic_write(png, lambda p: draw_overlay(path, roots, p, tracing=traced, scale=scale))
         row.update(

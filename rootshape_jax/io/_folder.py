@@ -9,7 +9,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from .._errors import InputError, RootShapeError, RSMLError, RSMLWarning
+from .._errors import InputError, RootShapeError, RSMLError, RSMLWarning, user_stacklevel
 from .._root import Root
 from ._image import roots_from_image
 from ._rsml import read_rsml
@@ -80,7 +80,7 @@ def about(path: Path, message: str) -> str:
 
 
 def _default_notice(kind: str, text: str) -> None:
-    warnings.warn(RSMLWarning(text), stacklevel=4)
+    warnings.warn(RSMLWarning(text), stacklevel=user_stacklevel())
 
 
 def read_root_file(
@@ -167,7 +167,7 @@ def expand(paths: Sequence[str | os.PathLike]) -> list[tuple[Path, bool]]:
                     f"{text}: left out {len(overlays)} overlay image(s) that `rootshape extract` wrote "
                     "(<name>_overlay.png beside <name>.rsml): the roots are read from the RSML files.",
                     UserWarning,
-                    stacklevel=2,
+                    stacklevel=user_stacklevel(),
                 )
             if not found:
                 subs = sorted(q.name for q in p.iterdir() if q.is_dir() and not q.name.startswith("."))

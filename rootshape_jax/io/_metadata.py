@@ -31,7 +31,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from .._errors import MetadataError
+from .._errors import MetadataError, user_stacklevel
 from .._root import Root
 
 KEY_COLUMNS = ("file", "plant", "root")
@@ -260,7 +260,7 @@ def attach_metadata(roots: Sequence[Root], table: Any) -> list[Root]:
             f"{table.source}: {len(unused)} row(s) match no root read: {', '.join(unused[:10])}"
             + (" ..." if len(unused) > 10 else "")
             + ".",
-            stacklevel=2,
+            stacklevel=user_stacklevel(),
         )
     return out
 

@@ -28,7 +28,7 @@ from xml.sax.saxutils import escape, quoteattr
 import numpy as np
 from defusedxml import DefusedXmlException, ElementTree as DET
 
-from .._errors import InvalidRootError, RSMLError, RSMLWarning
+from .._errors import InvalidRootError, RSMLError, RSMLWarning, user_stacklevel
 from .._root import ROOT_COORDINATE_LIMIT, Root, check_range, is_plant_system, plant_axes
 
 _PO_NS = "http://www.plantontology.org/xml-dtd/po.dtd"
@@ -124,7 +124,7 @@ class _Problems:
             raise RSMLError(f"{self.source}: {where}: {message}")
         self.items.append(f"{where}: {message}")
 
-    def warn(self, stacklevel: int) -> None:
+    def warn(self) -> None:
         if not self.items:
             return
         shown = self.items[:20]
@@ -134,7 +134,7 @@ class _Problems:
                 f"{self.source}: skipped {len(self.items)} unreadable part(s) "
                 f"(strict=True, or --strict on the command line, raises instead): " + "; ".join(shown) + more
             ),
-            stacklevel=stacklevel,
+            stacklevel=user_stacklevel(),
         )
 
 
@@ -695,7 +695,7 @@ def read_rsml(
         if strict:
             raise RSMLError(f"{source}: nothing readable: {what}.")
         problems.items.insert(0, f"nothing readable: {what}")
-    problems.warn(stacklevel=3)
+    problems.warn()
     if no_radius:
         shown = ", ".join(repr(n) for n in no_radius[:10])
         more = f" and {len(no_radius) - 10} more" if len(no_radius) > 10 else ""
@@ -704,7 +704,7 @@ def read_rsml(
                 f"{source}: {len(no_radius)} lateral(s) have no diameter/radius while their "
                 f"siblings have one; their radius is taken as 0: {shown}{more}."
             ),
-            stacklevel=2,
+            stacklevel=user_stacklevel(),
         )
     if by == "plant":
         plant_labels = [pi.get("plant_label") for pi, _ in per_plant]
@@ -787,7 +787,7 @@ def _nothing(problems: _Problems, message: str) -> list[Root]:
     if problems.strict:
         raise RSMLError(f"{problems.source}: {message}.")
     problems.items.append(message)
-    problems.warn(stacklevel=4)
+    problems.warn()
     return []
 
 
