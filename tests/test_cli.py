@@ -997,7 +997,7 @@ def test_generated_roots_are_turned_upright_like_the_inputs(dim):
 
     from scipy.spatial.transform import Rotation
 
-    from rootshape_jax._cli._inputs import turn, upright_rotation
+    from rootshape_jax._cli._inputs import turn
 
     rng = np.random.default_rng(dim)
 
@@ -1017,7 +1017,7 @@ def test_generated_roots_are_turned_upright_like_the_inputs(dim):
     tree = rs.batch(inputs, n_points=20)
     pop = SimpleNamespace(tree=tree)
     mean = rs.unstack(rs.batch([turned_root(base[0], -40, np.zeros(dim))], n_points=20))[0]
-    R = upright_rotation(mean, pop)
+    R = rs.upright_rotation(mean, pop.tree)
     out = turn(mean, R)
     chords = np.asarray(tree.main)[:, -1] - np.asarray(tree.main)[:, 0]
     target = np.sum(chords / np.linalg.norm(chords, axis=1, keepdims=True), axis=0)
@@ -1039,7 +1039,7 @@ def test_generated_roots_are_turned_upright_like_the_inputs(dim):
     from rootshape_jax.io import plant_system
 
     plant = rs.batch([plant_system(inputs[:2])], n_points=20, depth=3)
-    assert upright_rotation(rs.unstack(plant)[0], SimpleNamespace(tree=plant)) is None
+    assert rs.upright_rotation(rs.unstack(plant)[0], plant) is None
 
 
 def test_progress_bars_in_a_log_are_whole_lines():

@@ -324,11 +324,6 @@ def in_input_units(tree, pop: Population, lengths=None):
     return rs.scale_tree(tree, pop.mean_length if lengths is None else lengths, base=pop.mean_seed)
 
 
-def upright_rotation(mean, pop: Population) -> np.ndarray | None:
-    """`rootshape_jax.upright_rotation` of the mean root onto the inputs' mean direction."""
-    return rs.upright_rotation(mean, pop.tree)
-
-
 def turn(tree, rotation: np.ndarray | None):
     """`tree` (a `RootTree` or `SRVFTree`, batched or not) as curves, every root turned by
     `rotation` about its main-root base (None: unchanged)."""

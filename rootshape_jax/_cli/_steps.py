@@ -28,7 +28,6 @@ from ._inputs import (
     prepare,
     to_output_roots,
     turn,
-    upright_rotation,
 )
 from ._report import Output, html_table, write_dict_csv
 
@@ -41,7 +40,7 @@ class Context:
     distances: np.ndarray | None = None
     mean: object = None  # KarcherMean
     pca: object = None  # TangentPCA
-    # The rotation that sets the mean upright like the inputs (`upright_rotation`); the roots
+    # The rotation that sets the mean upright like the inputs (`rootshape_jax.upright_rotation`); the roots
     # built on the mean (modes, random and predicted roots) turn with it.
     turn: object = None
 
@@ -174,7 +173,7 @@ def run_mean(ctx: Context, out: Output, args) -> None:
                 progress=not args.quiet,
             )
         ctx.mean = km
-        ctx.turn = upright_rotation(km.mean, pop)
+        ctx.turn = rs.upright_rotation(km.mean, pop.tree)
         mean_tree = turn(km.mean, ctx.turn)
         trace = np.asarray(km.energy_trace, dtype=np.float64)
         mean_roots = to_output_roots(in_input_units(rs.stack([mean_tree]), pop, mean_size(km.mean, pop)), pop, ["mean"])
