@@ -8,7 +8,9 @@ K×K cost matrix. Two interchangeable solvers, both exact:
   over the batch (docs/design.md §8).
 - ``method="jax"``: a pure-JAX shortest-augmenting-path (Hungarian / Jonker–Volgenant) solver
   with dual potentials, O(K³), written with `lax` loops so that it jits and vmaps without a host
-  round trip (for accelerators or exported programs where a callback is unwanted).
+  round trip. The registration uses it (`hungarian`, warm-started between the solves of a lazy
+  assignment): a program holding a host callback is never written to JAX's persistent
+  compilation cache, so with scipy the engine compiled again in every process.
 
 Neither solver is differentiable (the argmin is piecewise constant); both run on
 ``stop_gradient(cost)``. Differentiate the optimal value with `assignment_cost`, which gathers
@@ -17,7 +19,7 @@ the matched entries in JAX: by the envelope theorem its gradient is the 0/1 perm
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import equinox as eqx
 import jax
@@ -25,7 +27,7 @@ import jax.lax as lax
 import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._errors import InvalidCostError
 
@@ -83,81 +85,159 @@ def _solve_callback(cost: Float[Array, "K K"]) -> Int[Array, " K"]:
 # --------------------------------------------------------------------------- pure JAX
 
 
-def _solve_jax(cost: Float[Array, "K K"]) -> Int[Array, " K"]:
-    """Shortest augmenting path with potentials (the O(n³) Hungarian algorithm of
-    Jonker–Volgenant / e-maxx). Rows are added one at a time; for each new row a Dijkstra
-    search over reduced costs finds the cheapest augmenting path, the dual potentials are
-    updated so reduced costs stay >= 0, and the matching is flipped along the path.
+class HungarianState(NamedTuple):
+    """A solved assignment's matching and dual potentials: the warm start of the next solve.
 
-    1-indexed internally: column 0 is a virtual column holding the row being inserted, and
-    row 0 is a dummy (p[j] == 0 means column j is free).
+    1-based with a virtual column 0 (the row being inserted), as in the solver below.
+    """
+
+    p: Int[Array, " K+1"]  # row (1-based) matched to each column; 0 = free
+    u: Float[Array, " K+1"]  # potential of the row matched to each column (stored by column)
+    v: Float[Array, " K+1"]  # column potentials
+
+
+#: Rounds of proposals in the greedy start (each matches more rows on tight entries).
+_GREEDY_ROUNDS = 2
+
+
+def _reduction_start(cost: Float[Array, "K K"]) -> tuple[HungarianState, Bool[Array, " K+1"]]:
+    """Row then column reduction, then a greedy matching on the tight entries.
+
+    ``u_i = min_j c_ij`` and ``v_j = min_i (c_ij − u_i)`` are feasible duals (every reduced
+    cost ``c_ij − u_i − v_j >= 0``) with a tight (zero) entry in every column. In each of
+    `_GREEDY_ROUNDS` rounds every unmatched row proposes to a free column where its entry is
+    tight (the first at or after its own index, cyclically, so that rows with equal rows —
+    the null laterals — spread over their tied columns), and each column takes its lowest
+    proposer: a partial matching on tight entries, which is what the solver needs of the rows
+    it starts with. Returns it and the rows left to insert.
+    """
+    n = cost.shape[0]
+    u = jnp.min(cost, axis=1)
+    reduced = cost - u[:, None]
+    v = jnp.min(reduced, axis=0)
+    tight = reduced - v[None, :] <= 0
+    k = jnp.arange(n)
+    preference = (k[None, :] - k[:, None]) % n  # row i: column i first, then i + 1, ...
+    row_of = jnp.full((n,), -1, jnp.int32)  # row matched to each column
+    col_of = jnp.full((n,), -1, jnp.int32)  # column matched to each row
+    for _ in range(_GREEDY_ROUNDS):
+        open_ = tight & (col_of < 0)[:, None] & (row_of < 0)[None, :]
+        score = jnp.where(open_, preference, n)
+        choice = jnp.argmin(score, axis=1)
+        proposes = jnp.min(score, axis=1) < n
+        # Each column takes its lowest proposing row.
+        proposer = jnp.where(proposes[:, None] & (choice[:, None] == k[None, :]), k[:, None], n)
+        taker = jnp.min(proposer, axis=0)
+        won = taker < n
+        row_of = jnp.where(won, taker, row_of).astype(jnp.int32)
+        col_of = col_of.at[jnp.where(won, taker, n)].set(k.astype(jnp.int32), mode="drop")
+    zero = jnp.zeros((1,), cost.dtype)
+    state = HungarianState(
+        p=jnp.concatenate([jnp.zeros((1,), jnp.int32), row_of + 1]),
+        u=jnp.concatenate([zero, jnp.where(row_of >= 0, u[jnp.maximum(row_of, 0)], 0)]),
+        v=jnp.concatenate([zero, v]),
+    )
+    return state, jnp.concatenate([jnp.zeros((1,), bool), col_of < 0])
+
+
+def hungarian(
+    cost: Float[Array, "K K"], warm: tuple[HungarianState, Bool[Array, " K"]] | None = None
+) -> tuple[Int[Array, " K"], HungarianState]:
+    """Exact assignment by shortest augmenting paths with potentials (the O(K³) Hungarian
+    algorithm of Jonker–Volgenant / e-maxx), in `lax` loops: no host round trip, so programs
+    using it can be cached by JAX's persistent compilation cache.
+
+    Rows are inserted one at a time; for each a Dijkstra search over reduced costs finds the
+    cheapest augmenting path, the potentials are updated so reduced costs stay >= 0 and the
+    matched entries tight, and the matching is flipped along the path. When every row is in,
+    the matching is optimal: it is perfect, and its cost equals the dual bound ``Σu + Σv``.
+
+    The insertion is correct from any state in which the rows already matched have feasible
+    potentials over all columns and tight matched entries (the new row's own potential may be
+    anything: the first pass of its search fixes it). So the solve starts from
+    `_reduction_start` (most rows matched before any search), and `warm` = (the state of a
+    previous solve, the rows whose costs changed since) restarts from that state with only
+    the changed rows taken out and inserted again: the other rows' entries are unchanged, so
+    their potentials are still feasible and their matched entries tight. A lazy assignment
+    that makes a few picked entries exact between solves re-inserts a few rows, not all.
+
+    Returns (perm, state): row i is assigned to column ``perm[i]``.
     """
     n = cost.shape[0]
     dtype = cost.dtype
     inf = jnp.array(jnp.inf, dtype)
     a = jnp.zeros((n + 1, n + 1), dtype).at[1:, 1:].set(cost)
     cols = jnp.arange(n + 1)
+    if warm is None:
+        state, pending = _reduction_start(cost)
+    else:
+        state, changed = warm
+        pending = jnp.concatenate([jnp.zeros((1,), bool), changed])
+        state = state._replace(p=jnp.where(pending[state.p] & (state.p > 0), 0, state.p))
 
-    def add_row(i, state):
-        u, v, p, way = state
-        p = p.at[0].set(i)
-        minv = jnp.full((n + 1,), inf)
-        used = jnp.zeros((n + 1,), bool)
+    def insert_row(carry):
+        p, u, v, pending, n_rows = carry
+        i = jnp.argmax(pending).astype(jnp.int32)
+        pending = pending.at[i].set(False)
+        p, u = p.at[0].set(i), u.at[0].set(0)
 
         # Dijkstra over columns. Every pass marks one new column used, so at most n + 1
-        # passes; the counter also guarantees termination should the costs be non-finite
-        # (possible only when the NaN/inf check has been disabled via EQX_ON_ERROR).
-        def search_cond(carry):
-            _, _, _, _, _, j0, it = carry
+        # passes; the counter also guarantees termination should the costs be non-finite.
+        def search_cond(c):
+            p, _, _, _, _, _, j0, it = c
             return (p[j0] != 0) & (it <= n)
 
-        def search_body(carry):
-            u, v, minv, way, used, j0, it = carry
-            # `p` is fixed during the search, so closing over it is fine.
-            used = used.at[j0].set(True)
-            i0 = p[j0]
-            cur = a[i0] - u[i0] - v
-            better = (~used) & (cur < minv)
-            minv = jnp.where(better, cur, minv)
+        def search_body(c):
+            p, u, v, minv, way, used, j0, it = c
+            used = used | (cols == j0)
+            reduced = a[p[j0]] - u[j0] - v
+            better = (~used) & (reduced < minv)
+            minv = jnp.where(better, reduced, minv)
             way = jnp.where(better, j0, way)
             masked = jnp.where(used, inf, minv)
-            j1 = jnp.argmin(masked)
+            j1 = jnp.argmin(masked).astype(jnp.int32)
             delta = masked[j1]
-            # Used columns' rows are distinct (column 0 holds row i), so the scatter is a
-            # plain per-row update; free columns (p[j] == 0) only touch the dummy row 0.
-            u = u.at[p].add(jnp.where(used, delta, 0))
+            # Used columns hold distinct rows (column 0 the new one): their potentials move
+            # together, by column.
+            u = jnp.where(used, u + delta, u)
             v = jnp.where(used, v - delta, v)
             minv = jnp.where(used, minv, minv - delta)
-            return u, v, minv, way, used, j1, it + 1
+            return p, u, v, minv, way, used, j1, it + 1
 
-        u, v, _, way, _, j0, _ = lax.while_loop(
-            search_cond, search_body, (u, v, minv, way, used, jnp.array(0), jnp.array(0))
-        )
+        minv = jnp.full((n + 1,), inf)
+        used = jnp.zeros((n + 1,), bool)
+        way = jnp.zeros((n + 1,), jnp.int32)
+        zero = jnp.array(0, jnp.int32)
+        p, u, v, _, way, _, j0, _ = lax.while_loop(search_cond, search_body, (p, u, v, minv, way, used, zero, zero))
 
-        # Flip the matching along the path back to the virtual column 0.
-        def flip_cond(carry):
-            _, j0, it = carry
+        # Flip the matching along the path back to the virtual column 0; each row's potential
+        # moves with it.
+        def flip_cond(c):
+            _, _, j0, it = c
             return (j0 != 0) & (it <= n)
 
-        def flip_body(carry):
-            p, j0, it = carry
+        def flip_body(c):
+            p, u, j0, it = c
             j1 = way[j0]
-            p = p.at[j0].set(p[j1])
-            return p, j1, it + 1
+            return p.at[j0].set(p[j1]), u.at[j0].set(u[j1]), j1, it + 1
 
-        p, _, _ = lax.while_loop(flip_cond, flip_body, (p, j0, jnp.array(0)))
-        return u, v, p, way
+        p, u, _, _ = lax.while_loop(flip_cond, flip_body, (p, u, j0, zero))
+        return p, u, v, pending, n_rows + 1
 
-    init = (
-        jnp.zeros((n + 1,), dtype),
-        jnp.zeros((n + 1,), dtype),
-        jnp.zeros((n + 1,), cols.dtype),
-        jnp.zeros((n + 1,), cols.dtype),
+    p, u, v, _, _ = lax.while_loop(
+        lambda c: jnp.any(c[3]) & (c[4] < n), insert_row, (*state, pending, jnp.array(0, jnp.int32))
     )
-    _, _, p, _ = lax.fori_loop(1, n + 1, add_row, init)
     # p[j] = row (1-based) matched to column j (1-based); invert to perm[row] = column.
     perm = jnp.zeros((n,), jnp.int32).at[p[1:] - 1].set(jnp.arange(n, dtype=jnp.int32))
-    return perm
+    return perm, HungarianState(p, u, v)
+
+
+def solve(cost: Float[Array, "K K"], *, method: str) -> Int[Array, " K"]:
+    """`linear_assignment` without its checks, for costs finite by construction (the
+    registration's): no `eqx.error_if` (a host callback) in the programs that call it."""
+    if method == "callback":
+        return _solve_callback(lax.stop_gradient(cost))
+    return hungarian(lax.stop_gradient(cost))[0]
 
 
 # --------------------------------------------------------------------------- public
@@ -196,9 +276,7 @@ def linear_assignment(
     cost = lax.stop_gradient(cost)
     # Data dependence orders the check before the solve, so scipy never sees NaN/inf.
     cost = eqx.error_if(cost, ~jnp.all(jnp.isfinite(cost)), _NONFINITE_MSG)
-    if method == "callback":
-        return _solve_callback(cost)
-    return _solve_jax(cost)
+    return solve(cost, method=method)
 
 
 def assignment_cost(cost: Float[ArrayLike, "K K"], perm: Int[ArrayLike, " K"]) -> Float[Array, ""]:

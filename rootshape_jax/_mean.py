@@ -65,7 +65,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 from tqdm.auto import tqdm
 
-from ._assignment import linear_assignment
+from ._assignment import solve
 from ._curves import l2_norm_squared
 from ._engine import (
     MEAN_REGISTRATION,
@@ -219,7 +219,7 @@ def _lower_bound_energy(a: SRVFTree, b: SRVFTree, weights: Weights, assignment: 
         sub_a, sub_b = descendant_norms(a.deeper, weights, 2), descendant_norms(b.deeper, weights, 2)
         others = others + jnp.where(a.mask[:, None], sub_a[:, None], jnp.where(b.mask[None, :], sub_b[None, :], 0.0))
     C = jnp.where(both, pair_lower_bounds(weights, a, b, cauchy_schwarz), others)
-    perm = linear_assignment(C, method=assignment)
+    perm = solve(C, method=assignment)
     lap = jnp.sum(jnp.take_along_axis(C, perm[:, None], axis=1))
     L0a = l2_norm_squared(a.q0)
     L0b = l2_norm_squared(b.q0)
@@ -227,7 +227,7 @@ def _lower_bound_energy(a: SRVFTree, b: SRVFTree, weights: Weights, assignment: 
 
 
 @eqx.filter_jit
-def lower_bound_distances(samples: SRVFTree, weights: Weights, assignment: str = "callback"):
+def lower_bound_distances(samples: SRVFTree, weights: Weights, assignment: str = "jax"):
     """(n, n) DP-free lower bounds of the elastic distances (symmetrised)."""
     row = jax.vmap(_lower_bound_energy, in_axes=(None, 0, None, None))
     e = jax.lax.map(lambda a: row(a, samples, weights, assignment), samples)

@@ -500,10 +500,12 @@ def dp_warp_and_energy(
     return _dp_kernel(n)(q1, q2, jnp.asarray(True))
 
 
-def dp_warp_if(q1: Array, q2: Array, active: Array, *, neighbourhood: int) -> tuple[Array, Array]:
+def dp_warp_if(q1: Array, q2: Array, active: Array, *, neighbourhood: int, check: bool = True) -> tuple[Array, Array]:
     """`dp_warp_and_energy` for loops under `vmap`: lanes with ``active`` False are skipped
-    (identity warp, cost 0) instead of being computed and thrown away."""
-    q1, q2, n = _prepare(q1, q2, neighbourhood, "dp_warp")
+    (identity warp, cost 0) instead of being computed and thrown away. ``check=False`` skips
+    the NaN/inf check (an `eqx.error_if`, which is a host callback) for inputs finite by
+    construction."""
+    q1, q2, n = _prepare(q1, q2, neighbourhood, "dp_warp", check=check)
     return _dp_kernel(n)(q1, q2, jnp.asarray(active, bool))
 
 
@@ -635,8 +637,13 @@ def apply_warp_srvf(q: Float[ArrayLike, "T d"], gamma: Float[ArrayLike, " T"]) -
         raise InvalidRootError(f"apply_warp_srvf: q must have shape (T, d), T >= 2; got {q.shape}.")
     gamma = _check_gamma(gamma, q.shape[0], q.dtype, "apply_warp_srvf")
     gamma = _check_monotone(gamma, "apply_warp_srvf")
-    last = q.shape[0] - 1
-    return _lerp(q, gamma * last) * _sqrt_speed(gamma)[:, None]
+    return warp_srvf(q, gamma)
+
+
+def warp_srvf(q: Array, gamma: Array) -> Array:
+    """`apply_warp_srvf` without its checks, for warps increasing by construction (the DP's):
+    no `eqx.error_if` (a host callback) in the programs that call it."""
+    return _lerp(q, gamma * (q.shape[0] - 1)) * _sqrt_speed(gamma)[:, None]
 
 
 def apply_warp_curve(beta: Float[ArrayLike, "T d"], gamma: Float[ArrayLike, " T"]) -> Float[Array, "T d"]:

@@ -136,7 +136,7 @@ def test_one_safe_sqrt_and_one_device_splitter():
 
 def test_registration_options_validate_and_round_trip():
     o = rs.RegistrationOptions(max_iterations=3, rtol=1e-3, prune=False)
-    assert int(o.max_iterations) == 3 and o.prune is False and o.assignment == "callback"
+    assert int(o.max_iterations) == 3 and o.prune is False and o.assignment == "jax"
     for bad, match in [
         (dict(max_iterations=0), "max_iterations"),
         (dict(neighbourhood=1.5), "neighbourhood"),

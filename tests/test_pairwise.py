@@ -163,3 +163,24 @@ def test_local_blocks_overlap_once_the_function_has_run():
     assert b0 >= a1  # first call: one after the other
     (a0, a1), (b0, b1) = spans[1]
     assert b0 < a1  # second call: together
+
+
+def test_scipy_and_warm_started_jax_assignments_give_the_same_matrix_and_objective():
+    """Both solvers are exact: the registration's default (pure JAX, each solve of a lazy
+    assignment warm-started from the last) reaches what scipy's reaches, on roots with unequal
+    lateral counts (null padding): the matrix, and the Karcher objective at a fixed tree (the
+    mean's registrations). (Whole Karcher means may part: the fixed point's keep-or-replace
+    choices compare energies equal to the last bit, and on these 5 roots the two paths' summed
+    energies were 0.4 % apart after 4 steps; on the 53 CPlantBox pea roots they reached the
+    same F in 24 steps.)"""
+    rng = np.random.default_rng(11)
+    roots = [random_root(rng, n_laterals=n) for n in (2, 5, 7, 4, 6)]
+    trees = rs.batch(roots, n_points=20)
+    scipy_opts = rs.RegistrationOptions(assignment="callback")
+    D_jax = np.asarray(rs.pairwise_distances(trees, progress=False))
+    D_scipy = np.asarray(rs.pairwise_distances(trees, registration=scipy_opts, progress=False))
+    np.testing.assert_allclose(D_jax, D_scipy, rtol=1e-9, atol=1e-12)
+    mu = rs.unstack(trees)[2]
+    F_jax = rs.karcher_objective(mu, trees, registration=rs.RegistrationOptions())
+    F_scipy = rs.karcher_objective(mu, trees, registration=scipy_opts)
+    np.testing.assert_allclose(F_jax, F_scipy, rtol=1e-10)

@@ -11,6 +11,7 @@ share).
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import os
 import signal
 import sys
@@ -24,9 +25,10 @@ from ._parser import build_parser
 from ._report import OPENED, remove_empty_outputs, unfinished_note
 
 
-def configure_jax(*, devices: int | None, float64: bool) -> None:
+def configure_jax(*, devices: int | None, float64: bool, program: bool = False) -> None:
     """`devices` XLA CPU devices when given (None: JAX's default, one; blocks then run on worker
-    threads, one per usable core) and optional float64.
+    threads, one per usable core) and optional float64; run as the program, compiled programs
+    are kept on disk between runs (`keep_compiled_programs`).
 
     The device count can only be set before JAX has started; when it has already started
     (e.g. `main` called from a running Python session) the current devices are kept.
@@ -41,6 +43,36 @@ def configure_jax(*, devices: int | None, float64: bool) -> None:
             jax.config.update("jax_num_cpu_devices", int(devices))
     if float64:
         jax.config.update("jax_enable_x64", True)
+    if program:
+        keep_compiled_programs()
+
+
+#: Disk space for compiled programs kept between runs (least recently used go first).
+CACHE_BYTES = 2 * 1024**3
+
+
+def keep_compiled_programs() -> str | None:
+    """Turn on JAX's persistent compilation cache in ``$XDG_CACHE_HOME/rootshape_jax/xla``
+    (``~/.cache/...``): the registration engine compiles for 5-25 s per shape of input, and
+    its programs (no host callbacks) are then read back in later runs. Not when the user chose
+    a cache (``JAX_COMPILATION_CACHE_DIR``) or none (``ROOTSHAPE_COMPILATION_CACHE=0``), or
+    the folder cannot be written. Returns the folder used, or None."""
+    import jax
+
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR") or os.environ.get("ROOTSHAPE_COMPILATION_CACHE") == "0":
+        return None
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    folder = os.path.join(base, "rootshape_jax", "xla")
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError:
+        return None
+    if not os.access(folder, os.W_OK):
+        return None
+    jax.config.update("jax_compilation_cache_dir", folder)
+    if importlib.util.find_spec("filelock") is not None:  # JAX needs it to enforce the size
+        jax.config.update("jax_compilation_cache_max_size", CACHE_BYTES)
+    return folder
 
 
 def one_line(e: BaseException) -> str:
@@ -119,7 +151,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as e:  # --help, --version, or a usage error (already printed)
         return int(e.code) if isinstance(e.code, int) else EXIT_USAGE
-    configure_jax(devices=getattr(args, "devices", None), float64=getattr(args, "float64", False))
+    configure_jax(devices=getattr(args, "devices", None), float64=getattr(args, "float64", False), program=argv is None)
     OPENED.clear()
     if argv is None:  # the program: Ctrl-C ends the process (`_on_sigint`)
         with contextlib.suppress(ValueError):  # not the main thread: keep KeyboardInterrupt
