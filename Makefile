@@ -16,11 +16,11 @@ $(VENV)/.installed: pyproject.toml
 install: $(VENV)/.installed
 
 # Compilation dominates the test run: two workers compile in parallel. JAX's persistent cache
-# (also used by the tests' subprocesses) shares only programs without host callbacks: the
-# registration engine calls scipy's assignment and equinox's runtime checks through callbacks,
-# so its programs are compiled again in every process. It does share the hundreds of small
-# one-operation programs that eager code compiles per shape, once they are cached whatever
-# their compile time (JAX's default skips programs compiled in under a second).
+# (also used by the tests' subprocesses) shares programs without host callbacks between the
+# workers, the test modules (each clears JAX's in-memory caches) and `make test-slow`: the
+# registration engine's programs (no callbacks since its assignments run in JAX) and the
+# hundreds of small one-operation programs that eager code compiles per shape, once they are
+# cached whatever their compile time (JAX's default skips programs compiled in under a second).
 PYTEST := JAX_COMPILATION_CACHE_DIR=$(CURDIR)/.jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0 \
 	$(PY) -m pytest -q -n 2 --dist loadfile
 

@@ -63,11 +63,12 @@ def population(name: str, shared: str | None = None) -> list:
     raise ValueError(f"unknown population {name!r}; choose synthetic, pea or rootnav")
 
 
-def run_child(child: str, spec: dict, package: Path | None = None) -> dict:
+def run_child(child: str, spec: dict, package: Path | None = None, env: dict | None = None) -> dict:
     """Run the script `child` in a fresh Python process with the package checkout `package`
     (default: this one) and return the dict it prints on its ``RESULT `` line. The child gets
-    `population`'s source where it says ``__POPULATION__`` and `spec` (JSON) as ``argv[1]``."""
-    env = dict(os.environ)
+    `population`'s source where it says ``__POPULATION__`` and `spec` (JSON) as ``argv[1]``;
+    `env` adds to (or, with None values, removes from) its environment."""
+    env = {k: v for k, v in {**os.environ, **(env or {})}.items() if v is not None}
     # Run from the checkout itself: `python -c` puts the working directory first on sys.path,
     # ahead of PYTHONPATH and of the editable install.
     package = Path(package) if package is not None else Path(__file__).resolve().parents[1]
