@@ -62,8 +62,9 @@ def safe_normalise(x: Array, axis: int = -1) -> Array:
 
 
 def safe_sqrt(x: Array) -> Array:
+    """``sqrt(x)`` with a finite (zero) gradient at 0; NaN stays NaN (never a distance 0)."""
     ok = x > tiny(x.dtype)
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), jnp.where(jnp.isnan(x), x, 0.0))
 
 
 def trapezoid_weights(n_points: int, dtype=float) -> Float[Array, " T"]:

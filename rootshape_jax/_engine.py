@@ -1569,13 +1569,22 @@ def register_pairs(
     registered = jax.vmap(apply_registration)(
         a, b, res.rotation, res.permutation, res.main_warp, res.lateral_warps, res.children
     )
+    # The engine raises nothing at run time (no host callback, so its programs can be cached):
+    # its inputs are checked where they enter as concrete arrays (`to_srvf`, `Weights`). Under
+    # a caller's jit they are not, so a pair with a non-finite input or weight gets NaN terms
+    # here, never the finite but arbitrary result the DP and assignment would give.
+    finite = _finite_pairs(a, b, weights)
+    terms = jax.tree.map(
+        lambda t: jnp.where(finite.reshape(finite.shape + (1,) * (t.ndim - 1)), t, jnp.nan),
+        preshape_terms(a, registered, weights),
+    )
     return Registration(
         registered=registered,
         permutation=res.permutation,
         rotation=res.rotation,
         main_warp=res.main_warp,
         lateral_warps=res.lateral_warps,
-        terms=preshape_terms(a, registered, weights),
+        terms=terms,
         n_iterations=res.n_iterations,
         n_lateral_dp=res.n_lateral_dp,
         n_lateral_skipped=res.n_lateral_skipped,
@@ -1586,3 +1595,17 @@ def register_pairs(
 
 
 register_pairs_jit = eqx.filter_jit(register_pairs)
+
+
+def _finite_pairs(a: SRVFTree, b: SRVFTree, weights: Weights) -> Bool[Array, " B"]:
+    """Per pair: every array of a[k] and b[k], and every weight, is finite."""
+    B = a.q0.shape[0]
+    ok = jnp.ones((B,), bool)
+    for leaf in jax.tree.leaves(eqx.filter((a, b), eqx.is_inexact_array)):
+        ok = ok & jnp.all(jnp.isfinite(leaf.reshape(B, -1)), axis=1)
+    for w in jax.tree.leaves(weights):
+        if isinstance(w, (jax.Array, np.ndarray, np.generic, float)) and jnp.issubdtype(
+            jnp.result_type(w), jnp.inexact
+        ):
+            ok = ok & jnp.all(jnp.isfinite(jnp.asarray(w)))
+    return ok

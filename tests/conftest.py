@@ -19,6 +19,9 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
         import hypothesis  # noqa: F401
 
 jax.config.update("jax_enable_x64", True)
+# The CLI run as a program keeps compiled programs in ~/.cache/rootshape_jax (unless
+# JAX_COMPILATION_CACHE_DIR is set, as `make test` does): not the developer's from tests.
+os.environ.setdefault("ROOTSHAPE_COMPILATION_CACHE", "0")
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -132,3 +132,18 @@ def test_upright_rotation_is_public_and_points_the_mean_like_the_roots():
     # smooths a wiggly 16-point root a little: its chord turns by a few degrees).
     R_srvf = rs.upright_rotation(rs.to_srvf(one), rs.to_srvf(trees))
     assert abs(np.degrees(np.arctan2(R_srvf[1, 0], R_srvf[0, 0]) - np.arctan2(R[1, 0], R[0, 0]))) < 5
+
+
+def test_non_finite_input_under_jit_gives_nan_not_a_distance():
+    """Under a caller's jit the concrete checks cannot run, and the engine raises nothing (no
+    host callback, so its programs can be cached): a NaN in a tree or a weight must come out
+    as a NaN distance, not as the finite result the DP and assignment would give."""
+    rng = np.random.default_rng(0)
+    trees = rs.to_srvf(rs.batch([random_root(rng, n_laterals=3) for _ in range(2)], n_points=16))
+    a, b = rs.unstack(trees)
+    bad = eqx.tree_at(lambda t: t.q0, b, b.q0.at[3, 0].set(jnp.nan))
+    dist = jax.jit(lambda a, b: rs.distance(a, b))
+    assert np.isfinite(dist(a, b))
+    assert np.isnan(dist(a, bad))
+    by_weight = jax.jit(lambda lam: rs.distance(a, b, weights=rs.Weights(main=lam, lateral=1.0, position=1.0)))
+    assert np.isfinite(by_weight(0.02)) and np.isnan(by_weight(jnp.nan))

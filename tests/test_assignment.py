@@ -378,3 +378,26 @@ def test_hungarian_warm_start_with_nothing_changed_keeps_the_matching():
     again, state2 = _assignment.hungarian(cost, (state, jnp.zeros(9, bool)))
     np.testing.assert_array_equal(perm, again)
     np.testing.assert_array_equal(state.p, state2.p)
+
+
+def test_hungarian_chained_warm_starts_in_float32_under_vmap():
+    """As in a lazy assignment: a batch of float32 matrices, vmapped, solved again and again,
+    each time after raising the picked entries of some rows; every solve reaches scipy's
+    optimum of the same float32 matrix (to float32 rounding)."""
+    rng = np.random.default_rng(5)
+    B, k, n_rounds = 6, 14, 12
+    cost = rng.random((B, k, k)).astype(np.float32)
+    cost[:, 10:, :] = 0.0  # null rows and columns, as padded laterals
+    cost[:, 10:, :10] = rng.random((B, 1, 10)).astype(np.float32)
+    cold = jax.jit(jax.vmap(_assignment.hungarian))
+    warm = jax.jit(jax.vmap(lambda c, st, ch: _assignment.hungarian(c, (st, ch))))
+    perm, state = cold(jnp.asarray(cost))
+    for _ in range(n_rounds):
+        changed = rng.random((B, k)) < 0.2
+        rows = np.nonzero(changed)
+        cost[rows[0], rows[1], np.asarray(perm)[rows]] += rng.random(len(rows[0])).astype(np.float32)
+        perm, state = warm(jnp.asarray(cost), state, jnp.asarray(changed))
+        for b in range(B):
+            assert _is_permutation(perm[b], k)
+            got = cost[b][np.arange(k), np.asarray(perm[b])].sum(dtype=np.float64)
+            assert np.isclose(got, _optimum(cost[b].astype(np.float64)), rtol=1e-5), (b, got)

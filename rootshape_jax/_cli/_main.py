@@ -55,11 +55,12 @@ def keep_compiled_programs() -> str | None:
     """Turn on JAX's persistent compilation cache in ``$XDG_CACHE_HOME/rootshape_jax/xla``
     (``~/.cache/...``): the registration engine compiles for 5-25 s per shape of input, and
     its programs (no host callbacks) are then read back in later runs. Not when the user chose
-    a cache (``JAX_COMPILATION_CACHE_DIR``) or none (``ROOTSHAPE_COMPILATION_CACHE=0``), or
-    the folder cannot be written. Returns the folder used, or None."""
+    a cache (``JAX_COMPILATION_CACHE_DIR``) or none (``ROOTSHAPE_COMPILATION_CACHE=0``, or
+    false/no/off), or the folder cannot be written. Returns the folder used, or None."""
     import jax
 
-    if os.environ.get("JAX_COMPILATION_CACHE_DIR") or os.environ.get("ROOTSHAPE_COMPILATION_CACHE") == "0":
+    opt_out = os.environ.get("ROOTSHAPE_COMPILATION_CACHE", "").strip().lower() in ("0", "false", "no", "off")
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR") or opt_out:
         return None
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     folder = os.path.join(base, "rootshape_jax", "xla")
