@@ -150,7 +150,8 @@ def hungarian(
     Rows are inserted one at a time; for each a Dijkstra search over reduced costs finds the
     cheapest augmenting path, the potentials are updated so reduced costs stay >= 0 and the
     matched entries tight, and the matching is flipped along the path. When every row is in,
-    the matching is optimal: it is perfect, and its cost equals the dual bound ``Σu + Σv``.
+    the matching is optimal: it is perfect, and its cost equals the dual bound, the sum of
+    ``u + v`` over the real columns 1 … K (column 0 is virtual).
 
     The insertion is correct from any state in which the rows already matched have feasible
     potentials over all columns and tight matched entries (the new row's own potential may be

@@ -875,16 +875,15 @@ def lazy_assignment(
     # picked entries just made exact. The scipy callback solves every matrix from scratch.
     warm_start = options.assignment == "jax"
 
-    def first_solve(C):
-        C = lax.stop_gradient(C)
-        if warm_start:
-            return jax.vmap(hungarian)(C)
-        return jax.vmap(lambda c: solve(c, method=options.assignment))(C), None
-
-    def solve_again(C, last_C, duals):
+    def assign(C, last=None):
+        """(perm, solver state) of the B cost matrices C; `last` = (the matrices last solved,
+        their state) to warm-start from."""
         if not warm_start:
-            return first_solve(C)
+            return jax.vmap(lambda c: solve(c, method=options.assignment))(C), None
         C = lax.stop_gradient(C)
+        if last is None:
+            return jax.vmap(hungarian)(C)
+        last_C, duals = last
         changed = jnp.any(C != last_C, axis=-1)
         return jax.vmap(lambda c, d, ch: hungarian(c, (d, ch)))(C, duals, changed)
 
@@ -1039,7 +1038,7 @@ def lazy_assignment(
         E, G, A, nested_done, Em, Gm = exact(run_dp, E, G, A, nested_done, st.pending, Em, Gm)
         computed = computed | run_dp
         C = costs(E, A, computed, nested_done, child_bound)
-        perm, duals = solve_again(C, st.cost, st.duals)
+        perm, duals = assign(C, (st.cost, st.duals))
         return _LazyState(
             E=E,
             G=G,
@@ -1062,7 +1061,7 @@ def lazy_assignment(
     if child_bound is None:
         child_bound = jnp.zeros((B, K, K), dtype)
     C = costs(E, A, computed, nested_done, child_bound)
-    perm, duals = first_solve(C)
+    perm, duals = assign(C)
     st = _LazyState(
         E=E,
         G=G,
@@ -1603,9 +1602,6 @@ def _finite_pairs(a: SRVFTree, b: SRVFTree, weights: Weights) -> Bool[Array, " B
     ok = jnp.ones((B,), bool)
     for leaf in jax.tree.leaves(eqx.filter((a, b), eqx.is_inexact_array)):
         ok = ok & jnp.all(jnp.isfinite(leaf.reshape(B, -1)), axis=1)
-    for w in jax.tree.leaves(weights):
-        if isinstance(w, (jax.Array, np.ndarray, np.generic, float)) and jnp.issubdtype(
-            jnp.result_type(w), jnp.inexact
-        ):
-            ok = ok & jnp.all(jnp.isfinite(jnp.asarray(w)))
+    for w in jax.tree.leaves(weights):  # `Weights` holds every λ as an array
+        ok = ok & jnp.all(jnp.isfinite(w))
     return ok
