@@ -382,22 +382,35 @@ def _rotate_samples(samples: SRVFTree, O) -> SRVFTree:
     return eqx.tree_at(lambda t: t.deeper, out, deeper)
 
 
-@eqx.filter_jit
 def fp_register(y: FPIterate, samples: SRVFTree, mu_like: SRVFTree, weights: Weights, opts, active=None):
     """Per-sample half of a fixed-point step (a block of samples, with their rows of y): each
-    sample's registration onto the current mean, and its energy."""
-    n = samples.q0.shape[0]
-    mu = params_to_tree(y.mu, mu_like)
-    a = broadcast_tree(mu, n)
-    O = _project_rotation(y.rotations)
-    # The carried registration at the current mean and rotation ...
-    old = _carried(y, mu, O, samples)
-    e_old = preshape_terms(a, old, weights).total
+    sample's registration onto the current mean, and its energy.
+
+    Three programs, not one: the fresh registration is `_full_registration`'s own program (the
+    rotation off is a traced option), so the engine, most of the mean's compile time, is
+    compiled once for the warm-up's full registrations and the fixed point's steps."""
+    old, e_old, xb = _fp_carried(y, samples, mu_like, weights)
     # ... against warps and correspondence solved afresh for the current rotation. The DP is
     # exact for its own discretisation of the warp energy, not for the grid energy used here,
     # so the fresh solution is kept only where it is better: the energy never increases.
-    xb = _rotate_samples(samples, O)
-    new, e_new, _ = register_onto(mu, xb, weights, opts.without_rotation(), active)
+    new, e_new, _ = _full_registration(y.mu, xb, mu_like, weights, opts.without_rotation(), active)
+    return _keep_better(new, e_new, old, e_old)
+
+
+@eqx.filter_jit
+def _fp_carried(y: FPIterate, samples: SRVFTree, mu_like: SRVFTree, weights: Weights):
+    """The carried registration at the current mean and rotation, its energy, and the samples
+    turned by their rotations (what a fresh registration without rotation search starts from)."""
+    n = samples.q0.shape[0]
+    mu = params_to_tree(y.mu, mu_like)
+    O = _project_rotation(y.rotations)
+    old = _carried(y, mu, O, samples)
+    e_old = preshape_terms(broadcast_tree(mu, n), old, weights).total
+    return old, e_old, _rotate_samples(samples, O)
+
+
+@eqx.filter_jit
+def _keep_better(new: SRVFTree, e_new, old: SRVFTree, e_old):
     better = e_new < e_old
     return _pick(better, new, old), jnp.where(better, e_new, e_old)
 

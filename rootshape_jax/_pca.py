@@ -257,15 +257,14 @@ def sample(
     """`n` random roots: ``b ~ N(0, I)`` on the kept components (`pc.n_components`, or
     `n_components`), optionally truncated to ``[−truncate, truncate]`` (a truncated normal),
     mapped through `reconstruct`. Laterals shorter than `pc.min_lateral_length` are nulls."""
-    if not isinstance(n, (int, np.integer)) or n < 1:
-        raise ValueError(f"n must be a positive integer, got {n!r}.")
+    n = as_count(n, "n")
     _check_key(key)
-    m = pc.n_components if n_components is None else int(n_components)
+    m = pc.n_components if n_components is None else as_count(n_components, "n_components", minimum=0)
     if not 0 <= m <= pc.components.shape[0]:
         raise ValueError(f"n_components must be in [0, {pc.components.shape[0]}], got {m}.")
     if truncate is not None and not truncate > 0:
         raise ValueError(f"truncate must be positive, got {truncate!r}.")
-    t, curves = _sample(pc, key, int(n), m, None if truncate is None else float(truncate))
+    t, curves = _sample(pc, key, n, m, None if truncate is None else float(truncate))
     return t if srvf else curves
 
 

@@ -181,8 +181,12 @@ def test_bad_input(two_mode):
         tangent_pca(pc)
     with pytest.raises(ValueError, match="variance"):
         tangent_pca(mean, variance=1.5)
-    with pytest.raises(ValueError, match="positive"):
-        sample(pc, jax.random.PRNGKey(0), 0)
+    for n in (0, True, 2.0):  # a bool or a float is not a count (True was read as 1)
+        with pytest.raises(ValueError, match="n must be an integer >= 1"):
+            sample(pc, jax.random.PRNGKey(0), n)
+    for m in (-1, 1.5, False):  # 1.5 was truncated to 1
+        with pytest.raises(ValueError, match="n_components must be an integer >= 0"):
+            sample(pc, jax.random.PRNGKey(0), 2, n_components=m)
     with pytest.raises(ValueError, match="coefficients"):
         reconstruct(pc, jnp.zeros((3, 100)))
 
