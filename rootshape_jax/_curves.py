@@ -48,10 +48,11 @@ def _float_dtype(x):
 
 
 def safe_norm(x: Array, axis: int = -1) -> Array:
-    """Euclidean norm along ``axis`` that is 0 with zero gradient at (near-)zero vectors."""
+    """Euclidean norm along ``axis`` that is 0 with zero gradient at (near-)zero vectors; NaN
+    stays NaN (under a caller's jit a NaN point must give a NaN distance, not a plausible one)."""
     sq = jnp.sum(x * x, axis=axis)
     ok = sq > tiny(x.dtype)
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), jnp.where(jnp.isnan(sq), sq, 0.0))
 
 
 def safe_normalise(x: Array, axis: int = -1) -> Array:

@@ -58,6 +58,7 @@ from ._engine import RegistrationOptions, apply_registration, canonical_pairs, r
 from ._errors import LabelError
 from ._executor import LocalExecutor, executor_for
 from ._metric import Weights, as_weights, preshape_terms, unit_energies_by_level, weights_by_level
+from ._pairwise import default_chunk_size
 from ._tree import RootTree, SRVFTree, batch_size, to_srvf
 
 # --------------------------------------------------------------------------------------------
@@ -515,7 +516,9 @@ class _Fitter:
         self.trees = trees
         self.opts = opts
         self.radii = radii
-        self.chunk_size = chunk_size
+        # RootTree.laterals and SRVFTree.q both hold (..., K, T, d).
+        slots = (trees.laterals if isinstance(trees, RootTree) else trees.q).shape[-3]
+        self.chunk_size = default_chunk_size(slots) if chunk_size is None else chunk_size
         self.progress = progress
         self.candidates = _regularisation_candidates(regularisation)
         self.max_steps = int(max_steps)
@@ -695,7 +698,7 @@ def learn_weights(
     max_steps: int = 200,
     rtol: float = 1e-6,
     registration: RegistrationOptions | None = None,
-    chunk_size: int = 32,
+    chunk_size: int | None = None,
     progress: bool = True,
     client=None,
     **options,
@@ -841,7 +844,7 @@ def nested_cv_accuracy(
     softness: float = 0.1,
     max_steps: int = 200,
     registration: RegistrationOptions | None = None,
-    chunk_size: int = 32,
+    chunk_size: int | None = None,
     progress: bool = True,
     client=None,
     **options,

@@ -901,6 +901,12 @@ def karcher_mean(
             f"karcher_mean: trees must be a batched RootTree or SRVFTree (rootshape_jax.batch), "
             f"got {type(trees).__name__}."
         )
+    if isinstance(trees.main if isinstance(trees, RootTree) else trees.q0, jax.core.Tracer):
+        raise TypeError(
+            "karcher_mean cannot run under jax.jit or jax.vmap: its steps are driven from Python (progress, "
+            "convergence checks, blocks on worker threads), each a compiled program already. Call it "
+            "outside jit; for a differentiable objective inside your own code use karcher_objective."
+        )
     samples = to_srvf(trees, weights=weights)
     n = _check_samples(samples, "karcher_mean: trees")
     opts = registration_options(registration, base=MEAN_REGISTRATION)

@@ -72,10 +72,25 @@ def _positive_int(value, name: str) -> int:
     return int(value)
 
 
+#: Lateral-slot pairs (K × K per root pair) a chunk holds by default. The engine carries K × K
+#: arrays for every pair of a chunk and loops until its slowest pair is done, so a chunk of
+#: roots with many slots costs more than its pairs would alone: 32 pairs at the CPlantBox pea
+#: roots' K = 54 (where 32 was measured best), 8 at the RootNav tracings' K = 126 (the matrix
+#: 2.2x faster than with 32, same distances), 1 at SmartRoot maize's K = 842 (12x faster).
+CHUNK_SLOT_PAIRS = 32 * 64 * 64
+
+
+def default_chunk_size(slots: int) -> int:
+    """Pairs per compiled call for roots of `slots` lateral slots: at most 32, at least 1."""
+    return int(min(32, max(1, CHUNK_SLOT_PAIRS // max(1, slots) ** 2)))
+
+
 def run_pairs(
     s, t, I, J, kind: str, *, weights, options, chunk_size, client, block_size, store, resume, progress, desc
 ):
     """Squared distances of the listed pairs, and stats: local or on a cluster, with a store."""
+    if chunk_size is None:
+        chunk_size = default_chunk_size(max(s.q.shape[-3], t.q.shape[-3]))
     chunk_size = _positive_int(chunk_size, "chunk_size")
     executor = executor_for(client)
     local = isinstance(executor, LocalExecutor)
@@ -137,6 +152,12 @@ def _as_batch(trees, name, weights) -> SRVFTree:
         raise TypeError(
             f"{name} must be a batched RootTree or SRVFTree (rootshape_jax.batch(roots)), got {type(trees).__name__}."
         )
+    if isinstance(getattr(trees, "main", getattr(trees, "q0", None)), jax.core.Tracer):
+        raise TypeError(
+            f"{name.split(':')[0]} cannot run under jax.jit or jax.vmap: it loops over chunks of pairs in "
+            "Python (progress bar, Ctrl-C, store), each chunk a compiled program already. Call it outside "
+            "jit; inside your own jitted code use jax.vmap(rootshape_jax.distance) over pairs."
+        )
     s = to_srvf(trees, weights=weights)
     n = batch_size(s)
     if n == 0:
@@ -149,7 +170,7 @@ def pairwise_distances(
     *,
     weights: Weights | None = None,
     registration: RegistrationOptions | None = None,
-    chunk_size: int = 32,
+    chunk_size: int | None = None,
     progress: bool = True,
     return_stats: bool = False,
     client=None,
@@ -161,8 +182,9 @@ def pairwise_distances(
     """Symmetric (N, N) matrix of elastic distances between the roots of a batch.
 
     Every pair i < j is registered (b = root j onto a = root i) by one compiled program, in
-    chunks of `chunk_size` pairs so memory stays bounded; a tqdm bar shows progress and Ctrl-C
-    stops between chunks. The diagonal is 0. With `return_stats=True` also returns a dict with
+    chunks of `chunk_size` pairs so memory stays bounded (default: 32 for roots of up to 64
+    lateral slots, fewer for more slots, down to 1 at 360; `default_chunk_size`); a tqdm bar
+    shows progress and Ctrl-C stops between chunks. The diagonal is 0. With `return_stats=True` also returns a dict with
     the number of pairs, of lateral DPs run and skipped by the exact pruning bound, and of
     blocks computed and read from a store. Registration options: `registration` (a
     `RegistrationOptions`) or its fields as keywords, as in `register`. `weights`: the metric's
@@ -211,7 +233,7 @@ def cross_distances(
     *,
     weights: Weights | None = None,
     registration: RegistrationOptions | None = None,
-    chunk_size: int = 32,
+    chunk_size: int | None = None,
     progress: bool = True,
     client=None,
     block_size: int | None = None,

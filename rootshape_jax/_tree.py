@@ -26,10 +26,11 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._curves import interpolate_at_fraction, require_finite, srvf, srvf_to_curve
-from ._errors import CapacityError, InvalidRootError, MissingRadiusWarning, as_count, user_stacklevel
+from ._errors import CapacityError, InvalidRootError, MissingRadiusWarning, UnitError, as_count, user_stacklevel
 from ._root import Root, check_range, coordinate_limit, is_plant_system, polyline_length
 from ._thickness import extended_srvf, integrate_branch, wants_thickness
 from ._traits import deepest_order
+from ._units import unit_key
 
 
 def _is_array(x) -> bool:
@@ -661,6 +662,8 @@ def batch(
     dims = {r.dim for r in roots_list}
     if len(dims) != 1:
         raise InvalidRootError(f"batch(): roots mix dimensions {sorted(dims)}; convert 2D roots to 3D (z = 0) first.")
+    if not normalise_scale:
+        _check_units(roots_list)
     n_points = as_count(n_points, "n_points", minimum=2)
     explicit_depth = depth is not None
     depth = 2 if depth is None else depth
@@ -678,6 +681,12 @@ def batch(
     if dtype is None:
         dtype = jnp.zeros(()).dtype  # JAX's default float: respects jax_enable_x64
     dtype = _working_dtype(dtype)
+    if dtype == np.float64 and not jax.config.jax_enable_x64:
+        # JAX would store float32 without a word, after the precision check ran on float64.
+        raise ValueError(
+            "batch(): dtype=float64 needs JAX's 64-bit mode, which is off; turn it on first with "
+            "jax.config.update('jax_enable_x64', True), or leave dtype out (float32)."
+        )
     arrays = [
         root_to_level_arrays(r, n_points=n_points, capacities=capacities, normalise_scale=normalise_scale, dtype=dtype)
         for r in roots_list
@@ -850,6 +859,23 @@ def _has_radius(root: Root, depth: int) -> bool:
     if root.has_radius:
         return True
     return depth > 2 and any(_has_radius(c, depth - 1) for c in root.children)
+
+
+def _check_units(roots: Sequence[Root]) -> None:
+    """`UnitError` for roots in different units (``metadata["unit"]``, set by the readers): their
+    sizes cannot be compared. Roots without a unit are not checked."""
+    by_unit: dict[str, list[str]] = {}
+    for i, r in enumerate(roots):
+        unit = r.metadata.get("unit")
+        if unit is not None:
+            by_unit.setdefault(unit_key(unit), []).append(f"{_root_label(r, i)} ({unit})")
+    if len(by_unit) > 1:
+        listed = "; ".join(", ".join(names[:2]) + (" ..." if len(names) > 2 else "") for names in by_unit.values())
+        raise UnitError(
+            f"batch(): the roots are in different units ({listed}), so their sizes cannot be compared. "
+            "Convert them to one unit first (rootshape_jax.io.convert_units(roots, 'mm'); pixels need a "
+            "resolution), or pass normalise_scale=True to compare shapes only."
+        )
 
 
 def _working_dtype(dtype) -> np.dtype:

@@ -290,3 +290,37 @@ def test_many_laterals_hint(capsys):
     _hint_many_laterals([root, big], SimpleNamespace(laterals=20))  # --laterals given: quiet
     _hint_many_laterals([root], SimpleNamespace(laterals=None))
     assert capsys.readouterr().err == ""
+
+
+def test_batch_refuses_roots_in_different_units_unless_normalised():
+    """Found on the real files: lupin (inch) batched with its own pixel copy gave d = 94.8 and
+    no word. Now batch names the units and the two ways out; spellings of one unit, roots
+    without a unit, and scale-normalised batches (shapes only) pass."""
+    a, b = synthetic_roots(2, seed=3)
+    with pytest.raises(rs.UnitError, match=r"different units .*inch.*pixel.*convert_units.*normalise_scale=True"):
+        rs.batch(in_unit([a], "inch") + in_unit([b], "pixel"))
+    assert rs.batch(in_unit([a], "inch") + in_unit([b], "pixel"), normalise_scale=True).main.shape[0] == 2
+    assert rs.batch(in_unit([a], "mm") + in_unit([b], "millimetre")).main.shape[0] == 2
+    no_unit = dataclasses.replace(b, metadata={k: v for k, v in b.metadata.items() if k != "unit"})
+    assert rs.batch(in_unit([a], "px") + [no_unit]).main.shape[0] == 2  # no unit: not checked
+    lupin = SHARED / "smartroot" / "lupin.rsml"
+    if lupin.exists():
+        inch = io.read_rsml(lupin)
+        pixel = io.read_rsml(lupin, physical_units=False)
+        with pytest.raises(rs.UnitError):
+            rs.batch(inch + pixel)
+        # In one unit the copies are the same root.
+        assert float(rs.distance(*rs.unstack(rs.batch(inch + io.convert_units(pixel, "inch"), n_points=32)))) < 1e-6
+
+
+def test_batch_float64_without_x64_is_an_error_not_float32():
+    """With JAX's 64-bit mode off, dtype=float64 used to give a float32 tree (and skip the
+    precision warning, which looked at the float64 values)."""
+    import jax
+
+    (a,) = synthetic_roots(1, seed=4)
+    with jax.enable_x64(False):
+        with pytest.raises(ValueError, match="jax_enable_x64"):
+            rs.batch([a], dtype=np.float64)
+        assert rs.batch([a]).main.dtype == np.float32
+    assert rs.batch([a], dtype=np.float64).main.dtype == np.float64

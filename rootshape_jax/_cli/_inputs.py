@@ -228,21 +228,14 @@ def _check_units(roots: list, normalised: bool, command: str | None = None) -> b
     """Whether the roots are in different units (inch and pixel, say). They have no common
     size: refused unless scale-normalised, where only the shapes are compared (then a warning:
     the roots a run makes stay normalised), and refused by regress, whose traits are lengths."""
-    from rootshape_jax.io._units import MM_PER_UNIT, PIXEL_UNITS
-
-    def same_as(unit: str) -> str:
-        # Spellings of one unit ("mm", "millimetre"; "px", "pixel") count as one.
-        key = unit.strip().lower()
-        if key in PIXEL_UNITS:
-            return "pixel"
-        return f"{MM_PER_UNIT[key]:g} mm" if key in MM_PER_UNIT else key
+    from rootshape_jax._units import unit_key
 
     by_unit: dict[str, list[str]] = {}
     names: dict[str, str] = {}
     for r in roots:
         unit = r.metadata.get("unit")
         if unit is not None:
-            unit = names.setdefault(same_as(str(unit)), str(unit))
+            unit = names.setdefault(unit_key(unit), str(unit))
             source = r.metadata.get("source_file")
             by_unit.setdefault(str(unit), []).append(Path(source).name if source else str(r.name))
     if len(by_unit) < 2:

@@ -9,26 +9,8 @@ import numpy as np
 
 from .._errors import UnitError
 from .._root import Root
+from .._units import MM_PER_UNIT as MM_PER_UNIT, PIXEL_UNITS as PIXEL_UNITS
 
-# Millimetres per unit; spellings seen in RSML files (SmartRoot writes "inch").
-MM_PER_UNIT = {
-    "mm": 1.0,
-    "millimetre": 1.0,
-    "millimeter": 1.0,
-    "cm": 10.0,
-    "centimetre": 10.0,
-    "centimeter": 10.0,
-    "m": 1000.0,
-    "metre": 1000.0,
-    "meter": 1000.0,
-    "um": 1e-3,
-    "µm": 1e-3,
-    "micron": 1e-3,
-    "inch": 25.4,
-    "inches": 25.4,
-    "in": 25.4,
-}
-PIXEL_UNITS = ("pixel", "pixels", "px")
 # What a scale-normalised output's coordinates are in (never "pixel", whatever the input was).
 NORMALISED_UNIT = "normalised (main-root length = 1)"
 

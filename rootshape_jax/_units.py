@@ -1,0 +1,32 @@
+"""Names of length units, and when two roots' units are the same (one place for the readers,
+`batch` and the CLI)."""
+
+from __future__ import annotations
+
+# Millimetres per unit; spellings seen in RSML files (SmartRoot writes "inch").
+MM_PER_UNIT = {
+    "mm": 1.0,
+    "millimetre": 1.0,
+    "millimeter": 1.0,
+    "cm": 10.0,
+    "centimetre": 10.0,
+    "centimeter": 10.0,
+    "m": 1000.0,
+    "metre": 1000.0,
+    "meter": 1000.0,
+    "um": 1e-3,
+    "µm": 1e-3,
+    "micron": 1e-3,
+    "inch": 25.4,
+    "inches": 25.4,
+    "in": 25.4,
+}
+PIXEL_UNITS = ("pixel", "pixels", "px")
+
+
+def unit_key(unit: str) -> str:
+    """One key per unit, whatever its spelling ("mm" and "millimetre", "px" and "pixel")."""
+    key = str(unit).strip().lower()
+    if key in PIXEL_UNITS:
+        return "pixel"
+    return f"{MM_PER_UNIT[key]:g} mm" if key in MM_PER_UNIT else key
