@@ -516,9 +516,10 @@ class _Fitter:
         self.trees = trees
         self.opts = opts
         self.radii = radii
-        # RootTree.laterals and SRVFTree.q both hold (..., K, T, d).
-        slots = (trees.laterals if isinstance(trees, RootTree) else trees.q).shape[-3]
-        self.chunk_size = default_chunk_size(slots) if chunk_size is None else chunk_size
+        if chunk_size is None:
+            # RootTree.laterals and SRVFTree.q both hold (..., K, T, d).
+            chunk_size = default_chunk_size((trees.laterals if isinstance(trees, RootTree) else trees.q).shape[-3])
+        self.chunk_size = chunk_size
         self.progress = progress
         self.candidates = _regularisation_candidates(regularisation)
         self.max_steps = int(max_steps)

@@ -1217,6 +1217,11 @@ def check_compatible(a: RootTree | SRVFTree, b: RootTree | SRVFTree, what: str =
             f"{what}: one has a thickness channel and the other not; build both with "
             "to_srvf(tree, weights=weights) from trees that both carry radii."
         )
+    if a.dim != b.dim:
+        raise ValueError(
+            f"{what} are in different dimensions ({a.dim}-D and {b.dim}-D); give 2-D roots a z = 0 "
+            "column (Root(main=np.c_[xy, np.zeros(len(xy))], ...)) and batch all of them in one call."
+        )
     if (a.n_points, a.capacity, a.dim) != (b.n_points, b.capacity, b.dim):
         raise ValueError(
             f"{what} have different capacities: (T, K, d) = {(a.n_points, a.capacity, a.dim)} vs "

@@ -194,3 +194,14 @@ def test_default_chunk_size_follows_the_lateral_slots(monkeypatch):
     rs.pairwise_distances(rs.batch(roots, n_points=8), progress=False, chunk_size=5)
     rs.cross_distances(rs.batch(roots, n_points=8), rs.batch(roots, n_points=8), progress=False)
     assert seen == [8, 5, 32]
+
+
+def test_two_and_three_dimensional_trees_are_named_as_such():
+    """A 2-D and a 3-D tree were refused as "different capacities (T, K, d)" with advice about
+    n_points and max_laterals, not the dimension."""
+    rng = np.random.default_rng(4)
+    flat = random_root(rng, n_laterals=2)
+    a = rs.batch(flat, n_points=8, max_laterals=4)
+    b = rs.batch(random_root(rng, n_laterals=2, d=3), n_points=8, max_laterals=4)
+    with pytest.raises(ValueError, match="different dimensions \\(2-D and 3-D\\).*z = 0"):
+        rs.distance(a, b)

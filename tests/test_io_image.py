@@ -393,6 +393,22 @@ def test_an_unreadable_file_is_closed_at_once(tmp_path):
     assert not [w for w in caught if issubclass(w.category, ResourceWarning)], [str(w.message) for w in caught]
 
 
+def test_skan_pandas_deprecation_is_not_shown():
+    # skan's summarize (spur pruning) calls DataFrame.rename(inplace=True): pandas >= 3.1 warned
+    # (Pandas4Warning) on every image, and `-W error` made every image fail.
+    import warnings
+
+    main = np.stack([np.full(50, 40.0), np.linspace(5, 75, 50)], axis=1)
+    lat = np.stack([np.linspace(40, 65, 20), np.linspace(30, 45, 20)], axis=1)
+    img, _ = render_root_image([main, lat], shape=(80, 80))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        (r,) = roots_from_image(img)
+    assert r.n_laterals == 1
+    from_pandas = [w for w in caught if w.category.__module__.startswith("pandas") or "skan" in w.filename]
+    assert not from_pandas, [str(w.message) for w in from_pandas]
+
+
 def test_pixel_depths_and_tiff_planes_read_as_the_8_bit_image(tmp_path):
     # 12-bit camera data in uint16 (maximum 4095) and float images of 0-255 values are scaled
     # by their bit depth: read as full-range 16-bit or as [0, 1] they were nearly black or

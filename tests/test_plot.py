@@ -19,6 +19,7 @@ from matplotlib.collections import LineCollection
 from scipy.cluster import hierarchy
 from scipy.spatial.distance import squareform
 
+import rootshape_jax as rs
 from rootshape_jax import plot as P
 from rootshape_jax._errors import MissingDependencyError
 from rootshape_jax._tree import batch, stack, unstack
@@ -47,6 +48,14 @@ def roots(rng):
 @pytest.fixture
 def trees(roots):
     return batch(roots, n_points=24, max_laterals=8)
+
+
+@pytest.fixture(scope="module")
+def pca():
+    """A real, tiny TangentPCA: 4 roots, 12 points per curve, a 2-step (unconverged) mean."""
+    rng = np.random.default_rng(7)
+    trees = batch([random_root(rng, n_laterals=2) for _ in range(4)], n_points=12, max_laterals=3)
+    return rs.tangent_pca(rs.karcher_mean(trees, max_steps=2, throw=False, progress=False))
 
 
 def check_png(fig, path, n_axes):
@@ -244,6 +253,32 @@ def test_plot_modes(trees, tmp_path):
         P.plot_modes(modes, alphas[:4])
 
 
+def test_plot_modes_takes_one_component(pca, tmp_path):
+    # modes(..., component=i) has batch shape (n_alphas,): drawn as one row.
+    alphas = [-1.0, 0.0, 1.0]
+    row = rs.modes(pca, alphas, component=1)
+    assert row.batch_shape == (3,)
+    fig, grid = P.plot_modes(row, alphas)
+    check_png(fig, tmp_path / "mode.png", 3)
+    assert len(grid) == 1 and len(grid[0]) == 3
+    assert grid[0][1].get_title() == "mean"
+    assert "PC 1" in grid[0][0].get_ylabel()
+    # `components` names the rows; `explained` is indexed by component.
+    ratio = np.asarray(pca.explained_variance_ratio)
+    _, grid = P.plot_modes(row, alphas, components=1, explained=ratio)
+    assert grid[0][0].get_ylabel() == f"PC 2\n{100 * ratio[1]:.1f} % var."
+    _, grid = P.plot_modes(rs.modes(pca, alphas, component=[0, 1]), alphas, components=[0, 1], explained=ratio)
+    assert [r[0].get_ylabel().split("\n")[0] for r in grid] == ["PC 1", "PC 2"]
+    with pytest.raises(ValueError, match="one per row"):
+        P.plot_modes(row, alphas, components=[0, 1])
+    with pytest.raises(ValueError, match="explained_variance_ratio"):
+        P.plot_modes(row, alphas, components=1, explained=ratio[:1])
+    with pytest.raises(TypeError, match="components"):
+        P.plot_modes(row, alphas, components=1.0)
+    with pytest.raises(ValueError, match=r"\(rows, columns\), or \(columns,\)"):
+        P.plot_modes(stack([stack([row])]), alphas)
+
+
 def test_plot_samples_by_distance(roots, trees, tmp_path, rng):
     dist = rng.uniform(0, 3, size=len(roots))
     fig, grid = P.plot_samples_by_distance(trees, dist, n_groups=3)
@@ -390,6 +425,37 @@ def test_plot_explained_variance(tmp_path):
     assert any("3 components" in t.get_text() for t in ax.texts)
     with pytest.raises(ValueError, match=">= 0"):
         P.plot_explained_variance([1.0, -0.5])
+
+
+def test_plot_explained_variance_takes_a_tangent_pca(pca, tmp_path):
+    fig, ax = P.plot_explained_variance(pca, threshold=0.9)
+    check_png(fig, tmp_path / "ev_pca.png", 1)
+    ratio = np.sort(np.asarray(pca.explained_variance_ratio))[::-1]
+    assert np.allclose([p.get_height() for p in ax.patches], 100 * ratio)
+    # The same bars as from the variances themselves.
+    _, ax2 = P.plot_explained_variance(np.asarray(pca.eigenvalues), threshold=0.9)
+    assert np.allclose([p.get_height() for p in ax2.patches], 100 * ratio)
+    with pytest.raises(TypeError, match="TangentPCA"):
+        P.plot_explained_variance(rs.mds(random_distances(np.random.default_rng(0))))
+    with pytest.raises(TypeError, match="TangentPCA"):
+        P.plot_explained_variance({"pc1": 0.5})
+
+
+def test_plot_mds_takes_an_mds_result(rng, tmp_path):
+    result = rs.mds(random_distances(rng))
+    labels = ["a"] * 3 + ["b"] * 4
+    fig, ax = P.plot_mds(result, labels)
+    check_png(fig, tmp_path / "mds.png", 1)
+    points = np.concatenate([c.get_offsets() for c in ax.collections])
+    expected = np.concatenate([result.embedding[:3], result.embedding[3:]])
+    assert np.allclose(points, expected)
+    # The result's proportion explained goes into the axis names.
+    assert f"({100 * result.proportion_explained[0]:.0f} %" in ax.get_xlabel()
+    _, ax2 = P.plot_mds(result.embedding, labels)
+    assert np.allclose(np.concatenate([c.get_offsets() for c in ax2.collections]), expected)
+    assert "%" not in ax2.get_xlabel()
+    with pytest.raises(TypeError, match="MDS"):
+        P.plot_mds(object())
 
 
 # --------------------------------------------------------------------------------------------

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import numbers
 import os
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -468,7 +469,13 @@ def prune_spurs(skel: np.ndarray, halfwidth: np.ndarray, *, factor: float, min_l
     if not skel.any():
         return skel
     sk = Skeleton(skel)
-    df = summarize(sk, separator="_")
+    with warnings.catch_warnings():
+        # skan's summarize calls DataFrame.rename(inplace=True), which pandas >= 3.1 deprecates
+        # (Pandas4Warning, a DeprecationWarning; a FutureWarning should pandas promote it): on
+        # every image, and skan's to fix, not the user's. Only that message from skan is hidden.
+        for category in (DeprecationWarning, FutureWarning):
+            warnings.filterwarnings("ignore", message="The inplace keyword", category=category, module=r"skan\.")
+        df = summarize(sk, separator="_")
     src = df[["image_coord_src_0", "image_coord_src_1"]].to_numpy().astype(np.int64)
     dst = df[["image_coord_dst_0", "image_coord_dst_1"]].to_numpy().astype(np.int64)
     hw = np.maximum(halfwidth[src[:, 0], src[:, 1]], halfwidth[dst[:, 0], dst[:, 1]])

@@ -7,7 +7,8 @@ from typing import Any
 
 import numpy as np
 
-from ._draw import new_figure, slot_color
+from .._pca import TangentPCA
+from ._draw import as_float_array, new_figure, slot_color
 
 
 def _as_trace(trace: Any, what: str) -> tuple[np.ndarray, np.ndarray]:
@@ -94,7 +95,9 @@ def plot_explained_variance(
 
     **Arguments**
 
-    - `eigenvalues`: the PCA variances σ_i (any order; sorted descending here), ≥ 0.
+    - `eigenvalues`: a `TangentPCA` (from `rootshape_jax.tangent_pca`; its
+      `explained_variance_ratio` is drawn), or the PCA variances σ_i as an array (any order;
+      sorted descending here), ≥ 0.
     - `threshold`: cumulative fraction marked by a dashed line, with the number of components
       needed to reach it (the default kept by `tangent_pca`); None for no mark.
     - `max_components`: show at most this many components (None: all).
@@ -102,7 +105,13 @@ def plot_explained_variance(
 
     **Returns** ``(fig, ax)``.
     """
-    ev = np.asarray(eigenvalues, dtype=float).reshape(-1)
+    if isinstance(eigenvalues, TangentPCA):
+        eigenvalues = eigenvalues.explained_variance_ratio
+    ev = as_float_array(
+        eigenvalues,
+        what="plot_explained_variance",
+        expected="a TangentPCA (rootshape_jax.tangent_pca) or an array of variances",
+    ).reshape(-1)
     if ev.size == 0 or not np.all(np.isfinite(ev)):
         raise ValueError("plot_explained_variance: eigenvalues must be a non-empty finite array.")
     if np.any(ev < -1e-12 * max(float(np.abs(ev).max()), 1e-300)):

@@ -240,16 +240,22 @@ def as_drawing_list(xs: Any, *, what: str) -> list[Drawing]:
 
 
 def as_drawing_grid(xs: Any, *, what: str) -> list[list[Drawing]]:
-    """Rows of roots: a RootTree with two batch axes, or a sequence of rows."""
+    """Rows of roots: a RootTree with two batch axes, one batch axis (a single row), or a
+    sequence of rows."""
     if isinstance(xs, (RootTree, SRVFTree)):
         tree = _curves(xs, what)
-        if len(tree.batch_shape) != 2:
-            raise ValueError(f"{what}: expected a RootTree with batch shape (rows, columns), got {tree.batch_shape}.")
+        if len(tree.batch_shape) not in (1, 2):
+            raise ValueError(
+                f"{what}: expected a RootTree with batch shape (rows, columns), or (columns,) for "
+                f"one row, got {tree.batch_shape}."
+            )
         grid = _tree_drawings(tree)
-        return [list(row) for row in grid]
+        # One batch axis is one row: what modes(pc, alphas, component=i) returns.
+        return [list(grid)] if grid.ndim == 1 else [list(row) for row in grid]
     if isinstance(xs, Root) or not isinstance(xs, Sequence):
         raise TypeError(
-            f"{what}: expected a RootTree of batch shape (rows, columns) or a list of rows, got {type(xs).__name__}."
+            f"{what}: expected a RootTree of batch shape (rows, columns) or (columns,), or a list of rows, got "
+            f"{type(xs).__name__}."
         )
     rows = [as_drawing_list(row, what=f"{what}[{i}]") for i, row in enumerate(xs)]
     if not rows:
@@ -664,6 +670,14 @@ def grid_shape(n: int, ncols: int | None, *, max_cols: int = 8) -> tuple[int, in
     if not isinstance(ncols, int) or ncols < 1:
         raise ValueError(f"ncols must be a positive integer, got {ncols!r}.")
     return math.ceil(n / ncols), ncols
+
+
+def as_float_array(x: Any, *, what: str, expected: str) -> np.ndarray:
+    """`x` as a float array, or a TypeError naming what `what` accepts (`expected`)."""
+    try:
+        return np.asarray(x, dtype=float)
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"{what}: expected {expected}, got {type(x).__name__}.") from e
 
 
 def check_positive(name: str, value: Any) -> None:

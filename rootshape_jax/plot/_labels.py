@@ -7,7 +7,8 @@ from typing import Any
 
 import numpy as np
 
-from ._draw import new_figure
+from .._mds import MDS
+from ._draw import as_float_array, new_figure
 
 # Categorical colours (matplotlib's tab10, then tab20's lighter halves, without their greys,
 # which read as the dendrogram's neutral links): distinct, print-safe.
@@ -109,12 +110,21 @@ def plot_mds(
     ax=None,
     title: str | None = "Roots in two dimensions (classical MDS of the distances)",
 ):
-    """Scatter plot of an MDS embedding (``rootshape_jax.mds(D).embedding``), one colour per
-    label value with a legend; `names` annotate the points (up to 40 roots); `explained`
-    (``MDS.proportion_explained``) goes into the axis names.
+    """Scatter plot of an MDS embedding, one colour per label value with a legend; `names`
+    annotate the points (up to 40 roots); `explained` (``MDS.proportion_explained``) goes into
+    the axis names.
+
+    `embedding` is an `MDS` result (``rootshape_jax.mds(D)``; its `proportion_explained` is
+    the default `explained`) or its ``(n, 2)`` coordinates (``rootshape_jax.mds(D).embedding``).
 
     **Returns** ``(fig, ax)``. Each group is one scatter collection whose label is the group."""
-    X = np.asarray(embedding, dtype=float)
+    if isinstance(embedding, MDS):
+        if explained is None:
+            explained = embedding.proportion_explained
+        embedding = embedding.embedding
+    X = as_float_array(
+        embedding, what="plot_mds", expected="an MDS (rootshape_jax.mds) or an (n, 2) array of coordinates"
+    )
     if X.ndim != 2 or X.shape[1] < 2:
         raise ValueError(f"plot_mds: expected an (n, 2) embedding (mds(D, n_components=2)), got shape {X.shape}.")
     n = X.shape[0]

@@ -424,6 +424,7 @@ def plot_modes(
     alphas: Sequence[float],
     *,
     explained: Sequence[float] | None = None,
+    components: int | Sequence[int] | None = None,
     colors: Any = None,
     linewidth: float = 1.2,
     invert_y: bool = True,
@@ -436,12 +437,16 @@ def plot_modes(
 
     **Arguments**
 
-    - `mode_trees`: a `RootTree` with batch shape ``(n_components, n_alphas)`` or a list of
-      rows (each a batched `RootTree` or a list of roots); entry ``[i][j]`` is
-      ``mean + alphas[j] √σ_i Λ_i``.
+    - `mode_trees`: what `rootshape_jax.modes` returns: a `RootTree` with batch shape
+      ``(n_components, n_alphas)`` (``component=[0, 1, ...]``) or ``(n_alphas,)``, one row
+      (``component=i``); or a list of rows (each a batched `RootTree` or a list of roots).
+      Entry ``[i][j]`` is ``mean + alphas[j] √σ_i Λ_i``.
     - `alphas`: the multiples of the standard deviation, e.g. ``[-2, -1, 0, 1, 2]``; the
       ``α = 0`` column (the mean) is shaded.
-    - `explained`: optional fraction of variance explained by each component (row labels).
+    - `explained`: optional fraction of variance explained by each component, indexed by
+      component (e.g. ``pc.explained_variance_ratio``), shown in the row labels.
+    - `components`: the component of each row, as passed to `modes` (0-based; row ``i`` is
+      labelled ``PC components[i] + 1``); default ``0, 1, ...``.
     - `colors`, `linewidth`, `invert_y`, `projection`, `unit`: as in `plot_root`.
 
     **Returns** ``(fig, axes)`` with `axes` a list of rows of Axes.
@@ -454,10 +459,14 @@ def plot_modes(
                 f"plot_modes: row {i} has {len(row)} roots but {alphas.shape[0]} alphas were "
                 "given; every component needs one root per alpha."
             )
+    comps = _row_components(components, len(rows))
     if explained is not None:
         explained = np.asarray(explained, dtype=float).reshape(-1)
-        if explained.shape[0] < len(rows):
-            raise ValueError(f"plot_modes: explained has {explained.shape[0]} values for {len(rows)} components.")
+        if explained.shape[0] <= max(comps):
+            raise ValueError(
+                f"plot_modes: explained has {explained.shape[0]} values but component {max(comps)} is drawn; "
+                "pass one value per component, e.g. explained=pc.explained_variance_ratio."
+            )
     flat = [d for row in rows for d in row]
     style = _style(colors, True, linewidth, False)
     projection = resolve_projection(flat[0].dim, projection)
@@ -481,9 +490,9 @@ def plot_modes(
             unit=unit,
             scale_bar=(i == nrows - 1),
         )
-        label = f"PC {i + 1}"
+        label = f"PC {comps[i] + 1}"
         if explained is not None:
-            label += f"\n{100 * explained[i]:.1f} % var."
+            label += f"\n{100 * explained[comps[i]]:.1f} % var."
         if projection != "3d":
             axes[0].set_ylabel(label, fontsize=10, rotation=0, ha="right", va="center")
         for j, ax in enumerate(axes):
@@ -495,6 +504,24 @@ def plot_modes(
         grid[0][j].set_title(head.replace("-", _MINUS), fontsize=10)
     _suptitle(fig, title)
     return fig, grid
+
+
+def _row_components(components: Any, nrows: int) -> list[int]:
+    """The component drawn in each row: `components` checked, or 0, 1, ... by default."""
+    if components is None:
+        return list(range(nrows))
+    comps = [components] if isinstance(components, (int, np.integer)) else components
+    if not isinstance(comps, (Sequence, np.ndarray)) or not all(
+        isinstance(c, (int, np.integer)) and not isinstance(c, bool) for c in comps
+    ):
+        raise TypeError(
+            f"plot_modes: components must be a component index or a list of them (one per row), got {components!r}."
+        )
+    if any(c < 0 for c in comps):
+        raise ValueError(f"plot_modes: components are indices >= 0 (as passed to modes), got {components!r}.")
+    if len(comps) != nrows:
+        raise ValueError(f"plot_modes: {len(comps)} components for {nrows} rows of roots; pass one per row.")
+    return [int(c) for c in comps]
 
 
 def plot_samples_by_distance(
