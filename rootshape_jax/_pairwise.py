@@ -74,9 +74,10 @@ def _positive_int(value, name: str) -> int:
 
 #: Lateral-slot pairs (K × K per root pair) a chunk holds by default. The engine carries K × K
 #: arrays for every pair of a chunk and loops until its slowest pair is done, so a chunk of
-#: roots with many slots costs more than its pairs would alone: 32 pairs at the CPlantBox pea
-#: roots' K = 54 (where 32 was measured best), 8 at the RootNav tracings' K = 126 (the matrix
-#: 2.2x faster than with 32, same distances), 1 at SmartRoot maize's K = 842 (12x faster).
+#: roots with many slots costs more than its pairs would alone. Measured (BENCHMARKS.md): the
+#: CPlantBox pea matrix (K = 54) takes the same time in chunks of 32, 16 or 8; the RootNav
+#: tracings' (K = 126) 22.1 s in chunks of 32 and 11.4 s in chunks of 8 (the default here),
+#: same distances; SmartRoot maize (K = 842) with 3 roots 414 s in chunks of 32, 33 s in 1s.
 CHUNK_SLOT_PAIRS = 32 * 64 * 64
 
 
@@ -183,7 +184,7 @@ def pairwise_distances(
 
     Every pair i < j is registered (b = root j onto a = root i) by one compiled program, in
     chunks of `chunk_size` pairs so memory stays bounded (default: 32 for roots of up to 64
-    lateral slots, fewer for more slots, down to 1 at 360; `default_chunk_size`); a tqdm bar
+    lateral slots, fewer for more slots, down to 1 from 257; `default_chunk_size`); a tqdm bar
     shows progress and Ctrl-C stops between chunks. The diagonal is 0. With `return_stats=True` also returns a dict with
     the number of pairs, of lateral DPs run and skipped by the exact pruning bound, and of
     blocks computed and read from a store. Registration options: `registration` (a
