@@ -26,8 +26,8 @@ def tiny(dtype) -> float:
 def require_finite(x: Array, what: str) -> None:
     """`InvalidRootError` when a concrete array holds NaN or inf (traced values are not checked).
 
-    The norms here treat NaN as zero (``NaN > tiny`` is False), so a NaN coordinate would
-    otherwise give a finite, wrong length or distance."""
+    Under jit the norms carry NaN through (a NaN distance), but `safe_normalise` maps a NaN
+    direction to zero: concrete input is refused here, with the point named."""
     if isinstance(x, jax.core.Tracer):
         return
     import numpy as np

@@ -82,8 +82,10 @@ CHUNK_SLOT_PAIRS = 32 * 64 * 64
 
 
 def default_chunk_size(slots: int) -> int:
-    """Pairs per compiled call for roots of `slots` lateral slots: at most 32, at least 1."""
-    return int(min(32, max(1, CHUNK_SLOT_PAIRS // max(1, slots) ** 2)))
+    """Pairs per compiled call for roots of `slots` lateral slots: a power of two (so it divides
+    any power-of-two `block_size`, e.g. the CLI store's 64), at most 32, at least 1."""
+    fit = max(1, CHUNK_SLOT_PAIRS // max(1, slots) ** 2)
+    return int(min(32, 1 << (fit.bit_length() - 1)))
 
 
 def run_pairs(
@@ -184,7 +186,7 @@ def pairwise_distances(
 
     Every pair i < j is registered (b = root j onto a = root i) by one compiled program, in
     chunks of `chunk_size` pairs so memory stays bounded (default: 32 for roots of up to 64
-    lateral slots, fewer for more slots, down to 1 from 257; `default_chunk_size`); a tqdm bar
+    lateral slots, a smaller power of two for more slots, 1 from 257; `default_chunk_size`); a tqdm bar
     shows progress and Ctrl-C stops between chunks. The diagonal is 0. With `return_stats=True` also returns a dict with
     the number of pairs, of lateral DPs run and skipped by the exact pruning bound, and of
     blocks computed and read from a store. Registration options: `registration` (a

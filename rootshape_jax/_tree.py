@@ -645,10 +645,12 @@ def batch(
     no root has radius data both fields are ``None``; if only some have, the others get radius
     0 and a warning names them.
 
-    Raises ``ValueError`` for a dtype other than float32 / float64 (float16 rounds small
-    distances to 0), and `CoordinateRangeError` (naming the root and the fix) for coordinates
-    whose squared lengths would overflow ``dtype`` (`coordinate_limit`: about 1e16 in float32
-    and 8e150 in float64 at ``n_points = 100``).
+    Raises `UnitError` for roots in different units (``metadata["unit"]``; convert them with
+    `rootshape_jax.io.convert_units`, or pass ``normalise_scale=True`` to compare shapes only),
+    ``ValueError`` for a dtype other than float32 / float64 (float16 rounds small distances to
+    0) and for float64 while JAX's 64-bit mode is off, and `CoordinateRangeError` (naming the
+    root and the fix) for coordinates whose squared lengths would overflow ``dtype``
+    (`coordinate_limit`: about 1e16 in float32 and 8e150 in float64 at ``n_points = 100``).
 
     A single `Root` gives an unbatched `RootTree`.
     """
@@ -867,7 +869,7 @@ def _check_units(roots: Sequence[Root]) -> None:
     by_unit: dict[str, list[str]] = {}
     for i, r in enumerate(roots):
         unit = r.metadata.get("unit")
-        if unit is not None:
+        if unit is not None and str(unit).strip():  # "" is no unit, as None
             by_unit.setdefault(unit_key(unit), []).append(f"{_root_label(r, i)} ({unit})")
     if len(by_unit) > 1:
         listed = "; ".join(", ".join(names[:2]) + (" ..." if len(names) > 2 else "") for names in by_unit.values())

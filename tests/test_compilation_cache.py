@@ -77,6 +77,7 @@ def test_engine_programs_are_kept_by_the_persistent_compilation_cache(tmp_path):
     # The mean's full registrations and its fixed-point steps (rotation off, a traced option)
     # share one engine program: compiled once, not once per kind of step.
     assert first["misses"]["jit__full_registration"] == 1, first
+    assert "jit__full_registration" not in first["hits"], first  # not compiled again and read back
     assert "jit_fp_register" not in first["misses"], first
     second = _run(tmp_path)
     assert engine <= set(second["hits"]), second

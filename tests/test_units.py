@@ -301,6 +301,9 @@ def test_batch_refuses_roots_in_different_units_unless_normalised():
         rs.batch(in_unit([a], "inch") + in_unit([b], "pixel"))
     assert rs.batch(in_unit([a], "inch") + in_unit([b], "pixel"), normalise_scale=True).main.shape[0] == 2
     assert rs.batch(in_unit([a], "mm") + in_unit([b], "millimetre")).main.shape[0] == 2
+    assert rs.batch(in_unit([a], "\u00b5m") + in_unit([b], "\u03bcm")).main.shape[0] == 2  # micro sign, Greek mu
+    assert rs.batch(in_unit([a], "Micrometers") + in_unit([b], "um")).main.shape[0] == 2
+    assert rs.batch(in_unit([a], "") + in_unit([b], "inch")).main.shape[0] == 2  # "" is no unit
     no_unit = dataclasses.replace(b, metadata={k: v for k, v in b.metadata.items() if k != "unit"})
     assert rs.batch(in_unit([a], "px") + [no_unit]).main.shape[0] == 2  # no unit: not checked
     lupin = SHARED / "smartroot" / "lupin.rsml"
