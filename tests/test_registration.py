@@ -288,7 +288,7 @@ def test_gradient_wrt_weights_is_the_unweighted_terms():
 def test_clear_errors():
     _, _, a, b = _pair(16)
     ra, rb, a3, b3 = _pair(16, d=3)
-    with pytest.raises(ValueError, match="capacities"):
+    with pytest.raises(ValueError, match="different dimensions \\(2-D and 3-D\\)"):
         rs.register(a, b3)
     with pytest.raises(TypeError, match="RootTree or SRVFTree"):
         rs.register(a, np.zeros((3, 2)))
