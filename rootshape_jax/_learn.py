@@ -517,8 +517,7 @@ class _Fitter:
         self.opts = opts
         self.radii = radii
         if chunk_size is None:
-            # RootTree.laterals and SRVFTree.q both hold (..., K, T, d).
-            chunk_size = default_chunk_size((trees.laterals if isinstance(trees, RootTree) else trees.q).shape[-3])
+            chunk_size = default_chunk_size(trees.capacity)
         self.chunk_size = chunk_size
         self.progress = progress
         self.candidates = _regularisation_candidates(regularisation)

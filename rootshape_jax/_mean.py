@@ -80,7 +80,7 @@ from ._executor import LocalExecutor, executor_for
 from ._metric import Weights, as_weights, level_weight, null_costs, pair_lower_bounds, preshape_terms, system_weights
 from ._rotation import optimal_rotation
 from ._tangent import LevelParams, TreeParams, branch_weight, params_of, params_to_tree, unwhiten, whiten, whitening
-from ._tree import RootTree, SRVFLevel, SRVFTree, batch_size, check_compatible, to_curves, to_srvf
+from ._tree import RootTree, SRVFLevel, SRVFTree, batch_size, check_compatible, is_traced, to_curves, to_srvf
 
 # --------------------------------------------------------------------------------------------
 # Result
@@ -901,7 +901,7 @@ def karcher_mean(
             f"karcher_mean: trees must be a batched RootTree or SRVFTree (rootshape_jax.batch), "
             f"got {type(trees).__name__}."
         )
-    if isinstance(trees.main if isinstance(trees, RootTree) else trees.q0, jax.core.Tracer):
+    if is_traced(trees):
         raise TypeError(
             "karcher_mean cannot run under jax.jit or jax.vmap: its steps are driven from Python (progress, "
             "convergence checks, blocks on worker threads), each a compiled program already. Call it "

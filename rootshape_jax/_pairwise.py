@@ -21,7 +21,7 @@ from jaxtyping import Array, Float
 from ._engine import METRIC_REVISION, RegistrationOptions, pair_distances_squared, registration_options
 from ._executor import BlockStore, LocalExecutor, executor_for, fingerprint
 from ._metric import Weights, as_weights
-from ._tree import RootTree, SRVFTree, batch_size, check_compatible, to_srvf
+from ._tree import RootTree, SRVFTree, batch_size, check_compatible, is_traced, to_srvf
 
 
 @eqx.filter_jit
@@ -93,7 +93,7 @@ def run_pairs(
 ):
     """Squared distances of the listed pairs, and stats: local or on a cluster, with a store."""
     if chunk_size is None:
-        chunk_size = default_chunk_size(max(s.q.shape[-3], t.q.shape[-3]))
+        chunk_size = default_chunk_size(s.capacity)  # t's equals it (check_compatible)
     chunk_size = _positive_int(chunk_size, "chunk_size")
     executor = executor_for(client)
     local = isinstance(executor, LocalExecutor)
@@ -155,7 +155,7 @@ def _as_batch(trees, name, weights) -> SRVFTree:
         raise TypeError(
             f"{name} must be a batched RootTree or SRVFTree (rootshape_jax.batch(roots)), got {type(trees).__name__}."
         )
-    if isinstance(trees.main if isinstance(trees, RootTree) else trees.q0, jax.core.Tracer):
+    if is_traced(trees):
         raise TypeError(
             f"{name.split(':')[0]} cannot run under jax.jit or jax.vmap: it loops over chunks of pairs in "
             "Python (progress bar, Ctrl-C, store), each chunk a compiled program already. Call it outside "

@@ -863,14 +863,21 @@ def _has_radius(root: Root, depth: int) -> bool:
     return depth > 2 and any(_has_radius(c, depth - 1) for c in root.children)
 
 
+def is_traced(tree: RootTree | SRVFTree) -> bool:
+    """Whether `tree` is being traced (under jit or vmap): the host-driven loops
+    (`pairwise_distances`, `karcher_mean`) refuse it with a clear error."""
+    return isinstance(tree.main if isinstance(tree, RootTree) else tree.q0, jax.core.Tracer)
+
+
 def _check_units(roots: Sequence[Root]) -> None:
     """`UnitError` for roots in different units (``metadata["unit"]``, set by the readers): their
     sizes cannot be compared. Roots without a unit are not checked."""
     by_unit: dict[str, list[str]] = {}
     for i, r in enumerate(roots):
         unit = r.metadata.get("unit")
-        if unit is not None and str(unit).strip():  # "" is no unit, as None
-            by_unit.setdefault(unit_key(unit), []).append(f"{_root_label(r, i)} ({unit})")
+        key = unit_key(unit)
+        if key is not None:
+            by_unit.setdefault(key, []).append(f"{_root_label(r, i)} ({unit})")
     if len(by_unit) > 1:
         listed = "; ".join(", ".join(names[:2]) + (" ..." if len(names) > 2 else "") for names in by_unit.values())
         raise UnitError(

@@ -36,9 +36,12 @@ MM_PER_UNIT = {
 PIXEL_UNITS = ("pixel", "pixels", "px")
 
 
-def unit_key(unit: str) -> str:
-    """One key per unit, whatever its spelling ("mm" and "millimetre", "px" and "pixel")."""
-    key = str(unit).strip().lower()
+def unit_key(unit: str | None) -> str | None:
+    """One key per unit, whatever its spelling ("mm" and "millimetre", "px" and "pixel"); None
+    for no unit (None or "")."""
+    key = "" if unit is None else str(unit).strip().lower()
+    if not key:
+        return None
     if key in PIXEL_UNITS:
         return "pixel"
     return f"{MM_PER_UNIT[key]:g} mm" if key in MM_PER_UNIT else key

@@ -234,8 +234,9 @@ def _check_units(roots: list, normalised: bool, command: str | None = None) -> b
     names: dict[str, str] = {}
     for r in roots:
         unit = r.metadata.get("unit")
-        if unit is not None and str(unit).strip():  # "" is no unit, as None
-            unit = names.setdefault(unit_key(unit), str(unit))
+        key = unit_key(unit)
+        if key is not None:
+            unit = names.setdefault(key, str(unit))
             source = r.metadata.get("source_file")
             by_unit.setdefault(str(unit), []).append(Path(source).name if source else str(r.name))
     if len(by_unit) < 2:
