@@ -316,6 +316,17 @@ class LearnedWeights(eqx.Module):
     regularisation: float
     regularisation_scores: np.ndarray | None
 
+    def __repr__(self) -> str:
+        # The numbers a user looks for first; equinox's default would print `weights` as
+        # `weak_f32[]` summaries (the values are arrays, for differentiating through them).
+        trace = ", ".join(f"{v:.4g}" for v in np.asarray(self.loss_trace, dtype=float))
+        n = np.shape(self.distances)[0]
+        return (
+            f"LearnedWeights(weights={self.weights!r}, status={self.status!r}, loss_trace=[{trace}], "
+            f"steps={self.steps}, n_reregistrations={self.n_reregistrations}, softness={self.softness:.4g}, "
+            f"regularisation={self.regularisation:.4g}, distances=<{n}×{n} matrix>)"
+        )
+
 
 def _regularisation_candidates(regularisation) -> tuple[float, ...]:
     values = regularisation if isinstance(regularisation, (list, tuple, np.ndarray)) else [regularisation]

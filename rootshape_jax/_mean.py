@@ -901,7 +901,7 @@ def karcher_mean(
             f"karcher_mean: trees must be a batched RootTree or SRVFTree (rootshape_jax.batch), "
             f"got {type(trees).__name__}."
         )
-    if is_traced(trees):
+    if is_traced(trees, weights, init, distances):
         raise TypeError(
             "karcher_mean cannot run under jax.jit or jax.vmap: its steps are driven from Python (progress, "
             "convergence checks, blocks on worker threads), each a compiled program already. Call it "

@@ -155,7 +155,7 @@ def _as_batch(trees, name, weights) -> SRVFTree:
         raise TypeError(
             f"{name} must be a batched RootTree or SRVFTree (rootshape_jax.batch(roots)), got {type(trees).__name__}."
         )
-    if is_traced(trees):
+    if is_traced(trees, weights):
         raise TypeError(
             f"{name.split(':')[0]} cannot run under jax.jit or jax.vmap: it loops over chunks of pairs in "
             "Python (progress bar, Ctrl-C, store), each chunk a compiled program already. Call it outside "

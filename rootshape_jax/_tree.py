@@ -863,10 +863,11 @@ def _has_radius(root: Root, depth: int) -> bool:
     return depth > 2 and any(_has_radius(c, depth - 1) for c in root.children)
 
 
-def is_traced(tree: RootTree | SRVFTree) -> bool:
-    """Whether `tree` is being traced (under jit or vmap): the host-driven loops
-    (`pairwise_distances`, `karcher_mean`) refuse it with a clear error."""
-    return isinstance(tree.main if isinstance(tree, RootTree) else tree.q0, jax.core.Tracer)
+def is_traced(*pytrees) -> bool:
+    """Whether any array of `pytrees` (trees, weights, ...) is being traced (under jit or
+    vmap): the host-driven loops (`pairwise_distances`, `karcher_mean`) refuse it with a clear
+    error."""
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(pytrees))
 
 
 def _check_units(roots: Sequence[Root]) -> None:

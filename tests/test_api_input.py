@@ -177,6 +177,13 @@ def test_chunked_python_loops_say_they_cannot_be_jitted():
         jax.jit(lambda t: rs.cross_distances(t, t, progress=False))(trees)
     with pytest.raises(TypeError, match="karcher_mean cannot run under jax.jit.*karcher_objective"):
         jax.jit(lambda t: rs.karcher_mean(t, progress=False).energy)(trees)
+    # Concrete trees, traced weights (or start): the same clear error, not numpy's from inside.
+    with pytest.raises(TypeError, match="pairwise_distances cannot run under jax.jit"):
+        jax.jit(lambda lam: rs.pairwise_distances(trees, weights=rs.Weights(main=lam), progress=False))(0.02)
+    with pytest.raises(TypeError, match="karcher_mean cannot run under jax.jit"):
+        jax.jit(lambda lam: rs.karcher_mean(trees, weights=rs.Weights(main=lam), progress=False).energy)(0.02)
+    with pytest.raises(TypeError, match="karcher_mean cannot run under jax.jit"):
+        jax.jit(lambda t: rs.karcher_mean(trees, init=t, progress=False).energy)(rs.unstack(trees)[0])
 
 
 def test_default_chunk_size_follows_the_lateral_slots(monkeypatch):

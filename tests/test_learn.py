@@ -168,6 +168,10 @@ def test_learned_weights_up_weight_position_and_reproduce_the_matrix():
     # The returned matrix is the engine's at the learned weights.
     D = np.asarray(rs.pairwise_distances(trees, weights=w, progress=False))
     np.testing.assert_allclose(res.distances, D, rtol=1e-10, atol=1e-12)
+    # Printed, the result shows the learned numbers, not equinox's dtype summaries.
+    text = repr(res)
+    assert f"main={float(w.main):.6g}" in text and f"status={res.status!r}" in text
+    assert f"{res.loss_trace[-1]:.4g}" in text and "weak_f32" not in text and "f64[]" not in text
 
 
 @pytest.mark.slow

@@ -51,11 +51,16 @@ def trees(roots):
 
 
 @pytest.fixture(scope="module")
-def pca():
-    """A real, tiny TangentPCA: 4 roots, 12 points per curve, a 2-step (unconverged) mean."""
+def mean():
+    """A real, tiny KarcherMean: 4 roots, 12 points per curve, 2 (unconverged) steps."""
     rng = np.random.default_rng(7)
     trees = batch([random_root(rng, n_laterals=2) for _ in range(4)], n_points=12, max_laterals=3)
-    return rs.tangent_pca(rs.karcher_mean(trees, max_steps=2, throw=False, progress=False))
+    return rs.karcher_mean(trees, max_steps=2, throw=False, progress=False)
+
+
+@pytest.fixture(scope="module")
+def pca(mean):
+    return rs.tangent_pca(mean)
 
 
 def check_png(fig, path, n_axes):
@@ -279,6 +284,29 @@ def test_plot_modes_takes_one_component(pca, tmp_path):
         P.plot_modes(stack([stack([row])]), alphas)
 
 
+def test_plot_modes_takes_a_tangent_pca(pca, tmp_path):
+    # Given the PCA, the rows are labelled by the components drawn and `explained` comes with it.
+    alphas = [-1.0, 0.0, 1.0]
+    ratio = np.asarray(pca.explained_variance_ratio)
+    fig, grid = P.plot_modes(pca, alphas, components=1)
+    check_png(fig, tmp_path / "mode_pca.png", 3)
+    assert len(grid) == 1 and grid[0][0].get_ylabel() == f"PC 2\n{100 * ratio[1]:.1f} % var."
+    # The same drawing as from the tree `modes` returns.
+    _, from_tree = P.plot_modes(rs.modes(pca, alphas, component=1), alphas, components=1)
+    for a, b in zip(grid[0], from_tree[0]):
+        (segs_a, _), (segs_b, _) = segments_and_colors(a), segments_and_colors(b)
+        assert len(segs_a) == len(segs_b) > 0
+        for sa, sb in zip(segs_a, segs_b):
+            np.testing.assert_allclose(sa, sb)
+    _, grid = P.plot_modes(pca, alphas)
+    n_rows = max(1, min(3, pca.n_components))
+    assert [r[0].get_ylabel().split("\n")[0] for r in grid] == [f"PC {i + 1}" for i in range(n_rows)]
+    with pytest.raises(ValueError, match="out of range"):
+        P.plot_modes(pca, alphas, components=[0, 99])
+    with pytest.raises(TypeError, match="components"):
+        P.plot_modes(pca, alphas, components=1.0)
+
+
 def test_plot_samples_by_distance(roots, trees, tmp_path, rng):
     dist = rng.uniform(0, 3, size=len(roots))
     fig, grid = P.plot_samples_by_distance(trees, dist, n_groups=3)
@@ -412,6 +440,17 @@ def test_plot_energy_trace(tmp_path):
         P.plot_energy_trace([np.nan, np.nan])
     with pytest.raises(ValueError, match="1D"):
         P.plot_energy_trace(np.ones((2, 3)))
+    with pytest.raises(TypeError, match="KarcherMean"):
+        P.plot_energy_trace(object())
+
+
+def test_plot_energy_trace_takes_a_karcher_mean(mean, tmp_path):
+    finite = np.asarray(mean.energy_trace)[np.isfinite(mean.energy_trace)]
+    for given in (mean, {"fixed point": mean}):
+        fig, ax = P.plot_energy_trace(given)
+        check_png(fig, tmp_path / "energy_mean.png", 1)
+        (line,) = ax.get_lines()
+        np.testing.assert_allclose(line.get_ydata(), finite)
 
 
 def test_plot_explained_variance(tmp_path):

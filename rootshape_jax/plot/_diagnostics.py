@@ -7,12 +7,15 @@ from typing import Any
 
 import numpy as np
 
+from .._mean import KarcherMean
 from .._pca import TangentPCA
 from ._draw import as_float_array, new_figure, slot_color
 
 
 def _as_trace(trace: Any, what: str) -> tuple[np.ndarray, np.ndarray]:
-    y = np.asarray(trace, dtype=float)
+    if isinstance(trace, KarcherMean):
+        trace = trace.energy_trace
+    y = as_float_array(trace, what=what, expected="a KarcherMean or a 1D array of energies per iteration")
     if y.ndim != 1:
         raise ValueError(f"{what}: expected a 1D array of energies per iteration, got shape {y.shape}.")
     # Solvers pad the steps they did not take with NaN / inf: those are not iterations.
@@ -34,8 +37,9 @@ def plot_energy_trace(
 
     **Arguments**
 
-    - `trace`: a 1D array (non-finite entries, the padding of unused steps, are skipped), or a
-      mapping ``{label: trace}`` to compare several runs (e.g. two solvers).
+    - `trace`: a `KarcherMean` (from `rootshape_jax.karcher_mean`; its `energy_trace` is
+      drawn), a 1D array (non-finite entries, the padding of unused steps, are skipped), or a
+      mapping ``{label: either}`` to compare several runs (e.g. two solvers).
     - `ax`: an Axes to draw into; a new figure when None.
     - `log`: logarithmic energy axis; None chooses it when the energies are positive and span
       more than a factor of 20.

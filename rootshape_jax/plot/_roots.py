@@ -24,6 +24,8 @@ from typing import Any
 import numpy as np
 from matplotlib.ticker import MaxNLocator
 
+from .._pca import TangentPCA, modes
+
 from ._draw import (
     COLUMNS,
     Frame,
@@ -437,10 +439,13 @@ def plot_modes(
 
     **Arguments**
 
-    - `mode_trees`: what `rootshape_jax.modes` returns: a `RootTree` with batch shape
-      ``(n_components, n_alphas)`` (``component=[0, 1, ...]``) or ``(n_alphas,)``, one row
-      (``component=i``); or a list of rows (each a batched `RootTree` or a list of roots).
-      Entry ``[i][j]`` is ``mean + alphas[j] √σ_i Λ_i``.
+    - `mode_trees`: a `TangentPCA` (``rootshape_jax.tangent_pca``): its modes are computed
+      for `components` (default: the first three, at most `n_components`), and `explained`
+      defaults to its `explained_variance_ratio`. Or what `rootshape_jax.modes` returns: a
+      `RootTree` with batch shape ``(n_components, n_alphas)`` (``component=[0, 1, ...]``) or
+      ``(n_alphas,)``, one row (``component=i``; pass the same ``components=i`` here, the
+      tree does not record it); or a list of rows (each a batched `RootTree` or a list of
+      roots). Entry ``[i][j]`` is ``mean + alphas[j] √σ_i Λ_i``.
     - `alphas`: the multiples of the standard deviation, e.g. ``[-2, -1, 0, 1, 2]``; the
       ``α = 0`` column (the mean) is shaded.
     - `explained`: optional fraction of variance explained by each component, indexed by
@@ -451,6 +456,14 @@ def plot_modes(
 
     **Returns** ``(fig, axes)`` with `axes` a list of rows of Axes.
     """
+    if isinstance(mode_trees, TangentPCA):
+        if components is None:
+            components = list(range(max(1, min(3, mode_trees.n_components))))
+        if explained is None:
+            explained = mode_trees.explained_variance_ratio
+        one = not isinstance(components, (Sequence, np.ndarray))
+        comps = _row_components(components, 1 if one else len(components))
+        mode_trees = modes(mode_trees, alphas, component=comps)
     rows = as_drawing_grid(mode_trees, what="plot_modes: mode_trees")
     alphas = np.asarray(alphas, dtype=float).reshape(-1)
     for i, row in enumerate(rows):
