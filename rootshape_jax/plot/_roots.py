@@ -25,7 +25,6 @@ import numpy as np
 from matplotlib.ticker import MaxNLocator
 
 from .._pca import TangentPCA, modes
-
 from ._draw import (
     COLUMNS,
     Frame,
