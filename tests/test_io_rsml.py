@@ -357,6 +357,43 @@ def test_round_trip_random_roots(tmp_path, d):
     assert len(ids) == len(set(ids))  # unique ids
 
 
+def test_write_keeps_plants_of_different_files_apart(tmp_path):
+    """Found on the Arabidopsis plate: three dates' files each number their seedlings 1-5, and
+    writing the 15 together made 5 plants of 3 axes, each mixing the dates, in a new order."""
+    import dataclasses
+
+    rng = np.random.default_rng(4)
+
+    def from_file(name, plant, file):
+        r = _random_root(rng, name=name, plant=plant)
+        return dataclasses.replace(r, metadata={**r.metadata, "file": file})
+
+    roots = [
+        from_file("a1", "1", "day1.rsml"),
+        from_file("a2", "2", "day1.rsml"),
+        from_file("b1", "1", "day2.rsml"),
+        from_file("a1-axis2", "1", "day1.rsml"),  # a second axis of day 1's plant 1
+        from_file("b2", "2", "day2.rsml"),
+        _random_root(rng, name="loose"),
+    ]
+    path = tmp_path / "combined.rsml"
+    write_rsml(roots, path)
+    plants = ET.parse(path).getroot().find("scene").findall("plant")
+    assert [p.get("id") for p in plants] == ["1", "2", "1-2", "2-2", "3"]
+    assert [[r.get("label") for r in p.findall("root")] for p in plants] == [
+        ["a1", "a1-axis2"],
+        ["a2"],
+        ["b1"],
+        ["b2"],
+        ["loose"],
+    ]
+    back = _read_quiet(path)
+    assert [b.name for b in back] == ["a1", "a1-axis2", "a2", "b1", "b2", "loose"]
+    by_name = {r.name: r for r in roots}
+    for b in back:
+        _compare_roots(by_name[b.name], b, children=False)
+
+
 def test_round_trip_units_and_resolution(tmp_path):
     (r,) = _read_quiet(DATA / "smartroot_like.rsml")
     path = tmp_path / "inch.rsml"

@@ -109,6 +109,22 @@ def test_real_round_trip(tmp_path, path):
         assert b.metadata["unit"] == a.metadata["unit"]
 
 
+def test_plate_dates_written_together_stay_fifteen_plants(tmp_path):
+    """The three dates' files each number their seedlings 1-5: written together they were 5
+    plants of 3 axes mixing the dates. Now 15 plants, in the input order."""
+    files = sorted((DATA / "rsml" / "arabidopsis_plate").glob("*.rsml"))
+    roots = [r for f in files for r in read_rsml(f)]
+    assert len(roots) == 15 and len({r.metadata["plant_id"] for r in roots}) == 5
+    out = tmp_path / "plate.rsml"
+    write_rsml(roots, out)
+    assert len(read_rsml(out, by="plant")) == 15
+    back = read_rsml(out, strict=True)
+    assert len(back) == 15
+    for a, b in zip(roots, back):
+        np.testing.assert_allclose(b.main, a.main, rtol=1e-9)
+        assert b.n_laterals == a.n_laterals
+
+
 # The seedling region of the plate (rows, then columns), inside the plate's rim and above its
 # hand-written labels; thin roots on a photographed plate need background flattening.
 _PLATE_OPTS = dict(roi=(450, 1200, 1450, 2950), background=15, threshold="triangle", min_root_length=150, close_gaps=7)

@@ -817,6 +817,20 @@ def _nearest_node(poly: np.ndarray, fraction: float) -> int:
     return int(np.argmin(np.abs(cum - fraction * cum[-1])))
 
 
+def _free_id(taken: set[str], stem) -> str:
+    """A plant id not in `taken`: `stem`-2, -3, ... for a plant id another file used already,
+    1, 2, ... for a root without one."""
+    if isinstance(stem, int):
+        k = 1
+        while str(k) in taken:
+            k += 1
+        return str(k)
+    k = 2
+    while f"{stem}-{k}" in taken:
+        k += 1
+    return f"{stem}-{k}"
+
+
 def write_rsml(
     roots: Root | Sequence[Root],
     path: str | os.PathLike,
@@ -839,8 +853,10 @@ def write_rsml(
       for pixel units.
     - `software`: written in ``<metadata><software>``.
 
-    **Layout**: roots sharing ``metadata["plant_id"]`` are written in one ``<plant>`` (in
-    first-seen order); a root without it gets its own plant. Each root's ``name`` is its
+    **Layout**: roots sharing ``metadata["plant_id"]`` and ``metadata["file"]`` (as read) are
+    written in one ``<plant>`` (in first-seen order); a root without a plant id gets its own
+    plant. A plant id that roots of another file used already is written as ``id-2``, ``id-3``,
+    .... Each root's ``name`` is its
     ``label``, its id is ``metadata["root_id"]`` when set and unused, else a generated unique
     id. Laterals are child ``<root>``s with a ``parent-node`` property (index of the main
     polyline point nearest to the attachment); `Root.children` are written recursively (a
@@ -912,26 +928,27 @@ def write_rsml(
             ET.SubElement(ts, "index").text = str(t_index)
     scene = ET.SubElement(top, "scene")
 
-    # Plants: group by metadata plant id, keep first-seen order.
-    groups: dict[str, list[Root]] = {}
-    plant_meta: dict[str, Root] = {}
+    # Plants: group by (source file, plant id), keep first-seen order. Plant ids are only
+    # unique within a file: seedling 1 of three dates' files are three plants.
+    groups: dict[tuple, list[Root]] = {}
+    plant_ids: dict[tuple, str] = {}
     used_pids = {str(r.metadata["plant_id"]) for r in roots if r.metadata.get("plant_id") is not None}
-    next_pid = 1
-    for r in roots:
+    written: set[str] = set()
+    for i, r in enumerate(roots):
         pid = r.metadata.get("plant_id")
-        if pid is None:
-            while str(next_pid) in used_pids:
-                next_pid += 1
-            pid = str(next_pid)
-            used_pids.add(pid)
-        pid = str(pid)
-        groups.setdefault(pid, []).append(r)
-        plant_meta.setdefault(pid, r)
+        key = ("", i) if pid is None else (str(r.metadata.get("file", "")), str(pid))
+        if key not in groups:
+            name = key[1] if pid is not None and key[1] not in written else _free_id(used_pids | written, key[1])
+            written.add(name)
+            plant_ids[key] = name
+            groups[key] = []
+        groups[key].append(r)
 
     used_ids: set[str] = set()
 
-    for pid, members in groups.items():
-        first = plant_meta[pid]
+    for key, members in groups.items():
+        pid = plant_ids[key]
+        first = members[0]
         attrs = {"id": pid}
         if first.metadata.get("plant_label"):
             attrs["label"] = str(first.metadata["plant_label"])
