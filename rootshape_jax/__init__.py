@@ -13,6 +13,7 @@ from ._cluster import (
     Clustering as Clustering,
     cluster as cluster,
     confusion_matrix as confusion_matrix,
+    contingency_table as contingency_table,
     loo_accuracy as loo_accuracy,
 )
 from ._curves import (

@@ -169,18 +169,55 @@ def loo_accuracy(distances, labels, *, rule: str = "nearest_neighbour") -> dict:
     return {"accuracy": float(correct.mean()), "predicted": predicted, "correct": correct}
 
 
-def confusion_matrix(labels, predicted, classes: Sequence | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Counts ``C[i, j]`` of roots of class i predicted as class j, with the class order."""
+def _check_pair(labels, other, what: str, other_name: str) -> tuple[np.ndarray, np.ndarray]:
     y = np.asarray(labels)
-    p = np.asarray(predicted)
+    p = np.asarray(other)
     if y.shape != p.shape or y.ndim != 1:
         raise ValueError(
-            f"confusion_matrix: labels and predicted must be two 1-D sequences of one length, got "
+            f"{what}: labels and {other_name} must be two 1-D sequences of one length, got "
             f"shapes {y.shape} and {p.shape}."
         )
-    classes = np.unique(np.concatenate([y, p])) if classes is None else np.asarray(classes)
+    return y, p
+
+
+def _is_text(x: np.ndarray) -> bool:
+    return x.dtype.kind in "USO"
+
+
+def confusion_matrix(labels, predicted, classes: Sequence | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Counts ``C[i, j]`` of roots of class i predicted as class j, with the class order.
+
+    `predicted` names classes of `labels` (e.g. `loo_accuracy`'s "predicted"). To set
+    clusters against labels (cluster numbers are not classes), use `contingency_table`.
+    """
+    y, p = _check_pair(labels, predicted, "confusion_matrix", "predicted")
+    if classes is None:
+        if _is_text(y) != _is_text(p) and not set(p.tolist()) <= set(y.tolist()):
+            raise ValueError(
+                f"confusion_matrix: predicted holds {sorted(set(p.tolist()))[:6]} but the labels' classes are "
+                f"{sorted(set(y.tolist()))[:6]}: predictions must name the labels' classes. To compare "
+                "clusters with labels use rootshape_jax.contingency_table(labels, clustering.labels)."
+            )
+        classes = np.unique(np.concatenate([y, p]))
+    else:
+        classes = np.asarray(classes)
     index = {c: k for k, c in enumerate(classes.tolist())}
+    unknown = sorted({v for v in y.tolist() + p.tolist() if v not in index}, key=str)
+    if unknown:
+        raise ValueError(f"confusion_matrix: {unknown[:6]} are not among classes {classes.tolist()[:6]}.")
     C = np.zeros((len(classes), len(classes)), dtype=np.int64)
     for a, b in zip(y.tolist(), p.tolist()):
         C[index[a], index[b]] += 1
     return C, classes
+
+
+def contingency_table(labels, groups) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Counts ``T[i, j]`` of roots of class i (`labels`) in group j (`groups`, e.g. the flat
+    clusters ``cluster(D).labels``): how clusters split known classes. Returns ``(T, classes,
+    group ids)``, both sorted; rows and columns need not match in number or kind."""
+    y, g = _check_pair(labels, groups, "contingency_table", "groups")
+    classes, rows = np.unique(y, return_inverse=True)
+    ids, cols = np.unique(g, return_inverse=True)
+    T = np.zeros((len(classes), len(ids)), dtype=np.int64)
+    np.add.at(T, (rows.reshape(-1), cols.reshape(-1)), 1)
+    return T, classes, ids

@@ -92,6 +92,38 @@ def test_confusion_matrix():
     np.testing.assert_array_equal(C, [[1, 1], [0, 2]])
 
 
+def test_confusion_matrix_refuses_cluster_numbers_for_classes():
+    """Found on the plate: dates (strings) against cluster numbers raised KeyError: 0."""
+    dates = np.array(["19 Nov", "19 Nov", "20 Nov", "21 Nov", "21 Nov"])
+    with pytest.raises(ValueError, match="contingency_table"):
+        confusion_matrix(dates, np.array([0, 0, 1, 1, 2]))
+    with pytest.raises(ValueError, match="not among classes"):
+        confusion_matrix(["a", "b"], ["a", "c"], classes=["a", "b"])
+    # Integer classes predicted as integer classes stay a confusion matrix.
+    C, classes = confusion_matrix([1, 2, 2], [1, 1, 3])
+    np.testing.assert_array_equal(classes, [1, 2, 3])
+    np.testing.assert_array_equal(C, [[1, 0, 0], [1, 0, 1], [0, 0, 0]])
+
+
+def test_contingency_table_against_counting():
+    rng = np.random.default_rng(5)
+    dates = rng.choice(["19 Nov", "20 Nov", "21 Nov"], size=40)
+    clusters = rng.integers(0, 4, size=40)
+    T, classes, ids = rs.contingency_table(dates, clusters)
+    assert classes.tolist() == sorted(set(dates.tolist())) and ids.tolist() == sorted(set(clusters.tolist()))
+    for i, c in enumerate(classes):
+        for j, k in enumerate(ids):
+            assert T[i, j] == np.sum((dates == c) & (clusters == k))
+    assert T.sum() == 40
+    # From a real clustering: each cluster's column counts its members.
+    pts, labels = _points()
+    cl = cluster(_D(pts), n_clusters=3)
+    T, classes, ids = rs.contingency_table(labels, cl.labels)
+    np.testing.assert_array_equal(T.sum(axis=0), np.bincount(cl.labels))
+    with pytest.raises(ValueError, match="one length"):
+        rs.contingency_table(dates, clusters[:5])
+
+
 def test_bad_input():
     D = _D(_points()[0])
     with pytest.raises(ValueError, match="square"):
