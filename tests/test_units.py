@@ -327,3 +327,16 @@ def test_batch_float64_without_x64_is_an_error_not_float32():
             rs.batch([a], dtype=np.float64)
         assert rs.batch([a]).main.dtype == np.float32
     assert rs.batch([a], dtype=np.float64).main.dtype == np.float64
+
+
+def test_compare_to_tracing_refuses_two_units():
+    """Found on RootNav: an image read in mm against its tracing in px matched no plant
+    (recall 0, length ratio 0.093) and said nothing."""
+    a, b = synthetic_roots(2, seed=6)
+    with pytest.raises(rs.UnitError, match=r"extracted roots are in mm and the traced roots in pixel.*convert_units"):
+        io.compare_to_tracing(in_unit([a], "mm"), in_unit([b], "pixel"), elastic=False)
+    # One unit (any spelling), or no unit on one side, is compared as before.
+    same = io.compare_to_tracing(in_unit([a], "mm"), in_unit([a], "millimetre"), elastic=False)
+    assert len(same.plants) == 1 and same.recall == 1.0
+    no_unit = dataclasses.replace(a, metadata={k: v for k, v in a.metadata.items() if k != "unit"})
+    assert len(io.compare_to_tracing([no_unit], in_unit([a], "pixel"), elastic=False).plants) == 1

@@ -8,7 +8,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .._errors import UnitError
 from .._root import Root
+from .._units import unit_key
 
 
 def total_length(root: Root) -> float:
@@ -57,6 +59,25 @@ def _base(root: Root) -> np.ndarray:
     return np.asarray(root.main[0, :2], dtype=np.float64)
 
 
+def _check_same_unit(extracted: list[Root], traced: list[Root]) -> None:
+    """`UnitError` when the two sets name different units: lengths, bases and `tolerance`
+    would compare numbers in different units (an image read in mm against a tracing in px
+    matched no plant and scored recall 0). Roots without a unit are not checked."""
+    units = {}
+    for name, roots in (("extracted", extracted), ("traced", traced)):
+        named = {unit_key(r.metadata.get("unit")): r.metadata.get("unit") for r in roots}
+        named.pop(None, None)
+        units[name] = named
+    ext, tr = units["extracted"], units["traced"]
+    if ext and tr and set(ext) != set(tr):
+        raise UnitError(
+            f"compare_to_tracing: the extracted roots are in {', '.join(map(str, ext.values()))} and the traced "
+            f"roots in {', '.join(map(str, tr.values()))}; compare them in one unit: "
+            "rootshape_jax.io.convert_units(roots, unit) on one side (pixels need a resolution), or "
+            "read the image without pixels_per_mm to keep pixels."
+        )
+
+
 def compare_to_tracing(
     extracted: Sequence[Root],
     traced: Sequence[Root],
@@ -71,7 +92,8 @@ def compare_to_tracing(
     **Arguments**
 
     - `extracted`, `traced`: root systems in the same coordinates (e.g. `roots_from_image` and
-      `read_rsml` of the same photograph, both in pixels).
+      `read_rsml` of the same photograph, both in pixels); different ``metadata["unit"]`` on
+      the two sides is a `UnitError`.
     - `elastic`: also compute the elastic distance of each matched pair (slower: one
       registration per pair).
     - `n_points`: points per branch for the elastic distance.
@@ -91,6 +113,7 @@ def compare_to_tracing(
     for name, roots in (("extracted", extracted), ("traced", traced)):
         if not all(isinstance(r, Root) for r in roots):
             raise TypeError(f"compare_to_tracing: {name} must be a sequence of Root.")
+    _check_same_unit(extracted, traced)
     total_e = sum(total_length(r) for r in extracted)
     total_t = sum(total_length(r) for r in traced)
     overall = total_e / total_t if total_t > 0 else math.nan
