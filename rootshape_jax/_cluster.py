@@ -25,7 +25,13 @@ LINKAGE_METHODS = ("single", "complete", "average", "weighted", "ward", "centroi
 
 
 def check_distances(distances) -> np.ndarray:
-    D = np.asarray(distances, dtype=np.float64)
+    try:
+        D = np.asarray(distances, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise TypeError(
+            f"distances must be an (n, n) matrix of distances, got {type(distances).__name__}; for roots, "
+            "compute it first: rootshape_jax.pairwise_distances(trees)."
+        ) from None
     if D.ndim != 2 or D.shape[0] != D.shape[1]:
         raise ValueError(f"distances must be a square (n, n) matrix, got shape {D.shape}.")
     if not np.all(np.isfinite(D)):

@@ -17,13 +17,13 @@ def geodesic_srvf(a: SRVFTree, registered_b: SRVFTree, taus) -> SRVFTree:
     """Points ``(1 − τ) a + τ b`` of the straight line between a and registered b.
 
     A null lateral takes its partner's attachment fraction at both ends, so a lateral that
-    exists on one side only grows from (or shrinks to) zero length at a fixed position.
+    exists on one side only grows from (or shrinks to) zero length at a fixed position; it is
+    real (masked in) at every point but that end, where it is a null as in the input.
     The result has a leading axis over `taus`. Deeper levels (docs/design.md §11) follow the
     same rule slot by slot, so matched branches keep their slot at every level.
     """
     s_a = jnp.where(a.mask, a.s, registered_b.s)
     s_b = jnp.where(registered_b.mask, registered_b.s, s_a)
-    mask = a.mask | registered_b.mask
     levels = []
     for la, lb in zip(a.deeper, registered_b.deeper):
         ls_a = jnp.where(la.mask, la.s, lb.s)
@@ -31,10 +31,13 @@ def geodesic_srvf(a: SRVFTree, registered_b: SRVFTree, taus) -> SRVFTree:
         if la.base_radius is not None:  # as at level 1: a one-sided branch keeps its partner's
             rb_b = jnp.where(lb.mask, lb.base_radius, la.base_radius)
             base = (jnp.where(la.mask, la.base_radius, rb_b), rb_b)
-        levels.append((la.q, lb.q, ls_a, jnp.where(lb.mask, lb.s, ls_a), la.mask | lb.mask, base))
+        levels.append((la.q, lb.q, ls_a, jnp.where(lb.mask, lb.s, ls_a), (la.mask, lb.mask), base))
 
     def point(tau):
         lerp = lambda x, y: (1 - tau) * x + tau * y  # noqa: E731
+        # A branch is real where it has length: on one side's end it is that side's null (of
+        # zero length there), not a real branch of length 0 (which traits would count).
+        union = lambda ma, mb: (ma & (tau < 1)) | (mb & (tau > 0))  # noqa: E731
         base = None
         if a.base_radius is not None:
             # A lateral present on one side only keeps its partner's starting radius.
@@ -47,12 +50,12 @@ def geodesic_srvf(a: SRVFTree, registered_b: SRVFTree, taus) -> SRVFTree:
             q0=lerp(a.q0, registered_b.q0),
             q=lerp(a.q, registered_b.q),
             s=lerp(s_a, s_b),
-            mask=mask,
+            mask=union(a.mask, registered_b.mask),
             origin=lerp(a.origin, registered_b.origin),
             base_radius=base,
             thickness_scale=a.thickness_scale,
             deeper=tuple(
-                SRVFLevel(q=lerp(qa, qb), s=lerp(sa, sb), mask=m, base_radius=None if r is None else lerp(*r))
+                SRVFLevel(q=lerp(qa, qb), s=lerp(sa, sb), mask=union(*m), base_radius=None if r is None else lerp(*r))
                 for qa, qb, sa, sb, m, r in levels
             ),
             virtual_main=a.virtual_main,
@@ -106,10 +109,26 @@ def geodesic(
       positions. Leave it None for roots that were not scale-normalised.
     """
     n_steps = as_count(n_steps, "n_steps", minimum=2)
+    for name, x in (("a", a), ("b", b)):
+        if not isinstance(x, (RootTree, SRVFTree)):
+            raise TypeError(
+                f"geodesic: {name} must be a RootTree or SRVFTree, got {type(x).__name__}; "
+                "build trees with rootshape_jax.batch(roots) and pick two with rootshape_jax.unstack."
+            )
+        if x.batch_shape != ():
+            raise ValueError(
+                f"geodesic works on one pair of roots, but {name} is a batch of shape {x.batch_shape}: pick "
+                "single trees with rootshape_jax.unstack(trees)[i]; loop or vmap over pairs."
+            )
+    if sizes is not None:
+        try:
+            la, lb = (float(x) for x in sizes)
+        except (TypeError, ValueError):
+            la = lb = float("nan")
+        if not (la > 0 and lb > 0 and jnp.isfinite(la) and jnp.isfinite(lb)):
+            raise ValueError(f"sizes must be two positive main-root lengths (length_a, length_b), got {sizes!r}.")
     if registration is None:
         registration = register(a, b, weights=weights, **options)
-    if a.batch_shape != ():
-        raise ValueError("geodesic works on one pair of roots; loop or vmap over pairs.")
     weights = as_weights(weights)
     # Whether a has a thickness channel is decided here, on concrete weights (static below).
     thick = registration.registered.has_thickness
@@ -118,9 +137,6 @@ def geodesic(
     if in_place:
         path = _unrotate(path, registration.rotation, taus)
     if sizes is not None:
-        la, lb = (float(x) for x in sizes)
-        if not (la > 0 and lb > 0 and jnp.isfinite(la) and jnp.isfinite(lb)):
-            raise ValueError(f"sizes must be two positive main-root lengths (length_a, length_b), got {sizes!r}.")
         # The stored seeds are seed / length (normalised about (0, 0)): scaled back, they are
         # the data's seeds, and the path's bases run on the straight line between them.
         seeds = (1 - taus)[:, None] * (la * path.main[0, 0]) + taus[:, None] * (lb * path.main[-1, 0])

@@ -936,6 +936,11 @@ def to_roots(tree: RootTree, *, names: Sequence[str] | None = None, unit: str | 
     `write_rsml` cannot know and writes "pixel"."""
     if not isinstance(tree, RootTree):
         raise TypeError(f"to_roots expects a RootTree, got {type(tree).__name__}.")
+    n_trees = int(np.prod(tree.batch_shape))
+    if names is not None:
+        names = [names] if isinstance(names, str) else list(names)
+        if len(names) != n_trees:
+            raise ValueError(f"to_roots: {len(names)} names for {n_trees} trees; give one name per tree.")
     main = np.asarray(tree.main)
     lats = np.asarray(tree.laterals)
     attach = np.asarray(tree.attach)

@@ -228,3 +228,22 @@ def test_two_and_three_dimensional_trees_are_named_as_such():
     b = rs.batch(random_root(rng, n_laterals=2, d=3), n_points=8, max_laterals=4)
     with pytest.raises(ValueError, match="different dimensions \\(2-D and 3-D\\).*z = 0"):
         rs.distance(a, b)
+
+
+def test_a_tree_where_roots_or_a_matrix_are_expected_is_named():
+    """From a tour of the real files: write_rsml(trees) said "'RootTree' object is not iterable",
+    cluster(trees) and mds(trees) failed in float(), to_roots with too few names raised a bare
+    IndexError."""
+    from rootshape_jax.io import write_rsml
+
+    rng = np.random.default_rng(8)
+    trees = rs.batch([random_root(rng, n_laterals=2) for _ in range(3)], n_points=12)
+    with pytest.raises(TypeError, match=r"write_rsml writes Roots, got a RootTree.*to_roots\(tree, unit="):
+        write_rsml(trees, "never_written.rsml")
+    for call in (lambda: rs.cluster(trees), lambda: rs.mds(trees), lambda: rs.loo_accuracy(trees, [0, 0, 1])):
+        with pytest.raises(TypeError, match=r"matrix of distances, got RootTree.*pairwise_distances"):
+            call()
+    with pytest.raises(ValueError, match="2 names for 3 trees"):
+        rs.to_roots(trees, names=["a", "b"])
+    assert [r.name for r in rs.to_roots(trees, names=("a", "b", "c"))] == ["a", "b", "c"]
+    assert rs.to_roots(rs.unstack(trees)[0], names="one")[0].name == "one"

@@ -116,9 +116,17 @@ def test_lateral_added_grows_from_zero():
     # It grows at a fixed position: its base stays at the attachment fraction 0.7.
     np.testing.assert_allclose(np.asarray(path.attach[:, grown]), 0.7, atol=1e-12)
     np.testing.assert_allclose(np.asarray(path.laterals[1:, grown, 0, 1]), 0.7, atol=1e-6)
+    # At a's end it is a's null, not a real lateral of length 0 (traits counted 11 laterals at
+    # both ends of a plate geodesic from 4 to 11): the ends have the inputs' laterals.
+    mask = np.asarray(path.mask)
+    assert not mask[0, grown] and mask[1:, grown].all()
+    assert [r.n_laterals for r in rs.to_roots(path)] == [1, 2, 2, 2, 2]
+    back = rs.geodesic(b, a, n_steps=5, weights=W)
+    assert [r.n_laterals for r in rs.to_roots(back)] == [2, 2, 2, 2, 1]
+    assert [t["n_laterals"] for t in rs.traits(rs.to_roots(back))] == [2, 2, 2, 2, 1]
 
 
-def test_geodesic_in_3d_and_errors():
+def test_geodesic_in_3d_and_errors(monkeypatch):
     rng = np.random.default_rng(3)
     t = rs.batch([random_root(rng, n_laterals=2, d=3) for _ in range(2)], n_points=T, max_laterals=K)
     a, b = rs.unstack(t)
@@ -127,6 +135,20 @@ def test_geodesic_in_3d_and_errors():
     assert np.all(np.isfinite(np.asarray(path.laterals)))
     with pytest.raises(ValueError, match="n_steps"):
         rs.geodesic(a, b, n_steps=1)
+    # Refused before any registration (a batch registered every pair first, with a progress
+    # bar; sizes of one number failed in tuple unpacking).
+    from rootshape_jax import _geodesic
+
+    def no_register(*args, **kwargs):
+        raise AssertionError("registered before checking the input")
+
+    monkeypatch.setattr(_geodesic, "register", no_register)
+    with pytest.raises(ValueError, match=r"a is a batch of shape \(2,\).*unstack"):
+        rs.geodesic(t, t)
+    with pytest.raises(ValueError, match="sizes must be two positive"):
+        rs.geodesic(a, b, sizes=(500.0,))
+    with pytest.raises(TypeError, match="b must be a RootTree"):
+        rs.geodesic(a, [b])
 
 
 def test_worker_threads_give_the_same_matrix():

@@ -284,6 +284,24 @@ def test_plot_modes_takes_one_component(pca, tmp_path):
         P.plot_modes(stack([stack([row])]), alphas)
 
 
+def test_plots_take_a_karcher_mean_and_a_pca_for_explained(mean, pca, tmp_path):
+    """plot_mean(samples, km) and plot_root(km) said "Build a RootTree with batch(roots)";
+    plot_modes(..., explained=pc) failed in float()."""
+    fig, ax = P.plot_root(mean)
+    check_png(fig, tmp_path / "km_root.png", 1)
+    _, ax_tree = P.plot_root(mean.mean)
+    (a, _), (b, _) = segments_and_colors(ax), segments_and_colors(ax_tree)
+    assert len(a) == len(b) > 0 and all(np.allclose(x, y) for x, y in zip(a, b))
+    rng = np.random.default_rng(7)
+    samples = batch([random_root(rng, n_laterals=2) for _ in range(4)], n_points=12, max_laterals=3)
+    fig, axes = P.plot_mean(samples, mean)
+    check_png(fig, tmp_path / "km_mean.png", len(fig.axes))
+    alphas = [-1.0, 0.0, 1.0]
+    ratio = np.asarray(pca.explained_variance_ratio)
+    _, grid = P.plot_modes(rs.modes(pca, alphas, component=1), alphas, components=1, explained=pca)
+    assert grid[0][0].get_ylabel() == f"PC 2\n{100 * ratio[1]:.1f} % var."
+
+
 def test_plot_modes_takes_a_tangent_pca(pca, tmp_path):
     # Given the PCA, the rows are labelled by the components drawn and `explained` comes with it.
     alphas = [-1.0, 0.0, 1.0]

@@ -30,6 +30,7 @@ from defusedxml import DefusedXmlException, ElementTree as DET
 
 from .._errors import InvalidRootError, RSMLError, RSMLWarning, user_stacklevel
 from .._root import ROOT_COORDINATE_LIMIT, Root, check_range, is_plant_system, plant_axes
+from .._tree import RootTree, SRVFTree
 
 _PO_NS = "http://www.plantontology.org/xml-dtd/po.dtd"
 _PIXEL_UNITS = ("pixel", "pixels", "px")
@@ -873,6 +874,12 @@ def write_rsml(
     """
     if isinstance(roots, Root):
         roots = [roots]
+    if isinstance(roots, (RootTree, SRVFTree)):
+        raise TypeError(
+            f"write_rsml writes Roots, got a {type(roots).__name__}: convert it with "
+            "rootshape_jax.to_roots(tree, unit=...) (name the unit: a tree does not carry it; an SRVFTree "
+            "first through rootshape_jax.to_curves)."
+        )
     roots = list(roots)
     if not roots:
         raise RSMLError("write_rsml: no roots to write (got an empty sequence).")

@@ -19,6 +19,7 @@ import numpy as np
 from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 
+from .._mean import KarcherMean
 from .._root import Root
 from .._tree import RootTree, SRVFTree, to_curves
 
@@ -162,6 +163,8 @@ def _from_arrays(main, lats, mask, main_r=None, lat_r=None, deeper=()) -> Drawin
 
 
 def _curves(x: Any, what: str) -> RootTree:
+    if isinstance(x, KarcherMean):  # the result of karcher_mean draws as its mean root
+        x = x.mean
     if isinstance(x, SRVFTree):
         return to_curves(x)
     if isinstance(x, RootTree):

@@ -301,7 +301,7 @@ def plot_mean(
 
     - `samples`: the input roots (a batched `RootTree` or a list of `Root` / `RootTree`).
       Registered samples (in the mean's slot order) share the mean's lateral colours.
-    - `mean`: the mean root (`Root` or unbatched `RootTree`).
+    - `mean`: the mean root (`Root` or unbatched `RootTree`), or the `KarcherMean` itself.
     - `layout`: ``"grid"`` (small panels of the first `max_samples` inputs, mean in a large
       panel on the right) or ``"overlay"`` (one panel: inputs in light grey, translated so
       their bases meet the mean's, with the mean drawn on top in colour).
@@ -448,7 +448,8 @@ def plot_modes(
     - `alphas`: the multiples of the standard deviation, e.g. ``[-2, -1, 0, 1, 2]``; the
       ``α = 0`` column (the mean) is shaded.
     - `explained`: optional fraction of variance explained by each component, indexed by
-      component (e.g. ``pc.explained_variance_ratio``), shown in the row labels.
+      component (``pc.explained_variance_ratio``, or the `TangentPCA` itself), shown in the
+      row labels.
     - `components`: the component of each row, as passed to `modes` (0-based; row ``i`` is
       labelled ``PC components[i] + 1``); default ``0, 1, ...``.
     - `colors`, `linewidth`, `invert_y`, `projection`, `unit`: as in `plot_root`.
@@ -472,6 +473,8 @@ def plot_modes(
                 "given; every component needs one root per alpha."
             )
     comps = _row_components(components, len(rows))
+    if isinstance(explained, TangentPCA):
+        explained = explained.explained_variance_ratio
     if explained is not None:
         explained = np.asarray(explained, dtype=float).reshape(-1)
         if explained.shape[0] <= max(comps):
