@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rootshape_jax._errors import RSMLError, RSMLWarning
+from rootshape_jax._errors import RSMLError, RSMLWarning, UnitError
 from rootshape_jax._root import Root
-from rootshape_jax.io import read_rsml, write_rsml
+from rootshape_jax.io import convert_units, read_rsml, write_rsml
 from rootshape_jax.io._rsml import attachment_fraction
 
 DATA = Path(__file__).parent / "data" / "rsml"
@@ -411,12 +411,18 @@ def test_round_trip_units_and_resolution(tmp_path):
     for name in ("diameter", "hairs", "colour"):
         np.testing.assert_array_equal(b.metadata["functions"][name]["values"], r.metadata["functions"][name]["values"])
     np.testing.assert_array_equal(b.metadata["functions"]["colour"]["positions"], [0, 250])
-    # Explicit unit / resolution override.
+    # unit= labels, it does not convert: another unit than the roots' own is refused (inch
+    # coordinates were written as mm, 25.4 times too small, without a word) ...
     path2 = tmp_path / "mm.rsml"
-    write_rsml(r, path2, unit="mm", resolution=4.0)
+    with pytest.raises(UnitError, match=r"unit='mm', but the roots' coordinates are in inch.*convert_units"):
+        write_rsml(r, path2, unit="mm", resolution=4.0)
+    assert not path2.exists()
+    # ... converted first, they are written in mm; a resolution may still be chosen.
+    write_rsml(convert_units([r], "mm"), path2, unit="mm", resolution=4.0)
     (c,) = _read_quiet(path2)
-    assert c.metadata["unit"] == "mm"
-    np.testing.assert_allclose(c.main, r.main, rtol=1e-12)
+    assert c.metadata["unit"] == "mm" and float(ET.parse(path2).getroot().findtext("metadata/resolution")) == 4.0
+    np.testing.assert_allclose(c.main, 25.4 * r.main, rtol=1e-12)
+    write_rsml(r, tmp_path / "inches.rsml", unit="inches")  # another spelling of the same unit
 
 
 def test_round_trip_fixtures_with_children(tmp_path):
@@ -465,7 +471,9 @@ def test_write_errors(tmp_path):
     with pytest.raises(RSMLError, match="different units"):
         write_rsml([r, s], tmp_path / "x.rsml")
     with pytest.raises(RSMLError, match="resolution must be 1"):
-        write_rsml([r], tmp_path / "x.rsml", unit="pixel", resolution=3)
+        write_rsml([Root(main=r.main)], tmp_path / "x.rsml", unit="pixel", resolution=3)
+    with pytest.raises(UnitError, match="does not convert"):
+        write_rsml([r], tmp_path / "x.rsml", unit="pixel")
     with pytest.raises(RSMLError, match="positive"):
         write_rsml([r], tmp_path / "x.rsml", resolution=-1)
     with pytest.raises(RSMLError, match="no roots"):

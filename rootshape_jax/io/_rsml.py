@@ -28,12 +28,12 @@ from xml.sax.saxutils import escape, quoteattr
 import numpy as np
 from defusedxml import DefusedXmlException, ElementTree as DET
 
-from .._errors import InvalidRootError, RSMLError, RSMLWarning, user_stacklevel
+from .._errors import InvalidRootError, RSMLError, RSMLWarning, UnitError, user_stacklevel
 from .._root import ROOT_COORDINATE_LIMIT, Root, check_range, is_plant_system, plant_axes
 from .._tree import RootTree, SRVFTree
+from .._units import PIXEL_UNITS, unit_key
 
 _PO_NS = "http://www.plantontology.org/xml-dtd/po.dtd"
-_PIXEL_UNITS = ("pixel", "pixels", "px")
 
 
 # --------------------------------------------------------------------------------------------
@@ -419,7 +419,7 @@ def _file_metadata(meta_el: ET.Element | None, problems: _Problems, physical_uni
         info["species"] = species
 
     scale = 1.0
-    is_pixel = unit_raw is None or unit_raw.lower() in _PIXEL_UNITS
+    is_pixel = unit_raw is None or unit_raw.lower() in PIXEL_UNITS
     info["file_unit"] = unit_raw
     info["resolution"] = resolution
     if not physical_units or is_pixel:
@@ -846,8 +846,9 @@ def write_rsml(
 
     - `roots`: a `Root` or a sequence of them.
     - `path`: the output file.
-    - `unit`: unit of the roots' coordinates. Default: their common ``metadata["unit"]``,
-      else ``"pixel"``.
+    - `unit`: unit of the roots' coordinates (a label: nothing is converted). Default: their
+      common ``metadata["unit"]``, else ``"pixel"``. A unit other than the one the roots
+      carry is a `UnitError` (use `convert_units` to convert).
     - `resolution`: pixels per `unit` written in the file. RSML stores pixel coordinates, so
       the coordinates are multiplied by it (and `read_rsml` divides them back). Default: the
       roots' common ``metadata["resolution"]`` for a physical unit, else 1. Must be 1 (or None)
@@ -895,7 +896,17 @@ def write_rsml(
                 "one unit first (or pass unit= to state the unit of all coordinates)."
             )
         unit = units.pop() if units else "pixel"
-    is_pixel = unit.lower() in _PIXEL_UNITS
+    else:
+        stated = sorted(
+            {str(r.metadata["unit"]) for r in roots if unit_key(r.metadata.get("unit")) not in (None, unit_key(unit))}
+        )
+        if stated:
+            raise UnitError(
+                f"write_rsml: unit={unit!r}, but the roots' coordinates are in {', '.join(stated)} "
+                "(metadata['unit']): write_rsml labels coordinates, it does not convert them. Convert "
+                f"first (rootshape_jax.io.convert_units(roots, {unit!r})), or leave unit= out."
+            )
+    is_pixel = unit.lower() in PIXEL_UNITS
     if resolution is None:
         common = _common(roots, "resolution")
         if is_pixel or common is None or _common(roots, "unit") != unit:
