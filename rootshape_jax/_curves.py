@@ -139,7 +139,10 @@ def cumulative_sum(x: Array, *, axis: int) -> Array:
 
 
 def srvf_to_curve(q: Float[ArrayLike, "T d"], origin: Float[ArrayLike, " d"] | None = None) -> Float[Array, "T d"]:
-    """Inverse SRVF: ``b(t) = origin + ∫_0^t q|q|`` by cumulative trapezoid on the grid."""
+    """Inverse SRVF: ``b(t) = origin + ∫_0^t q|q|`` by cumulative trapezoid on the grid.
+
+    Second-order accurate, not the exact inverse of `srvf`'s node map (which no well-posed
+    inverse has: docs/design.md §3): ``srvf_to_curve(srvf(b))`` differs from b by O(1/T²)."""
     q = jnp.asarray(q)
     n = q.shape[-2]
     v = q * safe_norm(q)[..., None]
