@@ -142,7 +142,8 @@ def srvf_to_curve(q: Float[ArrayLike, "T d"], origin: Float[ArrayLike, " d"] | N
     """Inverse SRVF: ``b(t) = origin + ∫_0^t q|q|`` by cumulative trapezoid on the grid.
 
     Second-order accurate, not the exact inverse of `srvf`'s node map (which no well-posed
-    inverse has: docs/design.md §3): ``srvf_to_curve(srvf(b))`` differs from b by O(1/T²)."""
+    inverse has: docs/design.md §3): ``srvf_to_curve(srvf(b))`` differs from b by O(1/T²) on
+    smooth curves, more slowly on pixel tracings (corners at every scale)."""
     q = jnp.asarray(q)
     n = q.shape[-2]
     v = q * safe_norm(q)[..., None]
