@@ -21,16 +21,22 @@ import numpy as np
 import scipy.cluster.hierarchy as sch
 import scipy.spatial.distance as ssd
 
+from ._tree import RootTree, SRVFTree
+
 LINKAGE_METHODS = ("single", "complete", "average", "weighted", "ward", "centroid", "median")
 
 
 def check_distances(distances) -> np.ndarray:
-    try:
-        D = np.asarray(distances, dtype=np.float64)
-    except (TypeError, ValueError):
+    if isinstance(distances, (RootTree, SRVFTree)):
         raise TypeError(
             f"distances must be an (n, n) matrix of distances, got {type(distances).__name__}; for roots, "
             "compute it first: rootshape_jax.pairwise_distances(trees)."
+        )
+    try:
+        D = np.asarray(distances, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"distances must be an (n, n) matrix of numbers, got {type(distances).__name__} that is not one."
         ) from None
     if D.ndim != 2 or D.shape[0] != D.shape[1]:
         raise ValueError(f"distances must be a square (n, n) matrix, got shape {D.shape}.")
@@ -200,8 +206,9 @@ def confusion_matrix(labels, predicted, classes: Sequence | None = None) -> tupl
     if classes is None:
         if _is_text(y) != _is_text(p) and not set(p.tolist()) <= set(y.tolist()):
             raise ValueError(
-                f"confusion_matrix: predicted holds {sorted(set(p.tolist()))[:6]} but the labels' classes are "
-                f"{sorted(set(y.tolist()))[:6]}: predictions must name the labels' classes. To compare "
+                f"confusion_matrix: predicted holds {sorted(set(p.tolist()), key=str)[:6]} but the labels' "
+                f"classes are {sorted(set(y.tolist()), key=str)[:6]}: predictions must name the labels' classes. "
+                "To compare "
                 "clusters with labels use rootshape_jax.contingency_table(labels, clustering.labels)."
             )
         classes = np.unique(np.concatenate([y, p]))

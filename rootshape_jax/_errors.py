@@ -41,7 +41,7 @@ class MetadataError(RootShapeError, ValueError):
 
 class UnitError(RootShapeError, ValueError):
     """Coordinates cannot be converted to the requested unit (unknown unit, or pixels without
-    a resolution)."""
+    a resolution), or roots in different units meet where sizes are compared or written."""
 
 
 class MissingDependencyError(RootShapeError, ImportError):

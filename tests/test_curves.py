@@ -107,7 +107,7 @@ def test_round_trip_converges_second_order(d):
     assert np.all(errors[:-1] / errors[1:] > 3.0)
 
 
-def test_round_trip_exact_on_straight_and_polygonal_uniform_lines():
+def test_round_trip_exact_on_straight_uniform_lines():
     beta = np.stack([np.linspace(0, 2, 11), np.linspace(1, -3, 11)], 1)
     np.testing.assert_allclose(np.asarray(srvf_to_curve(srvf(beta), beta[0])), beta, atol=1e-12)
 

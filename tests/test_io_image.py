@@ -344,6 +344,22 @@ def test_main_root_does_not_detour_along_the_top_edge():
     assert sorted(r.lateral_lengths) == pytest.approx([12.0, 60.0])
 
 
+@pytest.mark.parametrize("end", [(10, 10), (60, 10), (110, 10), (10, 150)])  # (row, col) of the top end
+def test_a_straight_slanted_root_keeps_its_top_end(end):
+    """Review: measured against the depth it descends, a straight root slanted by more than
+    ~37° 'detoured' on every node, so its base dropped into the band and its top became a
+    lateral. Measured against the straight line to the tip it keeps its end, at any slant."""
+    from skimage.draw import line
+
+    skel = np.zeros((240, 240), bool)
+    skel[line(end[0], end[1], 200, 120)] = True
+    opts = dict(smooth=0, spacing=None, close_gaps=0, min_object_size=0, min_root_length=5, refine_junctions=False)
+    for root_width in (6.0, 20.0):
+        (r,) = roots_from_image(skel, min_lateral_length=3, root_width=root_width, **opts)
+        np.testing.assert_array_equal(r.main[0], [end[1], end[0]])
+        assert r.n_laterals == 0
+
+
 def test_smooth_keeps_ends_and_straight_lines():
     rng = np.random.default_rng(0)
     line = np.linspace([0.0, 0.0], [30.0, 10.0], 31)

@@ -392,6 +392,11 @@ def test_write_keeps_plants_of_different_files_apart(tmp_path):
     by_name = {r.name: r for r in roots}
     for b in back:
         _compare_roots(by_name[b.name], b, children=False)
+    # No file, an empty one and a stream are one unknown file: their plant 1 is one plant.
+    unknown = [from_file(f"u{k}", "1", f) for k, f in enumerate((None, "", "<stream>"))]
+    write_rsml(unknown, path)
+    plants = ET.parse(path).getroot().find("scene").findall("plant")
+    assert [p.get("id") for p in plants] == ["1"] and len(plants[0].findall("root")) == 3
 
 
 def test_round_trip_units_and_resolution(tmp_path):
@@ -422,7 +427,15 @@ def test_round_trip_units_and_resolution(tmp_path):
     (c,) = _read_quiet(path2)
     assert c.metadata["unit"] == "mm" and float(ET.parse(path2).getroot().findtext("metadata/resolution")) == 4.0
     np.testing.assert_allclose(c.main, 25.4 * r.main, rtol=1e-12)
-    write_rsml(r, tmp_path / "inches.rsml", unit="inches")  # another spelling of the same unit
+    # Another spelling of the roots' own unit is that unit: its resolution is kept.
+    for spelling in ("inches", "Inch"):
+        write_rsml(r, tmp_path / "inches.rsml", unit=spelling)
+        assert float(ET.parse(tmp_path / "inches.rsml").getroot().findtext("metadata/resolution")) == 100.0
+    # Roots in two spellings of one unit are in one unit.
+    mm = Root(main=np.array([[0.0, 0.0], [0.0, 1.0]]), metadata={"unit": "mm"})
+    mm2 = Root(main=np.array([[1.0, 0.0], [1.0, 1.0]]), metadata={"unit": "millimetre"})
+    write_rsml([mm, mm2], tmp_path / "mm2.rsml")
+    assert ET.parse(tmp_path / "mm2.rsml").getroot().findtext("metadata/unit") == "mm"
 
 
 def test_round_trip_fixtures_with_children(tmp_path):

@@ -74,7 +74,7 @@ def _check_same_unit(extracted: list[Root], traced: list[Root]) -> None:
             f"compare_to_tracing: the extracted roots are in {', '.join(map(str, ext.values()))} and the traced "
             f"roots in {', '.join(map(str, tr.values()))}; compare them in one unit: "
             "rootshape_jax.io.convert_units(roots, unit) on one side (pixels need a resolution), or "
-            "read the image without pixels_per_mm to keep pixels."
+            "read the image without pixels_per_mm / pixel_size to keep pixels."
         )
 
 

@@ -685,23 +685,22 @@ def _contrast_to_background(gray: np.ndarray, pix: np.ndarray, sigma: float) -> 
 
 def _direct_base(nodes, rc, sub, base_local, axis_sign, *, band: float) -> int:
     """The base of a piece's main root: of the nodes within `band` px of the base side's
-    extreme (the top row for ``base="top"``), the one whose path to the tip (the node
-    farthest from the extreme node) detours least: the least path length beyond the depth
-    it descends, and of those within ``band / 4`` px of that least detour the one nearest
-    the base side (on one row, the one of least detour). The extreme node alone can be the end of a branch along the sheet's edge
-    or the shoot, which the main root then ran through (a RootNav seedling's main root
-    started 133 px aside, along the paper's edge)."""
+    extreme (the top row for ``base="top"``), the one whose path to the tip (the node farthest
+    from the extreme node) detours least, i.e. exceeds the straight line to the tip least; of
+    those within ``band / 4`` px of that least detour, the one nearest the base side (then the
+    least detour). The extreme node alone can be the end of a branch along the sheet's edge or
+    the shoot, which the main root then ran through (a RootNav seedling's main root started
+    133 px aside, along the paper's edge). A straight root, slanted or not, detours nowhere
+    (up to its pixel staircase, at most 8 % of a length), so it keeps its own end."""
     dist = csgraph.dijkstra(sub, directed=False, indices=base_local)
     tip = int(np.argmax(np.where(np.isfinite(dist), dist, -1)))
     from_tip = csgraph.dijkstra(sub, directed=False, indices=tip)
     axis, sign = axis_sign
-    depth = sign * rc[nodes, axis].astype(np.float64)
-    near_side = np.flatnonzero((depth <= depth[base_local] + band) & np.isfinite(from_tip))
-    if near_side.size == 0:
-        return base_local
-    detour = from_tip[near_side] - (depth[tip] - depth[near_side])
+    pix = rc[nodes].astype(np.float64)
+    depth = sign * pix[:, axis]
+    near_side = np.flatnonzero(depth <= depth[base_local] + band)  # one component: all reach the tip
+    detour = from_tip[near_side] - np.hypot(*(pix[near_side] - pix[tip]).T)
     direct = detour <= detour.min() + band / 4
-    # Nearest the base side first; on one row, the least detour.
     best = np.lexsort((detour[direct], depth[near_side[direct]]))[0]
     return int(near_side[direct][best])
 

@@ -15,6 +15,7 @@ explicit stacks (no recursion), so any nesting depth reads and writes.
 from __future__ import annotations
 
 import datetime
+import itertools
 import math
 import os
 import warnings
@@ -818,18 +819,17 @@ def _nearest_node(poly: np.ndarray, fraction: float) -> int:
     return int(np.argmin(np.abs(cum - fraction * cum[-1])))
 
 
-def _free_id(taken: set[str], stem) -> str:
-    """A plant id not in `taken`: `stem`-2, -3, ... for a plant id another file used already,
-    1, 2, ... for a root without one."""
-    if isinstance(stem, int):
-        k = 1
-        while str(k) in taken:
-            k += 1
-        return str(k)
-    k = 2
-    while f"{stem}-{k}" in taken:
-        k += 1
-    return f"{stem}-{k}"
+def _free_id(taken: set[str], stem: str | None) -> str:
+    """A plant id not in `taken`: the first free of 1, 2, ... without a stem (a root without a
+    plant id), else stem-2, stem-3, ... (a plant id that another file's plant has already)."""
+    names = (str(k) for k in itertools.count(1)) if stem is None else (f"{stem}-{k}" for k in itertools.count(2))
+    return next(n for n in names if n not in taken)
+
+
+def _source_file(root: Root) -> str:
+    """The file a root was read from, "" when unknown (a stream's roots cannot be told apart)."""
+    source = root.metadata.get("file")
+    return "" if source in (None, "", "<stream>") else str(source)
 
 
 def write_rsml(
@@ -855,10 +855,10 @@ def write_rsml(
       for pixel units.
     - `software`: written in ``<metadata><software>``.
 
-    **Layout**: roots sharing ``metadata["plant_id"]`` and ``metadata["file"]`` (as read) are
-    written in one ``<plant>`` (in first-seen order); a root without a plant id gets its own
-    plant. A plant id that roots of another file used already is written as ``id-2``, ``id-3``,
-    .... Each root's ``name`` is its
+    **Layout**: roots sharing ``metadata["plant_id"]`` and ``metadata["file"]`` (as read; roots
+    read from streams count as one file) are written in one ``<plant>`` (in first-seen order);
+    a root without a plant id gets its own plant. A plant id that roots of another file used
+    already is written as ``id-2``, ``id-3``, .... Each root's ``name`` is its
     ``label``, its id is ``metadata["root_id"]`` when set and unused, else a generated unique
     id. Laterals are child ``<root>``s with a ``parent-node`` property (index of the main
     polyline point nearest to the attachment); `Root.children` are written recursively (a
@@ -888,18 +888,20 @@ def write_rsml(
         if not isinstance(r, Root):
             raise TypeError(f"write_rsml: item {i} is a {type(r).__name__}, expected a Root.")
 
+    # Units compare by `unit_key` ("mm" is "millimetre", "inch" is "Inches").
+    own = {}
+    for r in roots:
+        if unit_key(r.metadata.get("unit")) is not None:
+            own.setdefault(unit_key(r.metadata["unit"]), str(r.metadata["unit"]))
     if unit is None:
-        units = {r.metadata.get("unit") for r in roots} - {None}
-        if len(units) > 1:
+        if len(own) > 1:
             raise RSMLError(
-                f"write_rsml: the roots carry different units {sorted(units)}; convert them to "
+                f"write_rsml: the roots carry different units {sorted(own.values())}; convert them to "
                 "one unit first (or pass unit= to state the unit of all coordinates)."
             )
-        unit = units.pop() if units else "pixel"
+        unit = next(iter(own.values())) if own else "pixel"
     else:
-        stated = sorted(
-            {str(r.metadata["unit"]) for r in roots if unit_key(r.metadata.get("unit")) not in (None, unit_key(unit))}
-        )
+        stated = sorted(v for k, v in own.items() if k != unit_key(unit))
         if stated:
             raise UnitError(
                 f"write_rsml: unit={unit!r}, but the roots' coordinates are in {', '.join(stated)} "
@@ -909,7 +911,8 @@ def write_rsml(
     is_pixel = unit.lower() in PIXEL_UNITS
     if resolution is None:
         common = _common(roots, "resolution")
-        if is_pixel or common is None or _common(roots, "unit") != unit:
+        same_unit = len(own) == 1 and unit_key(unit) in own and all(r.metadata.get("unit") is not None for r in roots)
+        if is_pixel or common is None or not same_unit:
             resolution = 1.0
         else:
             resolution = float(common)
@@ -954,9 +957,12 @@ def write_rsml(
     written: set[str] = set()
     for i, r in enumerate(roots):
         pid = r.metadata.get("plant_id")
-        key = ("", i) if pid is None else (str(r.metadata.get("file", "")), str(pid))
+        key = ("", i) if pid is None else (_source_file(r), str(pid))
         if key not in groups:
-            name = key[1] if pid is not None and key[1] not in written else _free_id(used_pids | written, key[1])
+            if pid is None:
+                name = _free_id(used_pids | written, None)
+            else:
+                name = key[1] if key[1] not in written else _free_id(used_pids | written, key[1])
             written.add(name)
             plant_ids[key] = name
             groups[key] = []
