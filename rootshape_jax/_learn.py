@@ -44,7 +44,7 @@ the test roots are classified by 1-NN and by the nearest class mean.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Hashable, Sequence
 
 import equinox as eqx
 import jax
@@ -66,27 +66,47 @@ from ._tree import RootTree, SRVFTree, batch_size, to_srvf
 
 
 def check_labels(labels, n: int, *, min_per_class: int = 2) -> np.ndarray:
-    """Labels as a numpy array of n values, at least two classes of `min_per_class` members;
-    raises `LabelError` naming the problem (before anything is registered)."""
+    """The labels as integer class codes ``(n,)``: 0, 1, ... in the labels' sorted order (in
+    first-seen order when they do not sort, e.g. 1 and "1", which are two classes), for at
+    least two classes of `min_per_class` members; raises `LabelError` naming the problem
+    (before anything is registered). Any hashable labels: strings, numbers, tuples."""
     if isinstance(labels, (str, bytes)):
         raise LabelError("labels must be a sequence with one label per root, not a single string.")
-    y = np.asarray(list(labels) if not isinstance(labels, np.ndarray) else labels)
-    if y.ndim != 1 or y.shape[0] != n:
+    if isinstance(labels, np.ndarray) and labels.ndim != 1:
+        raise LabelError(f"labels must be one label per root (a 1-D sequence), got an array of shape {labels.shape}.")
+    try:
+        values = labels.tolist() if isinstance(labels, np.ndarray) else list(labels)
+    except TypeError:
+        raise LabelError(f"labels must be a sequence with one label per root, got {type(labels).__name__}.") from None
+    if len(values) != n:
         raise LabelError(
-            f"got {y.shape[0] if y.ndim else 'a scalar'} labels for {n} roots; give exactly one label per "
-            "root, in the order of the batch."
+            f"got {len(values)} labels for {n} roots; give exactly one label per root, in the order of the batch."
         )
-    missing = [i for i, v in enumerate(y.tolist()) if v is None or (isinstance(v, float) and np.isnan(v))]
+    values = [v.item() if isinstance(v, np.generic) else v for v in values]  # np.str_('a') is 'a'
+    missing = [i for i, v in enumerate(values) if v is None or (isinstance(v, (float, np.floating)) and np.isnan(v))]
     if missing:
         raise LabelError(
             f"labels of roots {missing[:10]} are missing (NaN or None); drop those roots or give them a label."
         )
-    classes, counts = np.unique(y, return_counts=True)
+    try:
+        classes = list(dict.fromkeys(values))
+    except TypeError:
+        bad = next(v for v in values if not isinstance(v, Hashable))
+        raise LabelError(
+            f"labels must be hashable (strings, numbers, tuples), got {type(bad).__name__} {bad!r}."
+        ) from None
+    try:
+        classes = sorted(classes)
+    except TypeError:
+        pass  # labels of several types: first-seen order
+    code = {c: k for k, c in enumerate(classes)}
+    y = np.array([code[v] for v in values], dtype=np.int64)
+    counts = np.bincount(y, minlength=len(classes))
     if len(classes) < 2:
         raise LabelError(
             f"all {n} roots have the same label {classes[0]!r}; learning a metric needs at least two classes."
         )
-    small = [f"{c!r} ({k})" for c, k in zip(classes.tolist(), counts.tolist()) if k < min_per_class]
+    small = [f"{c!r} ({k})" for c, k in zip(classes, counts.tolist()) if k < min_per_class]
     if small and int(counts.min()) >= 2:
         # Every class can learn; the folds ask for more members than the smallest class has.
         raise LabelError(
@@ -95,7 +115,7 @@ def check_labels(labels, n: int, *, min_per_class: int = 2) -> np.ndarray:
             "(--folds / n_folds), or merge or drop those classes."
         )
     if small:
-        lone = [f"{c!r} ({k})" for c, k in zip(classes.tolist(), counts.tolist()) if k < 2]
+        lone = [f"{c!r} ({k})" for c, k in zip(classes, counts.tolist()) if k < 2]
         raise LabelError(
             f"classes {', '.join(lone)} have one member, so there is no same-class neighbour to learn "
             "from or cross-validate on; merge or drop them"

@@ -429,6 +429,24 @@ def test_bad_labels_raise_before_registering(labels, match, no_registration):
     assert issubclass(LabelError, ValueError)
 
 
+def test_any_hashable_labels_are_classes():
+    """From a tour: tuple labels raised "got 15 labels for 15 roots" (numpy made them 2-D) and
+    1 and "1" were one class (numpy made both strings)."""
+    codes = learn.check_labels([("a", 1), ("a", 1), ("b", 2), ("b", 2)], 4)
+    np.testing.assert_array_equal(codes, [0, 0, 1, 1])
+    mixed = learn.check_labels([1, 1, "1", "1", 2, 2], 6)
+    np.testing.assert_array_equal(mixed, [0, 0, 1, 1, 2, 2])  # three classes, first-seen order
+    # Sortable labels keep the sorted class order (the folds deal classes in that order).
+    np.testing.assert_array_equal(learn.check_labels(["b", "a", "b", "a"], 4), [1, 0, 1, 0])
+    np.testing.assert_array_equal(learn.check_labels(np.array(["b", "a", "b", "a"]), 4), [1, 0, 1, 0])
+    with pytest.raises(LabelError, match=r"same label 'a'"):  # a plain 'a', not np.str_('a')
+        learn.check_labels(np.array(["a"] * 4), 4)
+    with pytest.raises(LabelError, match="hashable.*list"):
+        learn.check_labels([["a"], ["a"], ["b"], ["b"]], 4)
+    with pytest.raises(LabelError, match="1-D"):
+        learn.check_labels(np.zeros((4, 1)), 4)
+
+
 def test_nested_cv_needs_n_folds_members_per_class(no_registration):
     roots, _ = position_signal_roots(n_per_class=3)
     trees = rs.batch(roots, n_points=12, dtype=np.float64)

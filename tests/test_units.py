@@ -290,6 +290,18 @@ def test_many_laterals_hint(capsys):
     _hint_many_laterals([root, big], SimpleNamespace(laterals=20))  # --laterals given: quiet
     _hint_many_laterals([root], SimpleNamespace(laterals=None))
     assert capsys.readouterr().err == ""
+    # --per plant: the laterals that cost are an axis's (the plant's own "laterals" are its
+    # axes); --laterals N keeps N per axis and every axis (from a tour: lupin + maize plants
+    # kept all 421 maize laterals and got no hint).
+    from rootshape_jax._cli._inputs import _limit_laterals
+
+    plant = io.plant_system([big, root], name="plant")
+    _hint_many_laterals([plant], SimpleNamespace(laterals=None))
+    assert f"an axis of plant has {MANY_LATERALS + 1} laterals" in capsys.readouterr().err
+    limited = _limit_laterals(plant, 3)
+    assert limited.n_laterals == 2 and [a.n_laterals for a in limited.children] == [3, min(3, root.n_laterals)]
+    assert _limit_laterals(big, 3).n_laterals == 3
+    assert rs.batch([limited], depth=3).deeper[0].mask.sum() == 3 + min(3, root.n_laterals)
 
 
 def test_batch_refuses_roots_in_different_units_unless_normalised():

@@ -169,7 +169,7 @@ class Population:
 def prepare(roots: list, args, *, min_roots: int = 1, samples: int | None = None) -> Population:
     """Subsample (--samples), keep the longest laterals (--laterals), resample and pad."""
     roots = subsample(roots, samples)
-    roots = [rs.limit_laterals(r, args.laterals) for r in roots]
+    roots = [_limit_laterals(r, args.laterals) for r in roots]
     if len(roots) < min_roots:
         raise CLIError(f"this analysis needs at least {min_roots} roots, got {len(roots)}.")
     normalised = args.normalise_scale
@@ -212,15 +212,29 @@ def prepare(roots: list, args, *, min_roots: int = 1, samples: int | None = None
 MANY_LATERALS = 150
 
 
+def _axes(root) -> tuple:
+    """The roots whose laterals --laterals limits: a plant's axes (--per plant), else the root."""
+    return tuple(root.children) if io.is_plant_system(root) and root.children else (root,)
+
+
+def _limit_laterals(root, n: int | None):
+    """`rs.limit_laterals` on each axis of a plant's system (its laterals are its axes, which
+    --laterals does not drop), else on the root."""
+    if n is None or not (io.is_plant_system(root) and root.children):
+        return rs.limit_laterals(root, n)
+    return dataclasses.replace(root, children=tuple(rs.limit_laterals(axis, n) for axis in root.children))
+
+
 def _hint_many_laterals(roots: list, args) -> None:
     if getattr(args, "laterals", None):
         return
-    most = max(roots, key=lambda r: r.n_laterals)
-    if most.n_laterals > MANY_LATERALS:
+    most, n = max(((r, axis.n_laterals) for r in roots for axis in _axes(r)), key=lambda rn: rn[1])
+    if n > MANY_LATERALS:
+        where = "an axis of " if io.is_plant_system(most) else ""
         warn(
-            f"{most.name or 'a root'} has {most.n_laterals} laterals: every pair with it compares each of its "
+            f"{where}{most.name or 'a root'} has {n} laterals: every pair with it compares each of its "
             "laterals with each of the other root's, which can take minutes and gigabytes. --laterals N keeps "
-            "each root's N longest laterals (e.g. --laterals 60)."
+            "each root's (with --per plant: each axis's) N longest laterals (e.g. --laterals 60)."
         )
 
 

@@ -265,7 +265,7 @@ def _add_common(
         "--laterals",
         type=_positive_int,
         metavar="N",
-        help="keep at most the N longest laterals of each root (faster; default: all)",
+        help="keep at most the N longest laterals of each root (with --per plant: of each axis; faster; default: all)",
     )
     g.add_argument(
         "--points",

@@ -164,8 +164,11 @@ class Output:
         return self.file(section, name, caption, "table", table_html)
 
     def figure(self, section: Section, fig, name: str, caption: str) -> Item:
+        from rootshape_jax.io._folder import FIGURE_SOFTWARE
+
         try:
-            self.write(name, lambda p: fig.savefig(p, dpi=110, format="png"))
+            # Marked, so a results folder read again does not take its figures for photographs.
+            self.write(name, lambda p: fig.savefig(p, dpi=110, format="png", metadata={"Software": FIGURE_SOFTWARE}))
         finally:
             close(fig)
         return self.file(section, name, caption, "figure")

@@ -19,6 +19,7 @@ import numpy as np
 from .._atomic import atomic_write
 from .._errors import ImageError, RSMLError, user_stacklevel
 from .._root import Root
+from ._folder import FIGURE_SOFTWARE
 from ._units import check_length_unit
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
@@ -98,7 +99,7 @@ def draw_overlay(
     for r in tracing:  # on top, dashed, so both stay visible
         for br in (r.main, *r.laterals):
             ax.plot(br[:, 0], br[:, 1], "--", color="white", lw=0.5, alpha=0.9)
-    fig.savefig(out_png, format="png")
+    fig.savefig(out_png, format="png", metadata={"Software": FIGURE_SOFTWARE})
     plt.close(fig)
 
 

@@ -17,6 +17,12 @@ from ._units import PIXEL_UNITS, convert_units
 
 RSML_SUFFIXES = (".rsml",)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+#: PNG "Software" text of the figures rootshape writes: a folder of results read again (e.g.
+#: `rootshape traits out/`) must not read its figures as photographs of roots.
+FIGURE_SOFTWARE = "rootshape_jax figure"
+#: The command line's log, written into every --out folder: its PNGs are rootshape's figures
+#: (also those written before the figures carried `FIGURE_SOFTWARE`).
+OUTPUT_LOG = "rootshape.log"
 
 
 @dataclasses.dataclass
@@ -40,15 +46,39 @@ class ReadReport:
 
 def root_files(folder: str | os.PathLike) -> list[Path]:
     """The RSML files and images directly inside `folder`, sorted by name; not the overlays
-    that `rootshape extract` writes beside its RSML files (`extract_overlays`)."""
+    that `rootshape extract` writes beside its RSML files (`extract_overlays`) nor the
+    figures rootshape wrote (`rootshape_figures`)."""
     return _scan(Path(folder))[0]
 
 
-def _scan(folder: Path) -> tuple[list[Path], list[Path]]:
-    """(`root_files` of `folder`, the `extract_overlays` left out of them), from one listing."""
+def _scan(folder: Path) -> tuple[list[Path], list[Path], list[Path]]:
+    """(`root_files` of `folder`, the `extract_overlays` and the `rootshape_figures` left out
+    of them), from one listing."""
     found = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in RSML_SUFFIXES + IMAGE_SUFFIXES]
     overlays = extract_overlays(found)
-    return sorted(set(found) - set(overlays)), overlays
+    figures = sorted(set(rootshape_figures(found, folder)) - set(overlays))
+    return sorted(set(found) - set(overlays) - set(figures)), overlays, figures
+
+
+def rootshape_figures(files: Sequence[Path], folder: Path) -> list[Path]:
+    """The PNGs among `files` that rootshape drew (a results folder read again): those whose
+    PNG "Software" text is `FIGURE_SOFTWARE`, and every PNG of a folder holding the command
+    line's log (`OUTPUT_LOG`)."""
+    pngs = [p for p in files if p.suffix.lower() == ".png"]
+    if (folder / OUTPUT_LOG).is_file():
+        return pngs
+    return [p for p in pngs if _png_software(p) == FIGURE_SOFTWARE]
+
+
+def _png_software(path: Path) -> str | None:
+    """The PNG's "Software" text (read from its header chunks only), None if unreadable."""
+    try:
+        from PIL import Image
+
+        with Image.open(path) as im:
+            return im.info.get("Software")
+    except Exception:  # not our concern here: reading the file as an image reports it
+        return None
 
 
 def extract_overlays(files: Sequence[Path]) -> list[Path]:
@@ -161,11 +191,19 @@ def expand(paths: Sequence[str | os.PathLike]) -> list[tuple[Path, bool]]:
         if not p.exists():
             raise InputError(f"{text}: no such file or folder.")
         if p.is_dir():
-            found, overlays = _scan(p)
+            found, overlays, figures = _scan(p)
             if overlays:
                 warnings.warn(
                     f"{text}: left out {len(overlays)} overlay image(s) that `rootshape extract` wrote "
                     "(<name>_overlay.png beside <name>.rsml): the roots are read from the RSML files.",
+                    UserWarning,
+                    stacklevel=user_stacklevel(),
+                )
+            if figures:
+                names = ", ".join(f.name for f in figures[:4]) + (", ..." if len(figures) > 4 else "")
+                warnings.warn(
+                    f"{text}: left out {len(figures)} figure(s) that rootshape drew ({names}): they are "
+                    "results, not photographs of roots.",
                     UserWarning,
                     stacklevel=user_stacklevel(),
                 )
