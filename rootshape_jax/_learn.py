@@ -846,6 +846,11 @@ class CVAccuracy(eqx.Module):
             )
         }
 
+    def __repr__(self) -> str:
+        # The accuracies, not equinox's array summaries (f64[5](numpy)).
+        cells = ", ".join(f"{k}={100 * m:.1f} ± {100 * sd:.1f} %" for k, (m, sd) in self.summary().items())
+        return f"CVAccuracy({cells}; {len(self.folds)} folds, held-out accuracy: mean ± sd over folds)"
+
 
 def fold_accuracy(distances, labels, *, n_folds: int = 5, seed: int = 0) -> dict:
     """Cross-validated 1-NN and nearest-class-mean accuracy of a fixed distance matrix (no

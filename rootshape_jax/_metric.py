@@ -114,7 +114,8 @@ class Weights(_ByTerm):
             if isinstance(v, jax.core.Tracer) or not isinstance(v, (jax.Array, np.ndarray)):
                 continue
             if v.shape != () or not np.isfinite(v) or v < 0:
-                raise ValueError(f"Weights.{name} must be a finite non-negative scalar, got {v!r}.")
+                shown = f"{float(v):g}" if v.shape == () else f"an array of shape {v.shape}"
+                raise ValueError(f"Weights.{name} must be a finite non-negative scalar, got {shown}.")
 
     def at_level(self, level: int) -> tuple[Array, Array]:
         """``(λs, λp)`` of the branches at `level` (1 = the main root's laterals, 2 = their
@@ -143,6 +144,11 @@ def as_weights(weights) -> Weights:
     if weights is None:
         return Weights()
     if not isinstance(weights, Weights):
+        if isinstance(getattr(weights, "weights", None), Weights):  # e.g. learn_weights' result
+            raise TypeError(
+                f"weights must be a rootshape_jax.Weights, got a {type(weights).__name__}; pass its "
+                "`.weights` (e.g. weights=learned.weights)."
+            )
         raise TypeError(
             f"weights must be a rootshape_jax.Weights, got {type(weights).__name__} {weights!r}; "
             "write Weights(0.02, 1, 1) or Weights(main=0.02, lateral=1, position=1)."

@@ -758,7 +758,7 @@ def _capacities(counts, depth, max_laterals, max_children) -> tuple[int, ...]:
         if max_laterals is not None:
             caps[0] = max_laterals
     else:
-        caps = list(max_children)
+        caps = list(max_children) if isinstance(max_children, (Sequence, np.ndarray)) else [max_children]
         if len(caps) != depth - 1 or not all(
             isinstance(k, (int, np.integer)) and not isinstance(k, bool) and k >= 0 for k in caps
         ):

@@ -76,6 +76,12 @@ def test_weights_must_be_weights(pair):
             rs.distance(a, b, weights=bad)
         with pytest.raises(TypeError, match="weights must be"):
             rs.pairwise_distances(rs.stack([a, b]), weights=bad, progress=False)
+    # learn_weights' result (a Module holding `.weights`) says which field to pass.
+    import types
+
+    learned = types.SimpleNamespace(weights=rs.Weights(main=0.01))
+    with pytest.raises(TypeError, match=r"got a SimpleNamespace; pass its `.weights`"):
+        rs.distance(a, b, weights=learned)
 
 
 def test_thickness_weight_without_radii_says_it_does_nothing(pair):

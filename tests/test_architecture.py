@@ -179,6 +179,8 @@ def test_weights_are_one_field_per_term():
         rs.Weights(0.1, main=0.2)
     with pytest.raises(ValueError, match="non-negative"):
         rs.Weights(main=-1.0)
+    with pytest.raises(ValueError, match=r"Weights.thickness must be a finite non-negative scalar, got -1\.$"):
+        rs.Weights(thickness=-1)  # the number, not Array(-1, dtype=int32, weak_type=True)
 
 
 def test_preshape_terms_match_a_numpy_reference():

@@ -239,7 +239,7 @@ def test_too_few_roots(rsml_files, tmp_path):
 def test_geodesic_root_index_out_of_range(rsml_files, tmp_path):
     f = rsml_files / "control.rsml"
     proc = run_cli("geodesic", f, f, "--root-b", 5, "--out", tmp_path / "o")
-    assert_one_line_error(proc, "control.rsml", "root number 5")
+    assert_one_line_error(proc, "control.rsml", "root number 5", "give 0 to")
 
 
 def test_out_is_a_file(rsml_files, tmp_path):
@@ -970,6 +970,19 @@ def test_a_run_that_fails_midway_says_what_it_left_in_out(tmp_path, monkeypatch,
     assert main(["traits", "--synthetic", "2", "--quiet", "--out", str(out)]) == 1
     assert "--overwrite" in capsys.readouterr().err
     assert main(["traits", "--synthetic", "2", "--quiet", "--overwrite", "--out", str(out)]) == 0
+
+
+def test_a_folder_holding_only_a_log_is_not_refused(tmp_path, capsys):
+    # A run killed (SIGTERM) before its first result leaves only rootshape.log: no result to
+    # protect, so the next run into that folder goes ahead (it was refused).
+    from rootshape_jax._cli import main
+
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "rootshape.log").write_text("killed\n")
+    assert main(["traits", "--synthetic", "2", "--quiet", "--out", str(out)]) == 0
+    log = out / "rootshape.log"  # the stale log went; this run writes its own only if it logs
+    assert (out / "traits.csv").exists() and (not log.exists() or "killed" not in log.read_text())
 
 
 def test_overwrite_names_earlier_results_it_did_not_replace(tmp_path, capsys):

@@ -154,6 +154,8 @@ def test_capacity_errors_name_the_level_and_the_capacity_needed():
         rs.batch(r, depth=3, max_children=(2, 8))
     with pytest.raises(ValueError, match="max_children must hold 2"):
         rs.batch(r, depth=3, max_children=(6,))
+    with pytest.raises(ValueError, match=r"max_children must hold 2 .*got 12"):  # was 'int' is not iterable
+        rs.batch(r, depth=3, max_children=12)
     with pytest.raises(ValueError, match="disagrees"):
         rs.batch(r, depth=3, max_laterals=8, max_children=(6, 8))
     with pytest.raises(ValueError, match="depth must be an integer >= 2"):

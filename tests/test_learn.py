@@ -395,6 +395,8 @@ def test_nested_cv_scores_the_paper_weights_like_fold_accuracy():
     assert cv.learned_nn.shape == (2,) and np.all((cv.learned_nn >= 0) & (cv.learned_nn <= 1))
     assert all(w["lateral"] == 1.0 for w in cv.weights)
     assert set(cv.summary()) == {"learned_nn", "learned_mean", "paper_nn", "paper_mean"}
+    m, sd = cv.summary()["learned_nn"]
+    assert f"learned_nn={100 * m:.1f} ± {100 * sd:.1f} %" in repr(cv) and "f64[" not in repr(cv)
 
 
 # --------------------------------------------------------------------------------------------

@@ -107,7 +107,7 @@ def cmd_compare(args) -> None:
 
 def cmd_learn_weights(args) -> None:
     # The classes are checked before anything is registered.
-    _pipeline(args, [lambda ctx, out, args: group_labels(ctx.pop), run_learn_weights], min_roots=4)
+    _pipeline(args, [lambda ctx, out, args: group_labels(ctx.pop, "learn-weights"), run_learn_weights], min_roots=4)
 
 
 def cmd_traits(args) -> None:

@@ -80,7 +80,10 @@ def load_roots(args, *, paths: Sequence[str] | None = None, reading: Reading | N
 
 def pick(roots: list, index: int, path: str):
     if not -len(roots) <= index < len(roots):
-        raise CLIError(f"{path}: has {len(roots)} root(s); root number {index} does not exist.")
+        raise CLIError(
+            f"{path}: has {len(roots)} root(s); root number {index} does not exist (give 0 to {len(roots) - 1}, "
+            "counted from 0 in the file's order)."
+        )
     return roots[index]
 
 

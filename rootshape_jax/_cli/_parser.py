@@ -223,6 +223,7 @@ def _add_common(
         )
         g.add_argument(
             "--metadata",
+            "--labels",
             metavar="CSV",
             help="table of labels joined to the roots by file name: a 'file' column (base name, "
             "extension optional), optional 'plant' and 'root' columns, and any label columns "
@@ -549,7 +550,6 @@ def build_parser() -> argparse.ArgumentParser:
         cmd_learn_weights,
     )
     _add_common(p)
-    p.add_argument("--labels", dest="metadata", metavar="CSV", help="the same as --metadata")
     _add_by_option(p, "the classes")
     g = p.add_argument_group("learning")
     g.add_argument(

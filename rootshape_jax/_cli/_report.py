@@ -78,8 +78,9 @@ def is_output_name(name: str) -> bool:
 
 
 def refuse_earlier_results(folder, earlier: list[str]) -> None:
-    """`CLIError` when the --out `folder` holds files of an earlier run (`earlier`, their names)."""
-    if earlier:
+    """`CLIError` when the --out `folder` holds files of an earlier run (`earlier`, their names).
+    A log alone is no result (a run stopped, e.g. by SIGTERM, before writing any): not refused."""
+    if set(earlier) - {LOG_NAME}:
         earlier = sorted(earlier)
         shown = ", ".join(earlier[:6]) + (f" and {len(earlier) - 6} more" if len(earlier) > 6 else "")
         raise CLIError(
@@ -109,6 +110,10 @@ class Output:
         )
         if not self.overwrite:
             refuse_earlier_results(folder, list(self.earlier))
+        if self.earlier == {LOG_NAME}:
+            # The log of a run stopped before its first result: not this run's, so it goes.
+            (self.folder / LOG_NAME).unlink(missing_ok=True)
+            self.earlier = set()
         # A folder this run creates is removed again if the run stops before writing into it.
         self.created = not self.folder.exists()
         try:

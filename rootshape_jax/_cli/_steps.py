@@ -14,6 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 
 import rootshape_jax as rs
+from rootshape_jax._learn import check_labels
 from rootshape_jax.io import NORMALISED_UNIT, is_plant_system, unit_label
 from rootshape_jax.io._units import PIXEL_UNITS
 
@@ -588,14 +589,18 @@ def run_geodesic(a_root, b_root, out: Output, args) -> None:
         sec.notes.append(f"elastic distance {pair[0].name} → {pair[1].name}: {fmt(float(reg.distance))}.")
 
 
-def group_labels(pop: Population) -> list[str]:
-    """The groups of `compare`: the --by label (default condition), at least two of them."""
+def group_labels(pop: Population, command: str = "compare") -> list[str]:
+    """The groups of `compare` (the classes of `learn-weights`): the --by label (default
+    condition), at least two of them."""
     if pop.conditions is None:
+        table = "--labels" if command == "learn-weights" else "--metadata"
         raise CLIError(
-            "compare needs a group for every root: give --metadata TABLE.csv --by COLUMN "
-            "(or roots that carry a 'condition')."
+            f"{command} needs a {'class' if command == 'learn-weights' else 'group'} for every root: give "
+            f"{table} TABLE.csv --by COLUMN (or roots that carry a 'condition')."
         )
     labels = [str(c) for c in pop.conditions]
+    if command == "learn-weights":
+        return labels  # learn_weights names its own problems with classes (LabelError)
     groups = sorted(set(labels))
     if len(groups) < 2:
         raise CLIError(
@@ -707,7 +712,9 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
     import matplotlib.pyplot as plt
 
     pop = ctx.pop
-    labels = group_labels(pop)
+    labels = group_labels(pop, "learn-weights")
+    # Classes too small for the folds are refused now, not after learning (LabelError).
+    check_labels(labels, len(labels), min_per_class=args.folds or 2)
     start = make_weights(args)
     with out.step(f"Learned metric weights (classes: {pop.label_name})") as sec:
         say(args, f"Learning the weights from {len(labels)} roots ({len(set(labels))} classes)...")
