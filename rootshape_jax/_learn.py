@@ -749,7 +749,8 @@ def learn_weights(
 
     - `labels`: one label per root (any hashable values); at least two classes, each with
       at least two members. Bad labels raise `LabelError` before anything is registered.
-    - `weights`: the starting λ (default the paper's (0.02, 1, 1)); the penalty
+    - `weights`: the starting λ (default the paper's (0.02, 1, 1)); with radii, a thickness
+      weight of 0 (the default) starts at 1 (a log-parameter cannot start at 0). The penalty
       ``regularisation · Σ (log λ − log λ_start)²`` keeps unconstrained terms there. Give
       several values (a sequence) to choose among them by a 3-fold inner cross-validation
       of the roots given, scored by held-out NCA log-loss with the registrations held at the

@@ -401,6 +401,7 @@ def test_cli_speaks_of_radii_only_when_the_metric_weighs_them(rng, tmp_path):
     proc = run_cli(*common, "--weights", "0.02,1,1,1", "--out", tmp_path / "c")
     assert proc.returncode == 0, proc.stderr
     assert "no root has radius data" in proc.stderr and "the thickness term is 0" in proc.stderr, proc.stderr
+    assert "radius is taken as 0" not in proc.stderr, proc.stderr  # said once, not also per root
 
 
 def test_learn_weights_keeps_the_radius_warning(rng, capsys):

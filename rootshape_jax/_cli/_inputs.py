@@ -180,14 +180,16 @@ def prepare(roots: list, args, *, min_roots: int = 1, samples: int | None = None
     by = group_column(args)
     conditions = io.labels_of(roots, by) if by else [r.metadata.get("condition") for r in roots]
     thickness = dict(zip((t.name for t in rs.TERMS), getattr(args, "weights", ()))).get("thickness", 0.0)
+    no_radius = not any(r.has_radius for r in roots)
     with warnings.catch_warnings():
         # learn-weights learns the thickness weight whenever radii exist: missing ones matter there.
-        if not thickness and getattr(args, "command", None) != "learn-weights":
-            # Radii taken as 0 where a file has none matter only when the metric weighs them.
+        if (not thickness and getattr(args, "command", None) != "learn-weights") or (thickness and no_radius):
+            # Radii taken as 0 where a file has none matter only when the metric weighs them; with
+            # none at all, the warning below says so once.
             warnings.simplefilter("ignore", rs.MissingRadiusWarning)
         # depth None (no --depth) is batch's default: depth 2, deeper orders ignored silently.
         tree = rs.batch(roots, n_points=args.points, normalise_scale=normalised, depth=getattr(args, "depth", None))
-    if thickness and not any(r.has_radius for r in roots):
+    if thickness and no_radius:
         warn(
             f"--weights gives thickness the weight {thickness:g}, but no root has radius data (diameters): "
             "the thickness term is 0 and the distances are the paper's metric. Use files with diameters "
