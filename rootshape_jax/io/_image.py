@@ -683,28 +683,6 @@ def _contrast_to_background(gray: np.ndarray, pix: np.ndarray, sigma: float) -> 
     return crop[rr, cc] - bg[rr, cc]
 
 
-def _direct_base(nodes, rc, sub, base_local, axis_sign, *, band: float) -> int:
-    """The base of a piece's main root: of the nodes within `band` px of the base side's
-    extreme (the top row for ``base="top"``), the one whose path to the tip (the node farthest
-    from the extreme node) detours least, i.e. exceeds the straight line to the tip least; of
-    those within ``band / 4`` px of that least detour, the one nearest the base side (then the
-    least detour). The extreme node alone can be the end of a branch along the sheet's edge or
-    the shoot, which the main root then ran through (a RootNav seedling's main root started
-    133 px aside, along the paper's edge). A straight root, slanted or not, detours nowhere
-    (up to its pixel staircase, at most 8 % of a length), so it keeps its own end."""
-    dist = csgraph.dijkstra(sub, directed=False, indices=base_local)
-    tip = int(np.argmax(np.where(np.isfinite(dist), dist, -1)))
-    from_tip = csgraph.dijkstra(sub, directed=False, indices=tip)
-    axis, sign = axis_sign
-    pix = rc[nodes].astype(np.float64)
-    depth = sign * pix[:, axis]
-    near_side = np.flatnonzero(depth <= depth[base_local] + band)  # one component: all reach the tip
-    detour = from_tip[near_side] - np.hypot(*(pix[near_side] - pix[tip]).T)
-    direct = detour <= detour.min() + band / 4
-    best = np.lexsort((detour[direct], depth[near_side[direct]]))[0]
-    return int(near_side[direct][best])
-
-
 def _plant_checks(nodes, rc, sub, base_local, gray, halfwidth, axis_sign):
     """Measures used to tell a plant from clutter: main path, frame, edge and direction."""
     dist, pred = csgraph.dijkstra(sub, directed=False, indices=base_local, return_predecessors=True)
@@ -1180,8 +1158,6 @@ def _trace(
         local = {int(g): k for k, g in enumerate(nodes)}
         b = local[base_node]
         if auto_base:
-            b = _direct_base(nodes, rc, sub, b, axis_sign, band=max(10.0, 2.0 * float(root_width)))
-            base_node = int(nodes[b])
             chk = _plant_checks(nodes, rc, sub, b, gray, halfwidth, axis_sign)
             if chk["frame"] or chk["edge"] or chk["border"] or chk["heading"] < 0.6:
                 continue
