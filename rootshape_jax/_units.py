@@ -45,3 +45,14 @@ def unit_key(unit: str | None) -> str | None:
     if key in PIXEL_UNITS:
         return "pixel"
     return f"{MM_PER_UNIT[key]:g} mm" if key in MM_PER_UNIT else key
+
+
+def units_of(roots) -> dict[str, str]:
+    """The units `roots` carry (``metadata["unit"]``): ``{unit_key: the first spelling seen}``;
+    roots without a unit add nothing."""
+    found: dict[str, str] = {}
+    for r in roots:
+        key = unit_key(r.metadata.get("unit"))
+        if key is not None:
+            found.setdefault(key, str(r.metadata["unit"]))
+    return found

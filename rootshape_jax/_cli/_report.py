@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from rootshape_jax._atomic import atomic_write
+from rootshape_jax.io._folder import FIGURE_SOFTWARE, OUTPUT_LOG
 
 from ._common import CLIError, fmt, version
 
@@ -40,7 +41,7 @@ class Section:
 # Every name the command line writes (a folder holding any of them holds earlier results).
 OUTPUT_NAMES = (
     "index.html",
-    "rootshape.log",
+    OUTPUT_LOG,
     "traits.csv",
     "distances.csv",
     "distances.png",
@@ -70,7 +71,7 @@ OUTPUT_NAMES = (
     "systems_*.csv",  # the demo's whole-root-systems section
     "systems_*.png",
 )
-LOG_NAME = "rootshape.log"
+LOG_NAME = OUTPUT_LOG
 
 
 def is_output_name(name: str) -> bool:
@@ -169,8 +170,6 @@ class Output:
         return self.file(section, name, caption, "table", table_html)
 
     def figure(self, section: Section, fig, name: str, caption: str) -> Item:
-        from rootshape_jax.io._folder import FIGURE_SOFTWARE
-
         try:
             # Marked, so a results folder read again does not take its figures for photographs.
             self.write(name, lambda p: fig.savefig(p, dpi=110, format="png", metadata={"Software": FIGURE_SOFTWARE}))

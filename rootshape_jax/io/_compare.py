@@ -10,7 +10,7 @@ import numpy as np
 
 from .._errors import UnitError
 from .._root import Root
-from .._units import unit_key
+from .._units import units_of
 
 
 def total_length(root: Root) -> float:
@@ -63,16 +63,11 @@ def _check_same_unit(extracted: list[Root], traced: list[Root]) -> None:
     """`UnitError` when the two sets name different units: lengths, bases and `tolerance`
     would compare numbers in different units (an image read in mm against a tracing in px
     matched no plant and scored recall 0). Roots without a unit are not checked."""
-    units = {}
-    for name, roots in (("extracted", extracted), ("traced", traced)):
-        named = {unit_key(r.metadata.get("unit")): r.metadata.get("unit") for r in roots}
-        named.pop(None, None)
-        units[name] = named
-    ext, tr = units["extracted"], units["traced"]
+    ext, tr = units_of(extracted), units_of(traced)
     if ext and tr and set(ext) != set(tr):
         raise UnitError(
-            f"compare_to_tracing: the extracted roots are in {', '.join(map(str, ext.values()))} and the traced "
-            f"roots in {', '.join(map(str, tr.values()))}; compare them in one unit: "
+            f"compare_to_tracing: the extracted roots are in {', '.join(ext.values())} and the traced "
+            f"roots in {', '.join(tr.values())}; compare them in one unit: "
             "rootshape_jax.io.convert_units(roots, unit) on one side (pixels need a resolution), or "
             "read the image without pixels_per_mm / pixel_size to keep pixels."
         )

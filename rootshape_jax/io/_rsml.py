@@ -32,7 +32,7 @@ from defusedxml import DefusedXmlException, ElementTree as DET
 from .._errors import InvalidRootError, RSMLError, RSMLWarning, UnitError, user_stacklevel
 from .._root import ROOT_COORDINATE_LIMIT, Root, check_range, is_plant_system, plant_axes
 from .._tree import RootTree, SRVFTree
-from .._units import PIXEL_UNITS, unit_key
+from .._units import PIXEL_UNITS, unit_key, units_of
 
 _PO_NS = "http://www.plantontology.org/xml-dtd/po.dtd"
 
@@ -888,11 +888,7 @@ def write_rsml(
         if not isinstance(r, Root):
             raise TypeError(f"write_rsml: item {i} is a {type(r).__name__}, expected a Root.")
 
-    # Units compare by `unit_key` ("mm" is "millimetre", "inch" is "Inches").
-    own = {}
-    for r in roots:
-        if unit_key(r.metadata.get("unit")) is not None:
-            own.setdefault(unit_key(r.metadata["unit"]), str(r.metadata["unit"]))
+    own = units_of(roots)  # by `unit_key`: "mm" is "millimetre", "inch" is "Inches"
     if unit is None:
         if len(own) > 1:
             raise RSMLError(
