@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 # Temporary files being written; a Ctrl-C handler that ends the process at once removes them
@@ -14,6 +14,26 @@ PENDING: set[str] = set()
 
 
 _MODE: list[int] = []  # the file mode, found once
+
+# Lists that `recording_writes` blocks fill with the files written meanwhile.
+_RECORDERS: list[list[Path]] = []
+
+
+@contextlib.contextmanager
+def recording_writes():
+    """Yield a list that collects the path of each file written (whole) within the block: what
+    a command that stops early has left."""
+    written: list[Path] = []
+    _RECORDERS.append(written)
+    try:
+        yield written
+    finally:
+        _RECORDERS.remove(written)
+
+
+def _record(path: Path) -> None:
+    for written in _RECORDERS:
+        written.append(path)
 
 
 def _plain_mode() -> int:
@@ -43,6 +63,7 @@ def atomic_write(path: str | os.PathLike, write_to: Callable[[Path], object], *,
                 os.fsync(f.fileno())
         os.chmod(tmp, _plain_mode())  # after writing: a mode without write permission is allowed
         os.replace(tmp, path)
+        _record(path)
     finally:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
@@ -55,3 +76,57 @@ def remove_pending() -> None:
     for tmp in list(PENDING):
         with contextlib.suppress(OSError):
             os.unlink(tmp)
+
+
+def atomic_write_all(writes: Sequence[tuple[str | os.PathLike, Callable[[Path], object]]]) -> list[Path]:
+    """Write several files as one result: each ``write_to(temporary_path)`` first, then every
+    rename together, with Ctrl-C held back (`interrupts_held`) until the last. An interrupted
+    or failed run leaves all of them or none (e.g. an image's RSML and its overlay)."""
+    done: list[tuple[str, Path]] = []
+    try:
+        for path, write_to in writes:
+            path = Path(path)
+            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+            os.close(fd)
+            PENDING.add(tmp)
+            done.append((tmp, path))
+            write_to(Path(tmp))
+            os.chmod(tmp, _plain_mode())
+        with interrupts_held():
+            for tmp, path in done:
+                os.replace(tmp, path)
+                _record(path)
+    finally:
+        for tmp, _ in done:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+            PENDING.discard(tmp)
+    return [path for _, path in done]
+
+
+# Ctrl-C held back: a handler that ends the process at once (the command line's) asks
+# `defer_interrupt` first, and while a group of renames runs it is called at their end instead.
+_HOLDING: list[int] = [0]
+_DEFERRED: list[Callable[[], object]] = []
+
+
+@contextlib.contextmanager
+def interrupts_held():
+    """Within this block, a Ctrl-C handler that calls `defer_interrupt` runs at its end."""
+    _HOLDING[0] += 1
+    try:
+        yield
+    finally:
+        _HOLDING[0] -= 1
+        if not _HOLDING[0] and _DEFERRED:
+            handler = _DEFERRED[0]
+            _DEFERRED.clear()
+            handler()
+
+
+def defer_interrupt(handler: Callable[[], object]) -> bool:
+    """True (and `handler` kept for the end of `interrupts_held`) while interrupts are held."""
+    if _HOLDING[0]:
+        _DEFERRED.append(handler)
+        return True
+    return False

@@ -338,6 +338,35 @@ def test_a_straight_slanted_root_keeps_its_top_end(end):
         assert r.n_laterals == 0
 
 
+def test_a_lateral_hooking_back_to_the_top_does_not_become_the_main_roots_start():
+    """From RootNav B_osr_0091: a lateral that leaves the main root, turns and reaches the top
+    edge beside it held the top row, and the main root started there (133 px aside) and wound
+    through it. The main root now keeps its own top (at most 12 px below), and the hook is a
+    lateral; a lateral reaching the top without winding still leaves the top row's node be."""
+    from skimage.draw import line
+
+    def draw(*polylines):
+        skel = np.zeros((600, 260), bool)
+        for poly in polylines:
+            for (r0, c0), (r1, c1) in zip(poly[:-1], poly[1:]):
+                skel[line(r0, c0, r1, c1)] = True
+        return skel
+
+    main = [(34, 150), (200, 162), (560, 190)]  # (row, col)
+    hook = [(150, 159), (185, 80), (120, 50), (60, 75), (28, 120)]  # leaves at row 150, ends at row 28
+    opts = dict(smooth=0, spacing=None, close_gaps=0, min_object_size=0, min_root_length=5, refine_junctions=False)
+    (r,) = roots_from_image(draw(main, hook), min_lateral_length=3, **opts)
+    np.testing.assert_array_equal(r.main[0], [150, 34])  # (x, y): the main root's own top
+    assert r.main_length == pytest.approx(542.57, abs=0.01)  # its pixel path (the old: 719.8)
+    assert r.n_laterals == 1 and r.lateral_lengths[0] > 250  # the whole hook
+    assert r.attach[0] == pytest.approx(0.2217, abs=1e-3)  # at row 150
+    # Without the winding (a lateral straight up to the top row) its end stays the base: the
+    # rule only acts on a detour of more than 8 root widths.
+    straight = [(150, 159), (28, 120)]
+    (r2,) = roots_from_image(draw(main, straight), min_lateral_length=3, **opts)
+    np.testing.assert_array_equal(r2.main[0], [120, 28])
+
+
 def test_smooth_keeps_ends_and_straight_lines():
     rng = np.random.default_rng(0)
     line = np.linspace([0.0, 0.0], [30.0, 10.0], 31)

@@ -423,8 +423,9 @@ def test_cli_extract_writes_rsml_overlay_and_names_a_bad_image(tmp_path):
 
 def test_extract_interrupted_while_writing_leaves_no_half_written_file(tmp_path, monkeypatch):
     # Ctrl-C while the second image's overlay is being written: the first image's files are
-    # complete, the second image's overlay is absent (not half a PNG), no temporary file stays,
-    # and summary.json describes the one finished image.
+    # complete, the second image's RSML and overlay are both absent (not half a PNG, not an
+    # RSML without its overlay), no temporary file stays, and summary.json describes the one
+    # finished image.
     import json
 
     import skimage.io
@@ -452,11 +453,45 @@ def test_extract_interrupted_while_writing_leaves_no_half_written_file(tmp_path,
     with pytest.raises(KeyboardInterrupt):
         extract_images([src], out, progress=False)
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["p0.rsml", "p0_overlay.png", "p1.rsml", "summary.json"]
+    assert names == ["p0.rsml", "p0_overlay.png", "summary.json"]
     assert skimage.io.imread(out / "p0_overlay.png").ndim == 3
-    assert len(read_rsml(out / "p1.rsml")) == 1
+    assert len(read_rsml(out / "p0.rsml")) == 1
     (row,) = json.loads((out / "summary.json").read_text())
     assert row["image"] == str(src / "p0.png") and row["status"] == "ok" and row["plants"] == 1
+
+
+def test_extract_command_stopped_early_names_the_images_it_finished(tmp_path, monkeypatch, capsys):
+    """From a tour: an interrupted `rootshape extract` printed no "stopped before its end" line
+    (the other commands do), so the user did not know which images were done."""
+    import skimage.io
+
+    from rootshape_jax._cli._main import main
+    from rootshape_jax._cli._report import OPENED
+    from rootshape_jax.io import _extract_cli
+
+    src = tmp_path / "photos"
+    src.mkdir()
+    for k, x0 in enumerate((120, 180)):
+        main_, lats = _seedling(k, x0=x0)
+        img = _draw([main_, *lats], shape=(380, 300), width=3, contrast=0.3, noise=0.03, seed=k)
+        skimage.io.imsave(src / f"p{k}.png", (img * 255).astype(np.uint8))
+    draw = _extract_cli.draw_overlay
+    calls = []
+
+    def interrupted(image, roots, out_png, **kw):
+        calls.append(out_png)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return draw(image, roots, out_png, **kw)
+
+    monkeypatch.setattr(_extract_cli, "draw_overlay", interrupted)
+    out = tmp_path / "out"
+    code = main(["extract", str(src), "--out", str(out), "--quiet"])
+    OPENED.clear()
+    err = capsys.readouterr().err
+    assert code == 130 and "interrupted" in err
+    assert "stopped before its end" in err and "p0.rsml" in err and "p0_overlay.png" in err and "p1" not in err
+    assert sorted(p.name for p in out.iterdir()) == ["p0.rsml", "p0_overlay.png", "summary.json"]
 
 
 def test_a_results_folder_read_again_leaves_rootshape_figures_out(tmp_path):

@@ -9,7 +9,7 @@ import numpy as np
 
 from ._common import PAPER_TRAITS, CLIError, say, warn
 from ._inputs import Reading, covariate_columns, load_roots, pick, prepare, read_requested, subsample
-from ._report import LOG_NAME, Output, refuse_earlier_results, settings, write_index
+from ._report import LOG_NAME, Output, WrittenFolder, refuse_earlier_results, settings, write_index
 from ._steps import (
     Context,
     group_labels,
@@ -131,6 +131,7 @@ def cmd_extract(args) -> None:
     import warnings
     from pathlib import Path
 
+    from rootshape_jax._atomic import recording_writes
     from rootshape_jax.io import extract_images
     from rootshape_jax.io._extract_cli import expand_images
 
@@ -167,7 +168,9 @@ def cmd_extract(args) -> None:
         options["shoot_green"] = None
     elif args.shoot_green is not None:
         options["shoot_green"] = args.shoot_green
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), recording_writes() as written:
+        # Stopped early, the run names the files it finished (`unfinished_note`).
+        WrittenFolder(args.out, written)
         # A skipped image is named in its row and summarised below: one line each, no repeat.
         warnings.simplefilter("ignore", UserWarning)
         rows = extract_images(

@@ -18,7 +18,7 @@ import sys
 import warnings
 from collections.abc import Sequence
 
-from rootshape_jax._atomic import remove_pending
+from rootshape_jax._atomic import defer_interrupt, remove_pending
 
 from ._common import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, PROG, CLIError, heartbeat, log_friendly_stderr
 from ._parser import build_parser
@@ -119,7 +119,10 @@ def _on_sigint(signum, frame) -> None:
 
     Raising KeyboardInterrupt is not enough: it can surface inside a garbage-collection
     callback of JAX, where Python prints "Exception ignored" and the run goes on (measured).
+    Within a group of files written together (`atomic_write_all`) it runs at the group's end.
     """
+    if defer_interrupt(lambda: _on_sigint(signum, frame)):
+        return
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not interrupt the exit
     remove_pending()
     print(file=sys.stderr)  # end the line of the progress bar

@@ -214,8 +214,23 @@ class Output:
         print(f"Results are in {self.folder.resolve()}")
 
 
+class WrittenFolder:
+    """The --out folder of a command that writes its files itself (`extract`, through
+    `atomic_write`): what it wrote, for the message when it stops early (`unfinished_note`)."""
+
+    def __init__(self, folder: str | os.PathLike, paths: list[Path]):
+        self.folder = Path(folder)
+        self.created = not self.folder.exists()
+        self.paths = paths  # filled by `recording_writes`
+        OPENED.append(self)
+
+    @property
+    def written(self) -> set[str]:
+        return {p.name for p in self.paths if p.parent == self.folder}
+
+
 # The output folders of the running command, for the message when it stops early.
-OPENED: list[Output] = []
+OPENED: list[Output | WrittenFolder] = []
 
 
 def unfinished_note() -> str | None:

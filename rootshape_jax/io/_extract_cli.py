@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._atomic import atomic_write
+from .._atomic import atomic_write, atomic_write_all
 from .._errors import ImageError, RSMLError, user_stacklevel
 from .._root import Root
 from ._folder import FIGURE_SOFTWARE
@@ -182,8 +182,6 @@ def extract_images(
             write_summary()
             continue
         rsml_path = out / f"{path.stem}.rsml"
-        # Each file whole or not at all: a Ctrl-C leaves every image done complete.
-        atomic_write(rsml_path, lambda p: write_rsml(roots, p))
         traced: list[Root] = []
         tpath = _tracing_for(path, tracing, len(files))
         if tpath is not None:
@@ -196,7 +194,14 @@ def extract_images(
                     f"{path.name}: tracing {tpath} not read ({e}); overlay without it.", stacklevel=user_stacklevel()
                 )
         png = out / f"{path.stem}_overlay.png"
-        atomic_write(png, lambda p: draw_overlay(path, roots, p, tracing=traced, scale=scale))
+        # An image's RSML and overlay are written together, whole or not at all: a Ctrl-C
+        # leaves every image done complete and no image half done.
+        atomic_write_all(
+            [
+                (rsml_path, lambda p: write_rsml(roots, p)),
+                (png, lambda p: draw_overlay(path, roots, p, tracing=traced, scale=scale)),
+            ]
+        )
         row.update(
             plants=len(roots),
             laterals=[r.n_laterals for r in roots],

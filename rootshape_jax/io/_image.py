@@ -683,6 +683,37 @@ def _contrast_to_background(gray: np.ndarray, pix: np.ndarray, sigma: float) -> 
     return crop[rr, cc] - bg[rr, cc]
 
 
+def _unwound_base(nodes, rc, sub, base_local, axis_sign, *, band: float, root_width: float) -> int:
+    """The base of a piece's main root: the extreme node (`base_local`, the top row's middle
+    for ``base="top"``) unless the path from it to the tip winds far out of its way.
+
+    The extreme node can be the end of a lateral that reaches the paper's edge beside the main
+    root, which the main root then ran along (a RootNav seedling's started 133 px aside and
+    zigzagged through the laterals crossing under the edge). Of the nodes within `band` px of
+    the extreme, take the one whose path to the tip (the node farthest from the extreme)
+    exceeds the straight line to the tip least (of those within ``band / 4`` px of that least
+    excess, the one nearest the base side), but only when this saves more than
+    ``8 · root_width`` px over the extreme node's excess. Two nodes on the same root near the
+    extreme differ in excess by about their distance along it (a few px; the plate's seedlings
+    saved at most 5 px), so a root without such a winding keeps its own end: only a path that
+    leaves and comes back saves more.
+    """
+    dist = csgraph.dijkstra(sub, directed=False, indices=base_local)
+    tip = int(np.argmax(np.where(np.isfinite(dist), dist, -1)))
+    from_tip = csgraph.dijkstra(sub, directed=False, indices=tip)
+    axis, sign = axis_sign
+    pix = rc[nodes].astype(np.float64)
+    depth = sign * pix[:, axis]
+    near_side = np.flatnonzero(depth <= depth[base_local] + band)  # one component: all reach the tip
+    excess = from_tip[near_side] - np.hypot(*(pix[near_side] - pix[tip]).T)
+    own = from_tip[base_local] - np.hypot(*(pix[base_local] - pix[tip]))
+    if own - excess.min() <= 8.0 * root_width:
+        return base_local
+    direct = excess <= excess.min() + band / 4
+    best = np.lexsort((excess[direct], depth[near_side[direct]]))[0]
+    return int(near_side[direct][best])
+
+
 def _plant_checks(nodes, rc, sub, base_local, gray, halfwidth, axis_sign):
     """Measures used to tell a plant from clutter: main path, frame, edge and direction."""
     dist, pred = csgraph.dijkstra(sub, directed=False, indices=base_local, return_predecessors=True)
@@ -827,7 +858,10 @@ def roots_from_image(
       to decide automatically (ridge mode: the polarity with more strong line pixels; threshold
       mode: roots are the minority class).
     - `base`: where each root starts: ``"top"`` (default; roots grow down from the top-most
-      pixel of each plant), ``"bottom"``, ``"left"``, ``"right"``, or an ``(x, y)`` point / an
+      pixel of each plant, unless the path from it winds far out of the main root's way, e.g.
+      a lateral reaching the top edge beside it: then the node within two root widths of the
+      top that goes most directly to the tip), ``"bottom"``, ``"left"``, ``"right"``, or an
+      ``(x, y)`` point / an
       ``(n, 2)`` array of points in image ``(x = col, y = row)`` coordinates — then one root per
       point, from the skeleton pixel nearest to it (no plant selection).
     - `roi`: ``(top, bottom, left, right)`` pixel bounds of the region to analyse; coordinates
@@ -1158,6 +1192,10 @@ def _trace(
         local = {int(g): k for k, g in enumerate(nodes)}
         b = local[base_node]
         if auto_base:
+            b = _unwound_base(
+                nodes, rc, sub, b, axis_sign, band=max(10.0, 2.0 * float(root_width)), root_width=float(root_width)
+            )
+            base_node = int(nodes[b])
             chk = _plant_checks(nodes, rc, sub, b, gray, halfwidth, axis_sign)
             if chk["frame"] or chk["edge"] or chk["border"] or chk["heading"] < 0.6:
                 continue
