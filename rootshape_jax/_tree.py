@@ -1058,6 +1058,7 @@ def to_srvf(tree: RootTree | SRVFTree, *, weights=None) -> SRVFTree:
     if isinstance(tree, SRVFTree):
         if weights is not None:
             check_thickness(tree, weights)
+            _warn_unused_deeper_weights(tree, weights)
         _require_finite_tree(tree)
         return tree
     if not isinstance(tree, RootTree):
@@ -1074,8 +1075,33 @@ def to_srvf(tree: RootTree | SRVFTree, *, weights=None) -> SRVFTree:
             MissingRadiusWarning,
             stacklevel=user_stacklevel(),
         )
+    if weights is not None:
+        _warn_unused_deeper_weights(tree, weights)
     lam = jnp.asarray(weights.thickness, tree.main.dtype) if wants_thickness(tree, weights) else None
     return _srvf_tree(tree, lam)
+
+
+def _warn_unused_deeper_weights(tree: RootTree | SRVFTree, weights) -> None:
+    """Warn when `weights.deeper` (second-order laterals and below) weighs no branch of `tree`:
+    a taproot tree needs depth 3 for it, a plant's system (whose level 2 takes `lateral` and
+    `position`, `system_weights`) depth 4."""
+    deeper = getattr(weights, "deeper", ())
+    first = 4 if tree.virtual_main else 3  # the shallowest depth whose branches use deeper[0]
+    depth = len(tree.deeper) + 2
+    if deeper and depth < first:
+        what = "plants' systems" if tree.virtual_main else "trees"
+        warnings.warn(
+            f"weights.deeper has no effect: it weighs laterals of order 2 and below, and these {what} "
+            f"have depth {depth}"
+            + (
+                " (a plant's axes take `main`, their laterals `lateral` and `position`)"
+                if tree.virtual_main
+                else " (first-order laterals only)"
+            )
+            + f". Build them with batch(..., depth={first}) to keep deeper orders, or leave deeper empty.",
+            UserWarning,
+            stacklevel=user_stacklevel(),
+        )
 
 
 def _concrete_positive(x) -> bool:

@@ -609,3 +609,23 @@ def test_plant_systems_register_today_without_nan():
     assert np.isfinite(float(reg.energy)) and float(reg.energy) > 0
     g = jax.grad(lambda x: rs.distance(eqx.tree_at(lambda t: t.laterals, ta, x), tb, neighbourhood=3))(ta.laterals)
     assert np.all(np.isfinite(np.asarray(g))) and np.any(np.asarray(g) != 0)
+
+
+def test_per_order_weights_that_weigh_no_branch_are_named():
+    """From a tour: Weights(deeper=...) on trees without second-order laterals (depth 2, or
+    plants' systems at depth 3, whose axes' laterals take `lateral`/`position`) changed
+    nothing, silently. Now a warning says so; where they weigh a level, nothing is said."""
+    rng = np.random.default_rng(5)
+    roots = [random_root(rng, n_laterals=2) for _ in range(2)]
+    w = rs.Weights(deeper=((2.0, 0.5),))
+    flat = rs.batch(roots, n_points=16, dtype=np.float64)
+    with pytest.warns(UserWarning, match=r"weights.deeper has no effect.*depth 2.*depth=3"):
+        rs.to_srvf(flat, weights=w)
+    plants = rs.batch([plant_system(roots[:1]), plant_system(roots[1:])], depth=3, n_points=16, dtype=np.float64)
+    with pytest.warns(UserWarning, match=r"weights.deeper has no effect.*plants' systems.*depth=4"):
+        rs.to_srvf(rs.to_srvf(plants), weights=w)  # also for an SRVF tree
+    deep = rs.batch(roots, depth=3, n_points=16, dtype=np.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rs.to_srvf(deep, weights=w)
+        rs.to_srvf(flat, weights=rs.Weights())
