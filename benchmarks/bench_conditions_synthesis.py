@@ -8,8 +8,9 @@
    between conditions.
 2. Plausibility (`plausibility`) of 200 random roots (`sample`) and of the roots at ±2σ along
    each of the first 5 modes (`modes`), with the previous synthesis defaults (laterals below
-   2 % of the mean's main-root length dropped, no cap) and the current ones (below the data's
-   10th percentile dropped, above its longest scaled down).
+   2 % of the mean's main-root length dropped, no cap), the data's 10th percentile alone
+   (below it dropped, above the data's longest scaled down) and the current ones (the same,
+   except that the Karcher mean's own laterals stay down to their length in the mean).
 
 Float64, scale-normalised, default weights. Writes benchmarks/results/conditions_synthesis.json.
 """
@@ -77,9 +78,12 @@ def main(argv=None):
     km = rs.karcher_mean(trees)
     out["mean"] = {"energy": float(km.energy), "seconds": time.perf_counter() - t0}
     main_len = float(rs.l2_norm_squared(km.fitted.q0))
+    current = rs.tangent_pca(km)
     pcs = {
         "previous": rs.tangent_pca(km, min_lateral_length=0.02 * main_len, max_lateral_length=float("inf")),
-        "current": rs.tangent_pca(km),
+        # Session 30's defaults without the mean's own laterals kept below the percentile.
+        "percentile_only": rs.tangent_pca(km, min_lateral_length=float(current.min_lateral_length)),
+        "current": current,
     }
     out["plausibility"] = {}
     for name, pc in pcs.items():

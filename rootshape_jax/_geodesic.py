@@ -6,7 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._engine import Registration
+from ._engine import Registration, apply_registration
 from ._errors import as_count
 from ._metric import Weights, as_weights
 from ._registration import register
@@ -84,7 +84,9 @@ def geodesic(
     of `batch(normalise_scale=True)` unless `sizes` is given.
 
     Slot k of every step is the same lateral along the path (the correspondence colour); a
-    lateral present on one side only grows from zero length at its partner's position. Pass a
+    lateral present on one side only grows from zero length at its partner's position. The
+    first and last steps are a's and b's own SRVFs as curves (their round trip, docs/design.md
+    §3; b not reparameterised, where a steep warp would cut its corners). Pass a
     precomputed `registration` (of b onto a) to skip registering again; other options as in
     `register`.
 
@@ -132,7 +134,7 @@ def geodesic(
     weights = as_weights(weights)
     # Whether a has a thickness channel is decided here, on concrete weights (static below).
     thick = registration.registered.has_thickness
-    path = _geodesic_curves(a, registration.registered, n_steps, weights if thick else None)
+    path = _geodesic_curves(a, b, registration, n_steps, weights if thick else None)
     taus = jnp.linspace(0.0, 1.0, n_steps, dtype=path.main.dtype)
     if in_place:
         path = _unrotate(path, registration.rotation, taus)
@@ -170,9 +172,37 @@ def _unrotate(path: RootTree, rotation, taus) -> RootTree:
     return turn_about_base(path, jnp.swapaxes(Rs, -1, -2))
 
 
+def unwarped_end(sa: SRVFTree, sb: SRVFTree, registration: Registration) -> SRVFTree:
+    """b moved by the registration's rotation and correspondences but not reparameterised.
+
+    Reparameterising does not change a curve's shape, but on the grid a steep warp (slope up
+    to `neighbourhood`) skips nodes of b, and the curve rebuilt from the warped SRVF cuts
+    those corners: a RootNav lateral came back 8 % shorter at the path's end. Without the
+    warps the last step is b's own SRVF, as the first step is a's, so both ends differ from
+    the inputs by no more than a root's own SRVF round trip."""
+    T = sa.q0.shape[-2]
+    same = jnp.linspace(0.0, 1.0, T, dtype=sa.q0.dtype)
+    children = tuple((pm, jnp.broadcast_to(same, pm.shape + (T,))) for pm in registration.child_permutations)
+    perm = registration.permutation
+    return apply_registration(
+        sa, sb, registration.rotation, perm, same, jnp.broadcast_to(same, perm.shape + (T,)), children
+    )
+
+
 @eqx.filter_jit
-def _geodesic_curves(a: RootTree | SRVFTree, rb: SRVFTree, n_steps: int, weights: Weights | None) -> RootTree:
+def _geodesic_curves(
+    a: RootTree | SRVFTree, b: RootTree | SRVFTree, registration: Registration, n_steps: int, weights: Weights | None
+) -> RootTree:
     # One compiled program, SRVF conversion included (eagerly it costs more than the path).
     sa = to_srvf(a, weights=weights)
     taus = jnp.linspace(0.0, 1.0, n_steps, dtype=sa.q0.dtype)
-    return to_curves(geodesic_srvf(sa, rb, taus))
+    path = geodesic_srvf(sa, registration.registered, taus)
+    end = unwarped_end(sa, to_srvf(b, weights=weights), registration)
+    # The last step's curves from b unwarped (its attachments, masks and radii are the same).
+    path = eqx.tree_at(lambda t: (t.q0, t.q), path, (path.q0.at[-1].set(end.q0), path.q.at[-1].set(end.q)))
+    if path.deeper:
+        levels = tuple(
+            eqx.tree_at(lambda lv: lv.q, lv, lv.q.at[-1].set(le.q)) for lv, le in zip(path.deeper, end.deeper)
+        )
+        path = eqx.tree_at(lambda t: t.deeper, path, levels)
+    return to_curves(path)

@@ -25,6 +25,9 @@ makes many short laterals that the data does not have); longer than the data's l
 scaled down to that length. Measured on the bundled 53 roots (T = 50): random roots with every
 lateral in range 84 % → 100 %, ±2σ along modes 1–5 90 % → 100 %; KS statistic of the pooled
 lateral lengths against the data 0.29 → 0.16 (random roots). See BENCHMARKS.md.
+The Karcher mean's own laterals are the exception: averaging shrinks them, and below the
+percentile they would vanish from the mean itself (zero coefficients), so each stays real down
+to its length in the mean.
 """
 
 from __future__ import annotations
@@ -43,7 +46,7 @@ from ._errors import as_count
 from ._executor import LocalExecutor
 from ._mean import KarcherMean, register_onto
 from ._metric import Weights, system_weights
-from ._tangent import TreeParams, exp_map, flatten, log_map, params_of, whiten, whitening
+from ._tangent import TreeParams, exp_map, flatten, level_value, log_map, params_of, whiten, whitening
 from ._tree import RootTree, SRVFTree, check_compatible, to_curves, to_srvf
 
 
@@ -67,6 +70,11 @@ class TangentPCA(eqx.Module):
       this are nulls; `max_lateral_length`: longer ones are scaled down to it (inf: never).
       At depth D > 2 both hold one value per branch level ``[D − 1]`` (first-order laterals
       first), or one value for every level.
+    - `slot_min_lengths`: with the default `min_lateral_length`, the thresholds applied, one
+      array per level with one value per slot: `min_lateral_length`, lowered in the Karcher
+      mean's own laterals to their length in the mean and raised in the laterals it dropped
+      above their length in the fitted mean, so that zero coefficients give the mean
+      (`KarcherMean.mean_srvf`) exactly. ``()`` when `min_lateral_length` was given.
     """
 
     mean: SRVFTree
@@ -81,6 +89,13 @@ class TangentPCA(eqx.Module):
     max_lateral_length: Float[Array, "*L"]
     n_components: int = eqx.field(static=True)
     variance: float = eqx.field(static=True)
+    slot_min_lengths: tuple[Array, ...] = ()
+
+
+def min_lengths(pc: TangentPCA) -> Array | tuple[Array, ...]:
+    """The lateral-length thresholds `reconstruct` applies: per slot (`slot_min_lengths`)
+    with the default `min_lateral_length`, else the value given."""
+    return pc.slot_min_lengths or pc.min_lateral_length
 
 
 @eqx.filter_jit
@@ -153,7 +168,9 @@ def tangent_pca(
       this fraction (the paper's 99 %); `n_components` reports how many.
     - `min_lateral_length`: laterals of synthesised roots shorter than this are nulls;
       default the 10th percentile of the samples' lateral lengths (module docstring; 2 % of
-      the mean's main-root length when no sample has a lateral).
+      the mean's main-root length when no sample has a lateral), except in the Karcher mean's
+      own laterals, which stay real down to their length in the mean (and its dropped ones
+      null up to theirs), so that zero coefficients give the mean (`slot_min_lengths`).
     - `max_lateral_length`: laterals of synthesised roots longer than this are scaled down to
       it; default the samples' longest lateral (``float("inf")`` turns it off).
 
@@ -171,8 +188,10 @@ def tangent_pca(
     c, Vt, eig, ratio, scores, mean_norm2, default_threshold, default_longest = _fit(mean.registered, mu, mean.weights)
     if min_lateral_length is None:
         threshold = default_threshold
+        slots = _keep_the_means_laterals(mean, threshold)
     else:
         threshold = jnp.asarray(min_lateral_length, dtype)
+        slots = ()
     if max_lateral_length is None:
         longest = default_longest
     else:
@@ -193,7 +212,23 @@ def tangent_pca(
         max_lateral_length=longest,
         n_components=_count(ratio_np, eig_np, float(mean_norm2), float(jnp.finfo(dtype).eps), variance),
         variance=float(variance),
+        slot_min_lengths=slots,
     )
+
+
+def _keep_the_means_laterals(mean: KarcherMean, threshold: Array) -> tuple[Array, ...]:
+    """Per-slot thresholds from the level thresholds: a lateral the Karcher mean kept stays
+    real down to its own length in the mean, one it dropped stays a null up to its length in
+    the fitted mean, so that ``reconstruct(pc, 0)`` is the mean itself. (The data's 10th
+    percentile can exceed a mean's laterals: averaging shrinks them, and RootNav's mean kept 8
+    laterals where the percentile alone left 3.)"""
+    out = []
+    pairs = zip((mean.lateral_lengths, *mean.child_lengths), (mean.dropped, *mean.child_dropped))
+    for level, (lengths, dropped) in enumerate(pairs, start=1):
+        thr = level_value(threshold, level)
+        above = jnp.nextafter(lengths, jnp.asarray(jnp.inf, lengths.dtype))
+        out.append(jnp.where(dropped, jnp.maximum(thr, above), jnp.minimum(thr, lengths)))
+    return tuple(out)
 
 
 # --------------------------------------------------------------------------------------------
@@ -202,7 +237,7 @@ def tangent_pca(
 
 def _to_tree(pc: TangentPCA, v: Array) -> SRVFTree:
     """SRVF trees ``μ + W^{-1/2} v`` for flattened whitened tangent vectors v (batched)."""
-    return exp_map(pc.mean, pc.scales, pc.min_lateral_length, v, pc.max_lateral_length)
+    return exp_map(pc.mean, pc.scales, min_lengths(pc), v, pc.max_lateral_length)
 
 
 @eqx.filter_jit

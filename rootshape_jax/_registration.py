@@ -141,7 +141,10 @@ def distance(
 
     Exactly symmetric: the pair is registered in a canonical order that does not depend on the
     argument order (`register` registers b onto a as asked, and the alternation's local
-    optimum may differ slightly the other way round). Equals `pairwise_distances` and
+    optimum may differ the other way round: on 15 Arabidopsis plate tracings, T = 48, the
+    canonical order was above the better of the two orders in about half of the 105 pairs,
+    by 0.07 % at the median and 4.4 % at most; `min(register(a, b).distance, register(b, a)
+    .distance)` is the better local optimum, at twice the cost). Equals `pairwise_distances` and
     `cross_distances`, which use the same order. Differentiable with respect to both roots'
     coordinates (and the weights): the registration is held fixed under `stop_gradient`
     (envelope theorem).

@@ -196,10 +196,15 @@ def limit_lengths(q: Array, min_length, max_length, parent_real=None):
 
 
 def exp_map(
-    mean: SRVFTree, c: TreeParams, min_lateral_length: Array, v: Array, max_lateral_length: Array | None = None
+    mean: SRVFTree,
+    c: TreeParams,
+    min_lateral_length: Array | tuple[Array, ...],
+    v: Array,
+    max_lateral_length: Array | None = None,
 ) -> SRVFTree:
     """SRVF trees ``μ + W^{-1/2} v`` for flattened whitened tangent vectors v (batched).
-    Laterals shorter than `min_lateral_length` become nulls; laterals longer than
+    Laterals shorter than `min_lateral_length` become nulls (a scalar, one value per level
+    ``[D − 1]``, or a tuple with one array of per-slot values per level); laterals longer than
     `max_lateral_length` (if given) are scaled down to it (``q·√(max/L)``: the same shape,
     shorter); attachments are clipped to [0, 1]. At depth D > 2 the limits are scalars (every
     level) or one per level ``[D − 1]``, and the children of a null branch are nulls."""
@@ -211,6 +216,8 @@ def exp_map(
 
     def limits(level):
         hi = None if max_lateral_length is None else level_value(max_lateral_length, level)
+        if isinstance(min_lateral_length, tuple):  # one array per level, one value per slot
+            return min_lateral_length[level - 1], hi
         return level_value(min_lateral_length, level), hi
 
     q, real = limit_lengths(q, *limits(1))

@@ -83,10 +83,13 @@ def test_geodesic_endpoints_midpoint_and_colours(trees):
     reg = rs.register(a, b, weights=W)
     path = rs.geodesic(a, b, n_steps=5, weights=W, registration=reg, in_place=False)
     assert path.main.shape == (5, T, 2) and path.laterals.shape[:2] == (5, a.capacity)
-    # Endpoints (in_place=False): a itself (its curves rebuilt from its SRVFs) and registered b.
+    # Endpoints (in_place=False): a itself (its curves rebuilt from its SRVFs) and b rotated
+    # and permuted as registered, not reparameterised (its own SRVFs' curves).
+    from rootshape_jax._geodesic import unwarped_end
+
     start = rs.to_curves(rs.to_srvf(a))
     np.testing.assert_allclose(np.asarray(path.main[0]), np.asarray(start.main), atol=1e-12)
-    end = rs.to_curves(reg.registered)
+    end = rs.to_curves(unwarped_end(rs.to_srvf(a), rs.to_srvf(b), reg))
     np.testing.assert_allclose(np.asarray(path.main[-1]), np.asarray(end.main), atol=1e-12)
     m = np.asarray(end.mask)
     np.testing.assert_allclose(np.asarray(path.laterals[-1])[m], np.asarray(end.laterals)[m], atol=1e-12)
@@ -99,6 +102,33 @@ def test_geodesic_endpoints_midpoint_and_colours(trees):
     d1 = rs.preshape_distance_squared(ends[1], ends[2], W)
     assert float(d0) == pytest.approx(float(d1), rel=1e-12)
     assert float(d0) == pytest.approx(float(reg.energy) / 4, rel=1e-9)
+
+
+def test_geodesic_ends_at_b_not_at_b_rebuilt_from_its_warped_srvfs():
+    """From an audit on RootNav tracings: the last step was b's warped SRVF rebuilt as curves; a
+    steep warp skips b's nodes, so the rebuilt lateral cut corners (8 % shorter on RootNav).
+    Now the last step is b's own SRVF rotated back in place: b's round trip, as step 0 is a's."""
+    main = np.stack([np.zeros(60), np.linspace(0, 1, 60)], 1)
+
+    def bent(frac):  # a lateral going right with a bump at `frac` of its length
+        t = np.linspace(0, 1, 60)
+        return np.stack([0.4 * t, 0.5 + 0.06 * np.exp(-(((t - frac) / 0.03) ** 2))], 1)
+
+    roots = [rs.Root(main=main, laterals=[bent(f)], attach=[0.5]) for f in (0.15, 0.85)]
+    a, b = rs.unstack(rs.batch(roots, n_points=T, max_laterals=K, dtype=np.float64))
+    reg = rs.register(a, b, weights=W)
+    assert float(np.max(np.diff(np.asarray(reg.lateral_warps[0])))) * (T - 1) > 3  # a steep warp
+    path = rs.geodesic(a, b, n_steps=5, weights=W, registration=reg)
+    own = rs.to_curves(rs.to_srvf(b))  # b's own round trip
+    np.testing.assert_allclose(np.asarray(path.main[-1]), np.asarray(own.main), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(path.laterals[-1, 0]), np.asarray(own.laterals[0]), atol=1e-12)
+    warped = float(rs.curve_length(rs.to_curves(reg.registered).laterals[0]))
+    kept = float(rs.curve_length(path.laterals[-1, 0]))
+    assert kept == pytest.approx(float(rs.curve_length(own.laterals[0])), rel=1e-12)
+    assert kept - warped > 0.01 * kept  # what the old end lost
+    # Distances along the path: the end is as far from b as b's own round trip.
+    ends = rs.unstack(path)
+    assert float(rs.distance(ends[-1], b, weights=W)) == pytest.approx(float(rs.distance(own, b, weights=W)), abs=1e-9)
 
 
 def test_lateral_added_grows_from_zero():
