@@ -178,3 +178,32 @@ def test_distances_of_real_tracings_do_not_depend_on_place_or_dtype():
     far = distances(roots, np.float64)
     np.testing.assert_allclose(distances([at_origin(r) for r in roots], np.float64), far, rtol=1e-5)
     np.testing.assert_allclose(distances(roots, np.float32), far, rtol=1e-4)
+
+
+ROOTNAV = sorted((DATA / "rsml" / "rootnav_osr").glob("*.rsml")) if DATA.is_dir() else []
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(len(ROOTNAV) < 6, reason="RootNav tracings not present")
+def test_rootnav_geodesic_ends_at_b_and_zero_coefficients_give_the_mean():
+    """An audit on these tracings found the geodesic's last step a lateral 8 % short of b's
+    (rebuilt from b's warped SRVF) and ``reconstruct(pc, 0)`` with 3 of the mean's 8 laterals
+    (the data's 10th percentile of lateral lengths is above a mean's shrunken laterals)."""
+    import jax
+
+    import rootshape_jax as rs
+
+    roots = [rs.limit_laterals(read_rsml(f)[0], 6) for f in ROOTNAV]
+    trees = rs.batch(roots, n_points=40, max_laterals=12, normalise_scale=True, dtype=np.float64)
+    a, b = rs.unstack(trees)[0], rs.unstack(trees)[5]
+    path = rs.geodesic(a, b, n_steps=2)
+    own = rs.to_curves(rs.to_srvf(b))  # b's own round trip: as close as the end can be
+    d_end = float(rs.distance(rs.unstack(path)[1], b))
+    assert d_end == pytest.approx(float(rs.distance(own, b)), abs=1e-9)
+    assert d_end < 0.1 * float(rs.distance(a, b))
+    km = rs.karcher_mean(jax.tree.map(lambda x: x[:8], trees), progress=False)
+    pc = rs.tangent_pca(km)
+    zero = rs.reconstruct(pc, np.zeros(pc.components.shape[0]), srvf=True)
+    np.testing.assert_array_equal(np.asarray(zero.mask), np.asarray(km.mean_srvf.mask))
+    np.testing.assert_allclose(np.asarray(zero.q), np.asarray(km.mean_srvf.q), atol=1e-12)
+    assert int(np.asarray(km.mean_srvf.mask).sum()) >= 6  # the case of the audit: a mean with short laterals
