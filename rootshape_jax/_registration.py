@@ -7,6 +7,8 @@ input and options.
 
 from __future__ import annotations
 
+import warnings
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -15,7 +17,7 @@ from jaxtyping import Array, Float
 
 from ._curves import safe_sqrt
 from ._engine import Registration, RegistrationOptions, pair_distances_squared, register_pairs_jit, registration_options
-from ._errors import as_count
+from ._errors import as_count, user_stacklevel
 from ._executor import LocalExecutor
 from ._metric import Weights, as_weights
 from ._tree import RootTree, SRVFTree, check_compatible, to_srvf
@@ -50,7 +52,28 @@ def as_pair_batch(a, b, weights: Weights, what: str = "register") -> tuple[SRVFT
         a, b = jax.tree.map(lambda x: x[None], (a, b))
     if a.capacity < 1:
         raise ValueError(f"{what}: trees need at least one lateral slot (K >= 1).")
+    _warn_forced_matches(a, b, what)
     return a, b, single
+
+
+def _warn_forced_matches(a: SRVFTree, b: SRVFTree, what: str) -> None:
+    """Warn when a pair has more real laterals than slots (``n_a + n_b > K``): then some
+    laterals of a must be matched with laterals of b even where leaving both unmatched costs
+    less, so the distance is an upper bound of the elastic distance. `batch` leaves room for
+    any two of its roots; a Karcher mean's `fitted` tree (every slot real) does not."""
+    if any(isinstance(t.mask, jax.core.Tracer) for t in (a, b)):
+        return
+    n = np.asarray(a.mask).sum(axis=-1) + np.asarray(b.mask).sum(axis=-1)
+    K = a.capacity
+    if np.any(n > K):
+        warnings.warn(
+            f"{what}: a pair has {int(n.max())} real laterals for {K} slots (registration needs "
+            f"K >= n_a + n_b), so some laterals are forced into matches and the distance can be too "
+            "large. Batch the roots with a larger max_laterals; for a Karcher mean, compare "
+            "km.mean_srvf (short laterals dropped) rather than km.fitted (every slot real).",
+            UserWarning,
+            stacklevel=user_stacklevel(),
+        )
 
 
 # Pairs per block when `register` gets long batches: a block of large roots (pea, K = 54)

@@ -342,3 +342,21 @@ def test_weights_with_traced_deeper_levels_print_without_error():
     seen = []
     jax.jit(lambda lv: seen.append(repr(eqx.tree_at(lambda t: t.deeper, w, ((lv, lv),)))) or lv)(1.0)
     assert seen and "Weights(" in seen[0]
+
+
+def test_more_real_laterals_than_slots_is_named():
+    """From an audit: registering a Karcher mean's `fitted` tree (every slot real) against a
+    root breaks K >= n_a + n_b, which forces laterals into matches (a larger distance),
+    silently. Now a warning says so and what to do; trees from one `batch` say nothing."""
+    import warnings
+
+    ra, rb, a, b = _pair(12)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rs.distance(a, b, weights=W)  # batch leaves room for any two of its roots
+    s = rs.to_srvf(a)
+    full = dataclasses.replace(s, mask=jnp.ones_like(s.mask))  # every slot real, as km.fitted
+    with pytest.warns(UserWarning, match=r"real laterals for \d+ slots.*km.mean_srvf"):
+        rs.distance(full, b, weights=W)
+    with pytest.warns(UserWarning, match="register: a pair has"):
+        rs.register(full, b, weights=W)
