@@ -80,8 +80,11 @@ def remove_pending() -> None:
 
 def atomic_write_all(writes: Sequence[tuple[str | os.PathLike, Callable[[Path], object]]]) -> list[Path]:
     """Write several files as one result: each ``write_to(temporary_path)`` first, then every
-    rename together, with Ctrl-C held back (`interrupts_held`) until the last. An interrupted
-    or failed run leaves all of them or none (e.g. an image's RSML and its overlay)."""
+    rename together, with Ctrl-C held back (`interrupts_held`) until the last. A failed or
+    interrupted write leaves none of them (e.g. an image's RSML and its overlay). The renames
+    are held together against the command line's Ctrl-C handler (`defer_interrupt`); a
+    KeyboardInterrupt in library use, or a rename that fails (the target is a folder), can
+    still land the first files without the others. Main thread only (signal handlers)."""
     done: list[tuple[str, Path]] = []
     try:
         for path, write_to in writes:

@@ -86,7 +86,8 @@ def geodesic(
     Slot k of every step is the same lateral along the path (the correspondence colour); a
     lateral present on one side only grows from zero length at its partner's position. The
     first and last steps are a's and b's own SRVFs as curves (their round trip, docs/design.md
-    §3; b not reparameterised, where a steep warp would cut its corners). Pass a
+    §3; b not reparameterised, where a steep warp would cut its corners; so between the last
+    two steps the points along a branch slide back to b's own parameterisation). Pass a
     precomputed `registration` (of b onto a) to skip registering again; other options as in
     `register`.
 

@@ -365,6 +365,14 @@ def test_a_lateral_hooking_back_to_the_top_does_not_become_the_main_roots_start(
     straight = [(150, 159), (28, 120)]
     (r2,) = roots_from_image(draw(main, straight), min_lateral_length=3, **opts)
     np.testing.assert_array_equal(r2.main[0], [120, 28])
+    # A main root that starts sideways along the top before turning down saves its sideways run
+    # (more than 8 root widths) but never leaves the band: it keeps its own start (a review
+    # found the first 120 px turned into a lateral, and at 70 px the root lost as a ruler).
+    for run in (70, 120):
+        sideways = [(30, 60), (36, 60 + run), (200, 75 + run), (560, 100 + run)]
+        (r3,) = roots_from_image(draw(sideways), min_lateral_length=3, **opts)
+        assert r3.main[0, 1] == 30 and r3.main[0, 0] < 60 + 12  # in the top row's first pixels
+        assert r3.main_length > run + 500 and all(x < 10 for x in r3.lateral_lengths)  # pixel spurs at most
 
 
 def test_smooth_keeps_ends_and_straight_lines():

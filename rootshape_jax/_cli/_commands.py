@@ -9,7 +9,7 @@ import numpy as np
 
 from ._common import PAPER_TRAITS, CLIError, say, warn
 from ._inputs import Reading, covariate_columns, load_roots, pick, prepare, read_requested, subsample
-from ._report import LOG_NAME, Output, WrittenFolder, refuse_earlier_results, settings, write_index
+from ._report import LOG_NAME, OPENED, Output, WrittenFolder, refuse_earlier_results, settings, write_index
 from ._steps import (
     Context,
     group_labels,
@@ -170,7 +170,7 @@ def cmd_extract(args) -> None:
         options["shoot_green"] = args.shoot_green
     with warnings.catch_warnings(), recording_writes() as written:
         # Stopped early, the run names the files it finished (`unfinished_note`).
-        WrittenFolder(args.out, written)
+        folder = WrittenFolder(args.out, written)
         # A skipped image is named in its row and summarised below: one line each, no repeat.
         warnings.simplefilter("ignore", UserWarning)
         rows = extract_images(
@@ -184,6 +184,7 @@ def cmd_extract(args) -> None:
             elastic=args.elastic,
             **options,
         )
+    OPENED.remove(folder)  # every image done: an error below is not a run stopped early
     ok = [r for r in rows if r.get("status") == "ok"]
     skipped = [r for r in rows if r.get("status") != "ok"]
     for r in skipped:

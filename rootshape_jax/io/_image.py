@@ -693,12 +693,13 @@ def _unwound_base(nodes, rc, sub, base_local, axis_sign, *, band: float, root_wi
     the extreme, take the one whose path to the tip (the node farthest from the extreme)
     exceeds the straight line to the tip least (of those within ``band / 4`` px of that least
     excess, the one nearest the base side), but only when this saves more than
-    ``8 · root_width`` px over the extreme node's excess. Two nodes on the same root near the
-    extreme differ in excess by about their distance along it (a few px; the plate's seedlings
-    saved at most 5 px), so a root without such a winding keeps its own end: only a path that
-    leaves and comes back saves more.
+    ``8 · root_width`` px over the extreme node's excess and the path between the two nodes
+    leaves the band (goes down and comes back up). Two nodes on the same root near the extreme
+    differ in excess by about their distance along it (a few px; the plate's seedlings saved at
+    most 5 px); a main root that starts sideways along the band before turning down saves its
+    sideways run, but its path to that corner stays in the band, so it keeps its own end.
     """
-    dist = csgraph.dijkstra(sub, directed=False, indices=base_local)
+    dist, pred = csgraph.dijkstra(sub, directed=False, indices=base_local, return_predecessors=True)
     tip = int(np.argmax(np.where(np.isfinite(dist), dist, -1)))
     from_tip = csgraph.dijkstra(sub, directed=False, indices=tip)
     axis, sign = axis_sign
@@ -710,8 +711,9 @@ def _unwound_base(nodes, rc, sub, base_local, axis_sign, *, band: float, root_wi
     if own - excess.min() <= 8.0 * root_width:
         return base_local
     direct = excess <= excess.min() + band / 4
-    best = np.lexsort((excess[direct], depth[near_side[direct]]))[0]
-    return int(near_side[direct][best])
+    best = int(near_side[direct][np.lexsort((excess[direct], depth[near_side[direct]]))[0]])
+    winds = depth[_path_to(pred, best)].max() > depth[base_local] + band
+    return best if winds else base_local
 
 
 def _plant_checks(nodes, rc, sub, base_local, gray, halfwidth, axis_sign):
