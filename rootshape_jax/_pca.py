@@ -227,12 +227,17 @@ def _keep_the_means_laterals(mean: KarcherMean, threshold: Array) -> tuple[Array
     percentile can exceed a mean's laterals: averaging shrinks them, and RootNav's mean kept 8
     laterals where the percentile alone left 3.)"""
     out = []
-    pairs = zip((mean.lateral_lengths, *mean.child_lengths), (mean.dropped, *mean.child_dropped))
-    for level, (lengths, dropped) in enumerate(pairs, start=1):
+    # From the trees themselves (every level, however the result was built): the fitted mean's
+    # lengths and the slots `mean_srvf` dropped.
+    fitted = (mean.fitted.q, *(lv.q for lv in mean.fitted.deeper))
+    kept = (mean.mean_srvf.mask, *(lv.mask for lv in mean.mean_srvf.deeper))
+    for level, (q, mask) in enumerate(zip(fitted, kept), start=1):
+        lengths, dropped = l2_norm_squared(q), ~mask
         thr = level_value(threshold, level)
         # A relative margin: `reconstruct` measures the lengths again inside its compiled
         # program, which can round them a step the other way (10-15 % of slots, measured).
-        kept_below = jnp.minimum(thr, lengths * (1 - _LENGTH_MARGIN))
+        # (A kept slot of zero length, as in a hand-built mean, is no lateral: the level's value.)
+        kept_below = jnp.where(lengths > 0, jnp.minimum(thr, lengths * (1 - _LENGTH_MARGIN)), thr)
         out.append(jnp.where(dropped, jnp.maximum(thr, lengths * (1 + _LENGTH_MARGIN)), kept_below))
     return tuple(out)
 

@@ -183,11 +183,14 @@ def test_modes_and_samples_are_depth3_roots(pca):
     x = sample(pca, jax.random.PRNGKey(0), 6)
     assert x.depth == 3 and x.batch_shape == (6,)
     xs = sample(pca, jax.random.PRNGKey(0), 6, srvf=True)
-    # Synthesised branches keep within each level's length range; nulls drop their children.
-    lo, hi = np.asarray(pca.min_lateral_length), np.asarray(pca.max_lateral_length)
+    # Synthesised branches keep within each level's length range (down to the mean's own
+    # branches' lengths in their slots, `slot_min_lengths`); nulls drop their children.
+    hi = np.asarray(pca.max_lateral_length)
     for level, lv in enumerate((xs, xs.deeper[0])):
+        lo = np.broadcast_to(np.asarray(pca.slot_min_lengths[level]), lv.mask.shape)[np.asarray(lv.mask)]
         L = np.asarray(rs.l2_norm_squared(lv.q))[np.asarray(lv.mask)]
-        assert np.all(L >= lo[level] * (1 - 1e-9)) and np.all(L <= hi[level] * (1 + 1e-9))
+        assert np.all(L >= lo * (1 - 1e-9)) and np.all(L <= hi[level] * (1 + 1e-9))
+        assert np.all(lo <= np.asarray(pca.min_lateral_length)[level])
     assert not np.any(np.asarray(xs.deeper[0].mask) & ~np.asarray(xs.mask)[..., None])
     for r in rs.to_roots(x):
         assert len(r.children) == r.n_laterals
