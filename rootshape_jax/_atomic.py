@@ -52,23 +52,7 @@ def atomic_write(path: str | os.PathLike, write_to: Callable[[Path], object], *,
     an interrupted or failed write leaves the earlier file (or none) intact, and a symlink at
     `path` is replaced, never written through. `durable` also flushes the file to disk before
     the rename (a store that must survive a crash). `OSError` from the write propagates."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    PENDING.add(tmp)
-    try:
-        write_to(Path(tmp))
-        if durable:
-            with open(tmp, "rb+") as f:
-                os.fsync(f.fileno())
-        os.chmod(tmp, _plain_mode())  # after writing: a mode without write permission is allowed
-        os.replace(tmp, path)
-        _record(path)
-    finally:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        PENDING.discard(tmp)
-    return path
+    return atomic_write_all([(path, write_to)], durable=durable)[0]
 
 
 def remove_pending() -> None:
@@ -78,13 +62,16 @@ def remove_pending() -> None:
             os.unlink(tmp)
 
 
-def atomic_write_all(writes: Sequence[tuple[str | os.PathLike, Callable[[Path], object]]]) -> list[Path]:
+def atomic_write_all(
+    writes: Sequence[tuple[str | os.PathLike, Callable[[Path], object]]], *, durable: bool = False
+) -> list[Path]:
     """Write several files as one result: each ``write_to(temporary_path)`` first, then every
     rename together, with Ctrl-C held back (`interrupts_held`) until the last. A failed or
     interrupted write leaves none of them (e.g. an image's RSML and its overlay). The renames
     are held together against the command line's Ctrl-C handler (`defer_interrupt`); a
     KeyboardInterrupt in library use, or a rename that fails (the target is a folder), can
-    still land the first files without the others. Main thread only (signal handlers)."""
+    still land the first files without the others. Main thread only (signal handlers).
+    `durable`: as in `atomic_write`."""
     done: list[tuple[str, Path]] = []
     try:
         for path, write_to in writes:
@@ -94,8 +81,12 @@ def atomic_write_all(writes: Sequence[tuple[str | os.PathLike, Callable[[Path], 
             PENDING.add(tmp)
             done.append((tmp, path))
             write_to(Path(tmp))
-            os.chmod(tmp, _plain_mode())
-        with interrupts_held():
+            if durable:
+                with open(tmp, "rb+") as f:
+                    os.fsync(f.fileno())
+            os.chmod(tmp, _plain_mode())  # after writing: a mode without write permission is allowed
+        # One file needs no holding (and `atomic_write` also runs on worker threads).
+        with interrupts_held() if len(done) > 1 else contextlib.nullcontext():
             for tmp, path in done:
                 os.replace(tmp, path)
                 _record(path)

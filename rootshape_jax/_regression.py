@@ -31,7 +31,7 @@ from jaxtyping import Array, Float
 from ._curves import cumulative_sum, safe_norm, trapezoid_weights
 from ._errors import ExtrapolationWarning, user_stacklevel
 from ._pca import TangentPCA, min_lengths
-from ._tangent import level_value, limit_lengths, unflatten
+from ._tangent import level_min, level_value, limit_lengths, unflatten
 from ._traits import traits as measure_traits
 from ._tree import RootTree, SRVFLevel, SRVFTree, to_curves, to_roots
 
@@ -107,11 +107,6 @@ def _stacked_to_curves(qa, s, keep, origin):
 _SWEEP_CHUNK = 64
 
 
-def _level_min(min_len, level: int):
-    """The length threshold of `level`: per slot (`TangentPCA.slot_min_lengths`) or per level."""
-    return min_len[level - 1] if isinstance(min_len, tuple) else level_value(min_len, level)
-
-
 @functools.partial(jax.jit, static_argnames=("curves", "virtual_main"))
 def _synthesize(
     offset,
@@ -139,7 +134,7 @@ def _synthesize(
         w = trapezoid_weights(qa.shape[1], qa.dtype)
         length = jnp.sum(jnp.sum(qa * qa, axis=0) * w[:, None], axis=0)
         # As `_tangent.exp_map`: laterals longer than the data's longest are scaled down to it.
-        lo, hi = _level_min(min_len, 1), level_value(max_len, 1)
+        lo, hi = level_min(min_len, 1), level_value(max_len, 1)
         too_long = (jnp.arange(qa.shape[-1]) > 0) & (length > hi)
         qa = qa * jnp.where(too_long, jnp.sqrt(hi / jnp.where(too_long, length, 1.0)), 1.0)
         keep = jnp.concatenate([jnp.ones(1, bool), length[1:] >= lo])  # slot 0 is the main root
@@ -153,7 +148,7 @@ def _synthesize(
         for level, (q_off, q_sl, s_off, s_sl) in enumerate(deeper, start=2):
             ql = q_off + sum(z[i] * q_sl[i] for i in range(q_sl.shape[0]))
             sl = jnp.clip(s_off + sum(z[i] * s_sl[i] for i in range(s_sl.shape[0])), 0.0, 1.0)
-            ql, parent = limit_lengths(ql, _level_min(min_len, level), level_value(max_len, level), parent)
+            ql, parent = limit_lengths(ql, level_min(min_len, level), level_value(max_len, level), parent)
             levels.append(SRVFLevel(q=ql, s=sl, mask=parent))
         base, scale = (None, None) if thick is None else thick
         tree = SRVFTree(

@@ -68,6 +68,12 @@ def level_value(x: Array, level: int) -> Array:
     return x if x.ndim == 0 else x[level - 1]
 
 
+def level_min(min_length, level: int) -> Array:
+    """The lower length limit at branch level `level`: per slot when `min_length` is a tuple
+    (one array per level, `TangentPCA.slot_min_lengths`), else as `level_value`."""
+    return min_length[level - 1] if isinstance(min_length, tuple) else level_value(min_length, level)
+
+
 def params_of(tree: SRVFTree) -> TreeParams:
     return TreeParams(tree.q0, tree.q, tree.s, tuple(LevelParams(lv.q, lv.s) for lv in tree.deeper))
 
@@ -216,9 +222,7 @@ def exp_map(
 
     def limits(level):
         hi = None if max_lateral_length is None else level_value(max_lateral_length, level)
-        if isinstance(min_lateral_length, tuple):  # one array per level, one value per slot
-            return min_lateral_length[level - 1], hi
-        return level_value(min_lateral_length, level), hi
+        return level_min(min_lateral_length, level), hi
 
     q, real = limit_lengths(q, *limits(1))
     lead = q0.shape[:-2]

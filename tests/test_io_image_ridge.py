@@ -421,13 +421,9 @@ def test_cli_extract_writes_rsml_overlay_and_names_a_bad_image(tmp_path):
         assert proc.returncode != 0 and words in proc.stderr and "Traceback" not in proc.stderr
 
 
-def test_extract_interrupted_while_writing_leaves_no_half_written_file(tmp_path, monkeypatch):
-    # Ctrl-C while the second image's overlay is being written: the first image's files are
-    # complete, the second image's RSML and overlay are both absent (not half a PNG, not an
-    # RSML without its overlay), no temporary file stays, and summary.json describes the one
-    # finished image.
-    import json
-
+def _two_photos_interrupted_at_the_second_overlay(tmp_path, monkeypatch):
+    """A folder of two seedling photographs; `draw_overlay` writes part of the second overlay,
+    then Ctrl-C (KeyboardInterrupt). Returns the folder."""
     import skimage.io
 
     from rootshape_jax.io import _extract_cli
@@ -449,6 +445,19 @@ def test_extract_interrupted_while_writing_leaves_no_half_written_file(tmp_path,
         return draw(image, roots, out_png, **kw)
 
     monkeypatch.setattr(_extract_cli, "draw_overlay", interrupted)
+    return src
+
+
+def test_extract_interrupted_while_writing_leaves_no_half_written_file(tmp_path, monkeypatch):
+    # Ctrl-C while the second image's overlay is being written: the first image's files are
+    # complete, the second image's RSML and overlay are both absent (not half a PNG, not an
+    # RSML without its overlay), no temporary file stays, and summary.json describes the one
+    # finished image.
+    import json
+
+    import skimage.io
+
+    src = _two_photos_interrupted_at_the_second_overlay(tmp_path, monkeypatch)
     out = tmp_path / "out"
     with pytest.raises(KeyboardInterrupt):
         extract_images([src], out, progress=False)
@@ -463,28 +472,11 @@ def test_extract_interrupted_while_writing_leaves_no_half_written_file(tmp_path,
 def test_extract_command_stopped_early_names_the_images_it_finished(tmp_path, monkeypatch, capsys):
     """From a tour: an interrupted `rootshape extract` printed no "stopped before its end" line
     (the other commands do), so the user did not know which images were done."""
-    import skimage.io
 
     from rootshape_jax._cli._main import main
     from rootshape_jax._cli._report import OPENED
-    from rootshape_jax.io import _extract_cli
 
-    src = tmp_path / "photos"
-    src.mkdir()
-    for k, x0 in enumerate((120, 180)):
-        main_, lats = _seedling(k, x0=x0)
-        img = _draw([main_, *lats], shape=(380, 300), width=3, contrast=0.3, noise=0.03, seed=k)
-        skimage.io.imsave(src / f"p{k}.png", (img * 255).astype(np.uint8))
-    draw = _extract_cli.draw_overlay
-    calls = []
-
-    def interrupted(image, roots, out_png, **kw):
-        calls.append(out_png)
-        if len(calls) == 2:
-            raise KeyboardInterrupt
-        return draw(image, roots, out_png, **kw)
-
-    monkeypatch.setattr(_extract_cli, "draw_overlay", interrupted)
+    src = _two_photos_interrupted_at_the_second_overlay(tmp_path, monkeypatch)
     out = tmp_path / "out"
     code = main(["extract", str(src), "--out", str(out), "--quiet"])
     OPENED.clear()
