@@ -21,7 +21,10 @@ install: $(VENV)/.installed
 # registration engine's programs (no callbacks since its assignments run in JAX) and the
 # hundreds of small one-operation programs that eager code compiles per shape, once they are
 # cached whatever their compile time (JAX's default skips programs compiled in under a second).
-PYTEST := JAX_COMPILATION_CACHE_DIR=$(CURDIR)/.jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0 \
+# The cache lives in the checkout unless the environment names another folder (CI keeps one
+# between its runs: .ci/run).
+JAX_COMPILATION_CACHE_DIR ?= $(CURDIR)/.jax_cache
+PYTEST := JAX_COMPILATION_CACHE_DIR=$(JAX_COMPILATION_CACHE_DIR) JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0 \
 	$(PY) -m pytest -q -n 2 --dist loadfile
 
 # ruff: lint, import order and formatting (configured in pyproject.toml); part of `make test`.

@@ -21,6 +21,7 @@ from jaxtyping import Array, Float
 from ._engine import METRIC_REVISION, RegistrationOptions, pair_distances_squared, registration_options
 from ._executor import BlockStore, LocalExecutor, executor_for, fingerprint
 from ._metric import Weights, as_weights
+from ._registration import warn_forced_matches
 from ._tree import RootTree, SRVFTree, batch_size, check_compatible, is_traced, to_srvf
 
 
@@ -205,6 +206,7 @@ def pairwise_distances(
     weights = as_weights(weights)
     opts = registration_options(registration, **options)
     s = _as_batch(trees, "pairwise_distances: trees", weights)
+    warn_forced_matches(s, s, "pairwise_distances", pairs="all")
     n = batch_size(s)
     I, J = np.triu_indices(n, 1)
     e, stats = run_pairs(
@@ -251,6 +253,7 @@ def cross_distances(
     s = _as_batch(A, "cross_distances: A", weights)
     t = _as_batch(B, "cross_distances: B", weights)
     check_compatible(s, t, "cross_distances: A and B")
+    warn_forced_matches(s, t, "cross_distances", pairs="cross")
     n, m = batch_size(s), batch_size(t)
     I, J = (x.ravel() for x in np.meshgrid(np.arange(n), np.arange(m), indexing="ij"))
     e, _ = run_pairs(

@@ -61,7 +61,9 @@ class TangentPCA(eqx.Module):
     - `eigenvalues`: ``[m]`` variances ``σ_i`` (covariance ``VᵀV / (n − 1)``).
     - `explained_variance_ratio`: ``[m]`` ``σ_i / Σσ``.
     - `scores`: ``[n, m]`` standardised coefficients ``b_i = <v, Λ_i> / √σ_i`` of the samples
-      (0 where ``σ_i = 0``).
+      (0 where ``σ_i = 0``). The tangent vectors are not re-centred (the Karcher mean is their
+      centre up to its tolerance), so the last component, of variance near 0, is their small
+      average left by that tolerance: every sample scores about √((n − 1)/n) on it.
     - `n_components`: leading components explaining at least `variance` of the total
       (static; 0 when the samples do not vary beyond rounding: total variance below
       ``(10⁴ ε)² |W^{1/2} μ|²``).

@@ -52,28 +52,57 @@ def as_pair_batch(a, b, weights: Weights, what: str = "register") -> tuple[SRVFT
         a, b = jax.tree.map(lambda x: x[None], (a, b))
     if a.capacity < 1:
         raise ValueError(f"{what}: trees need at least one lateral slot (K >= 1).")
-    _warn_forced_matches(a, b, what)
+    warn_forced_matches(a, b, what, pairs="each")
     return a, b, single
 
 
-def _warn_forced_matches(a: SRVFTree, b: SRVFTree, what: str) -> None:
-    """Warn when a pair has more real laterals than slots (``n_a + n_b > K``): then some
-    laterals of a must be matched with laterals of b even where leaving both unmatched costs
-    less, so the distance is an upper bound of the elastic distance. `batch` leaves room for
-    any two of its roots; a Karcher mean's `fitted` tree (every slot real) does not."""
+def _largest_child_counts(t: SRVFTree) -> list[tuple[int, np.ndarray]]:
+    """Per level ℓ = 1, 2, …: (Kℓ, the most real children any one branch of each tree has at
+    that level), the latter of shape (N,) for a batch of N trees."""
+    masks = [t.mask] + [lv.mask for lv in t.deeper]
+    out = []
+    for m in masks:
+        counts = np.asarray(m).sum(axis=-1)  # [N, K1, …, K(ℓ−1)]: children per parent branch
+        out.append((m.shape[-1], counts.reshape(counts.shape[0], -1).max(axis=1)))
+    return out
+
+
+def warn_forced_matches(a: SRVFTree, b: SRVFTree, what: str, *, pairs: str) -> None:
+    """Warn when two branches registered together can carry more real children than slots
+    (``n_a + n_b > Kℓ`` at some level ℓ): then some children of one must be matched with
+    children of the other even where leaving both unmatched costs less, so the distance is an
+    upper bound of the elastic distance. `batch` leaves room for any two of its roots; a smaller
+    `max_laterals` / `max_children`, or a Karcher mean's `fitted` tree (every slot real), may not.
+
+    `pairs`: "each" (a[i] with b[i]), "all" (every i < j of a = b) or "cross" (every a[i] with
+    every b[j]). Deeper levels count each tree's fullest branch, which another pair of branches
+    may be matched instead: there the warning says "can"."""
     if any(isinstance(t.mask, jax.core.Tracer) for t in (a, b)):
         return
-    n = np.asarray(a.mask).sum(axis=-1) + np.asarray(b.mask).sum(axis=-1)
-    K = a.capacity
-    if np.any(n > K):
+    for ell, ((K, ca), (_, cb)) in enumerate(zip(_largest_child_counts(a), _largest_child_counts(b)), start=1):
+        if pairs == "each":
+            n = int((ca + cb).max())
+        elif pairs == "cross":
+            n = int(ca.max() + cb.max())
+        elif len(ca) < 2:
+            n = 0
+        else:  # the two fullest different trees
+            top = np.sort(ca)[-2:]
+            n = int(top.sum())
+        if n <= K:
+            continue
+        where = "a pair has" if ell == 1 else f"at level {ell}, two matched branches can have"
+        room = "max_laterals" if ell == 1 else f"max_children (K{ell})"
         warnings.warn(
-            f"{what}: a pair has {int(n.max())} real laterals for {K} slots (registration needs "
-            f"K >= n_a + n_b), so some laterals are forced into matches and the distance can be too "
-            "large. Batch the roots with a larger max_laterals; for a Karcher mean, compare "
-            "km.mean_srvf (short laterals dropped) rather than km.fitted (every slot real).",
+            f"{what}: {where} {n} real {'laterals' if ell == 1 else 'children'} for {K} slots "
+            f"(registration needs K{ell} >= n_a + n_b), so some are forced into matches and the "
+            f"distance can be too large. Batch the roots with a larger {room}, or leave it to its "
+            "default; for a Karcher mean, compare km.mean_srvf (short laterals dropped) rather than "
+            "km.fitted (every slot real).",
             UserWarning,
             stacklevel=user_stacklevel(),
         )
+        return  # one warning: the first level that can be forced
 
 
 # Pairs per block when `register` gets long batches: a block of large roots (pea, K = 54)

@@ -633,6 +633,15 @@ def test_level_weights_option_builds_per_order_weights_and_reaches_the_matrix(tm
     assert [tuple(float(x) for x in p) for p in w.deeper] == [(2.0, 0.5), (1.0, 0.0)]
     with pytest.raises(CLIError, match="--depth 3"):
         make_weights(parse(["distances", "--synthetic", "3", "--level-weights", "2,0.5"]))
+    # A plant's axes are level 1, so its second-order laterals first appear at depth 4.
+    plant = ["distances", "x.rsml", "--per", "plant", "--level-weights", "2,0.5", "--depth"]
+    with pytest.raises(CLIError, match="--depth 4"):
+        make_weights(parse(plant + ["3"]))
+    assert [tuple(float(x) for x in p) for p in make_weights(parse(plant + ["4"])).deeper] == [(2.0, 0.5)]
+    capsys.readouterr()
+    # Refused before any file is read (x.rsml does not exist) or any folder made.
+    assert main(plant + ["3", "--out", str(tmp_path / "o")]) == 1
+    assert "add --depth 4" in capsys.readouterr().err and not (tmp_path / "o").exists()
     for bad in ("2", "2,1,1", "a,b", "-1,1", "1,1;"):
         assert main(["distances", "--synthetic", "3", "--depth", "3", "--level-weights", bad]) == 2
         assert "--level-weights" in capsys.readouterr().err

@@ -10,9 +10,11 @@ import numpy as np
 import pytest
 import scipy.optimize
 from helpers import random_root, record_bars, rotation_matrix
+from test_hierarchy import deep_root
 
 import rootshape_jax as rs
 from rootshape_jax._engine import warp_preserving_norm
+from rootshape_jax._registration import warn_forced_matches
 from rootshape_jax._rotation import optimal_rotation
 from rootshape_jax._warp import dp_warp
 
@@ -360,3 +362,36 @@ def test_more_real_laterals_than_slots_is_named():
         rs.distance(full, b, weights=W)
     with pytest.warns(UserWarning, match="register: a pair has"):
         rs.register(full, b, weights=W)
+    # The matrices count the pairs they will register: any two of the batch, every a with every b.
+    fulls = jax.tree.map(lambda x, y: jnp.stack([x, y]), full, full)
+    two = rs.to_srvf(rs.batch([ra, rb], n_points=T, max_laterals=K, normalise_scale=True))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the warning comes before any registration: stop there
+        with pytest.raises(UserWarning, match="pairwise_distances: a pair has"):
+            rs.pairwise_distances(fulls, weights=W, progress=False)
+        with pytest.raises(UserWarning, match="cross_distances: a pair has"):
+            rs.cross_distances(fulls, two, weights=W, progress=False)
+        # A batch leaves room for any two of its roots: the same checks say nothing.
+        warn_forced_matches(two, two, "pairwise_distances", pairs="all")
+        warn_forced_matches(two, two, "cross_distances", pairs="cross")
+
+
+def test_more_real_children_than_slots_is_named_at_their_level():
+    """The same at level 2: capacities below twice the largest count of children."""
+    import warnings
+
+    rng = np.random.default_rng(4)
+    roots = [deep_root(rng, n_laterals=3, max_sub=3) for _ in range(3)]
+    fullest = [max(len(c.laterals) for c in r.children) for r in roots]
+    most = max(fullest)
+    tight = rs.batch(roots, n_points=8, depth=3, max_children=(6, most), dtype=np.float64)
+    roomy = rs.batch(roots, n_points=8, depth=3, max_children=(6, 2 * most), dtype=np.float64)
+    a = rs.unstack(tight)[int(np.argmax(fullest))]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(UserWarning, match=r"level 2, two matched branches can have \d+ real children"):
+            rs.pairwise_distances(tight, weights=W, progress=False)
+        with pytest.raises(UserWarning, match=r"max_children \(K2\)"):
+            rs.register(a, a, weights=W)
+        s = rs.to_srvf(roomy)  # twice the largest count of children: room for any pair
+        warn_forced_matches(s, s, "pairwise_distances", pairs="all")

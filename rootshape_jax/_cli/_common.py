@@ -273,7 +273,17 @@ def make_weights(args):
     import rootshape_jax as rs
 
     deeper = getattr(args, "level_weights", ())  # commands without the option: none
-    if deeper and (getattr(args, "depth", None) or 2) < 3:
+    depth = getattr(args, "depth", None) or 2
+    if deeper and getattr(args, "per", "root") == "plant" and depth < 4:
+        # A plant's system puts its axes at level 1: their laterals (level 2) take --weights'
+        # L,P, and the axes' second-order laterals, the first weighed by --level-weights, are level 3.
+        raise CLIError(
+            f"--level-weights weighs second-order laterals and below; with --per plant these are "
+            f"level 3 of a plant's system (its axes are level 1, their laterals level 2, weighed by "
+            f"--weights), which the analysis keeps only with --depth 4; add --depth 4, or leave "
+            f"--level-weights out (got --depth {depth})."
+        )
+    if deeper and depth < 3:
         raise CLIError(
             "--level-weights weighs second-order laterals and below, which the analysis keeps "
             "only with --depth 3 or 4; add --depth 3, or leave --level-weights out."

@@ -20,7 +20,17 @@ from collections.abc import Sequence
 
 from rootshape_jax._atomic import defer_interrupt, remove_pending
 
-from ._common import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, PROG, CLIError, heartbeat, log_friendly_stderr
+from ._common import (
+    EXIT_ERROR,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    EXIT_USAGE,
+    PROG,
+    CLIError,
+    heartbeat,
+    log_friendly_stderr,
+    make_weights,
+)
 from ._parser import build_parser
 from ._report import OPENED, remove_empty_outputs, unfinished_note
 
@@ -167,6 +177,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _run(args, argv) -> int:
     try:
         with _plain_warnings(), heartbeat():
+            if getattr(args, "level_weights", ()):
+                make_weights(args)  # refuse options that do not fit together before reading any file
             args.func(args)
     except KeyboardInterrupt:
         _say_interrupted()
