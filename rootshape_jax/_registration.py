@@ -97,8 +97,10 @@ def warn_forced_matches(a: SRVFTree, b: SRVFTree, what: str, *, pairs: str) -> N
             f"{what}: {where} {n} real {'laterals' if ell == 1 else 'children'} for {K} slots "
             f"(registration needs K{ell} >= n_a + n_b), so some are forced into matches and the "
             f"distance can be too large. Batch the roots with a larger {room}, or leave it to its "
-            "default; for a Karcher mean, compare km.mean_srvf (short laterals dropped) rather than "
-            "km.fitted (every slot real).",
+            "default. For a Karcher mean: km.energies holds the samples' squared distances to it; "
+            "compare other roots with km.mean_srvf (short laterals dropped) rather than km.fitted "
+            "(every slot real), or if that is still too full, batch its curves with them: "
+            "rs.batch(rs.to_roots(km.mean) + roots).",
             UserWarning,
             stacklevel=user_stacklevel(),
         )
