@@ -295,4 +295,9 @@ def assignment_cost(cost: Float[ArrayLike, "K K"], perm: Int[ArrayLike, " K"]) -
             f"perm must be an integer array of shape ({k},) matching cost {cost.shape}, "
             f"got shape {perm.shape} and dtype {perm.dtype}."
         )
+    if not isinstance(perm, jax.core.Tracer) and sorted(np.asarray(perm).tolist()) != list(range(k)):
+        raise InvalidCostError(
+            f"perm must be a permutation of 0..{k - 1} (each column once, as linear_assignment "
+            f"returns), got {np.asarray(perm).tolist()}."
+        )
     return jnp.sum(jnp.take_along_axis(cost, perm[:, None], axis=1))

@@ -21,6 +21,7 @@ import numpy as np
 import scipy.cluster.hierarchy as sch
 import scipy.spatial.distance as ssd
 
+from ._errors import LabelError
 from ._tree import RootTree, SRVFTree
 
 LINKAGE_METHODS = ("single", "complete", "average", "weighted", "ward", "centroid", "median")
@@ -126,9 +127,16 @@ def cluster(
 
 
 def check_labels(labels, n: int) -> np.ndarray:
+    """The labels as an ``(n,)`` array; `LabelError` for a missing label (NaN or None), which
+    would otherwise be a class of its own."""
     y = np.asarray(labels)
     if y.shape != (n,):
-        raise ValueError(f"labels must have shape ({n},), got {y.shape}.")
+        raise LabelError(f"labels must have shape ({n},), got {y.shape}.")
+    missing = [i for i, v in enumerate(y.tolist()) if v is None or (isinstance(v, float) and np.isnan(v))]
+    if missing:
+        raise LabelError(
+            f"labels of roots {missing[:10]} are missing (NaN or None); drop those roots or give them a label."
+        )
     return y
 
 

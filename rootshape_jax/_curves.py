@@ -15,12 +15,27 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 
 def tiny(dtype) -> float:
     # Squared norms below this are treated as zero; sqrt's derivative stays finite above it.
     return float(jnp.finfo(dtype).tiny) ** 0.5
+
+
+def real_coordinates(x, what: str) -> Array:
+    """`x` as a JAX array of floats: integers become the default float dtype; booleans,
+    complex numbers, strings and objects raise `TypeError` naming `what` (JAX would fail
+    inside its own code, or drop an imaginary part)."""
+    if not isinstance(x, jax.Array):
+        x = np.asarray(x)
+    kind = np.dtype(x.dtype).kind
+    if kind in "iu":
+        return jnp.asarray(x).astype(jnp.result_type(float))
+    if kind != "f":
+        raise TypeError(f"{what}: coordinates must be real numbers, got dtype {x.dtype}.")
+    return jnp.asarray(x)
 
 
 def require_finite(x: Array, what: str) -> None:
@@ -30,8 +45,6 @@ def require_finite(x: Array, what: str) -> None:
     direction to zero: concrete input is refused here, with the point named."""
     if isinstance(x, jax.core.Tracer):
         return
-    import numpy as np
-
     from ._errors import InvalidRootError
 
     a = np.asarray(x)
@@ -88,7 +101,7 @@ def l2_norm_squared(q: Float[Array, "*batch T d"]) -> Float[Array, " *batch"]:
 
 def curve_length(beta: Float[ArrayLike, "*batch T d"]) -> Float[Array, " *batch"]:
     """Polyline length of a sampled curve (sum of segment lengths)."""
-    beta = jnp.asarray(beta)
+    beta = real_coordinates(beta, "curve_length")
     require_finite(beta, "curve_length: the curve")
     return jnp.sum(safe_norm(jnp.diff(beta, axis=-2)), axis=-1)
 
@@ -105,7 +118,7 @@ def srvf(beta: Float[ArrayLike, "T d"]) -> Float[Array, "T d"]:
     at a cusp (a turn sharper than 179°, where the bisector is rounding noise) along the
     outgoing segment's direction.
     """
-    beta = jnp.asarray(beta)
+    beta = real_coordinates(beta, "srvf")
     if beta.ndim < 2 or beta.shape[-2] < 2:
         raise ValueError(f"srvf needs a (T, d) curve with T >= 2, got shape {beta.shape}.")
     require_finite(beta, "srvf: the curve")

@@ -18,9 +18,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._curves import l2_norm_squared, resample_curve, srvf
+from ._curves import l2_norm_squared, real_coordinates, resample_curve, srvf
 from ._devices import split_over_devices
-from ._errors import InvalidRootError, as_count
+from ._errors import InvalidRootError, as_count, as_flag
 from ._executor import LocalExecutor
 from ._rotation import optimal_rotation
 from ._warp import check_neighbourhood, dp_warp_if, warp_samples, warp_samples_unchecked
@@ -50,14 +50,12 @@ class CurveRegistration(eqx.Module):
 
 
 def _check_curve(beta, name: str):
-    beta = jnp.asarray(beta)
+    beta = real_coordinates(beta, f"elastic_curve_distance: {name}")
     if beta.ndim != 2 or beta.shape[0] < 2:
         raise InvalidRootError(
             f"elastic_curve_distance: {name} must be an (n_points, d) polyline with n_points >= 2, "
             f"got shape {beta.shape}. Use jax.vmap for batches of curves."
         )
-    if not jnp.issubdtype(beta.dtype, jnp.floating):
-        beta = beta.astype(jnp.result_type(float))
     return eqx.error_if(beta, ~jnp.all(jnp.isfinite(beta)), f"elastic_curve_distance: {name} contains NaN or inf.")
 
 
@@ -168,12 +166,12 @@ def elastic_curve_distance(
     """
     n_samples, max_iterations = _check_options(n_samples, max_iterations, rtol, neighbourhood)
     return _elastic_curve_distance(
-        beta1,
-        beta2,
+        real_coordinates(beta1, "elastic_curve_distance: beta1"),
+        real_coordinates(beta2, "elastic_curve_distance: beta2"),
         jnp.asarray(max_iterations, jnp.int32),
         jnp.asarray(rtol),
-        rotation=bool(rotation),
-        scale=bool(scale),
+        rotation=as_flag(rotation, "rotation"),
+        scale=as_flag(scale, "scale"),
         n_samples=n_samples,
         neighbourhood=int(neighbourhood),
     )
@@ -246,8 +244,8 @@ def elastic_curve_distances(
     same pairs. Options as in `elastic_curve_distance`. Returns a `CurveRegistration` with a
     leading batch axis N. For all pairs between two sets, index them: ``A[I], B[J]``.
     """
-    A = jnp.asarray(A)
-    B = jnp.asarray(B)
+    A = real_coordinates(A, "elastic_curve_distances: A")
+    B = real_coordinates(B, "elastic_curve_distances: B")
     if A.ndim != 3 or B.ndim != 3 or A.shape[0] != B.shape[0]:
         raise ValueError(
             f"elastic_curve_distances: A and B must be batches of curves (N, n_points, d) with the same N, "
@@ -261,7 +259,12 @@ def elastic_curve_distances(
     n_chunks = min(executor.n_workers(), n)
     size = -(-n // n_chunks)
     idx = np.minimum(np.arange(n_chunks * size), n - 1).reshape(n_chunks, size)  # pad with the last pair
-    static = dict(rotation=bool(rotation), scale=bool(scale), n_samples=n_samples, neighbourhood=int(neighbourhood))
+    static = dict(
+        rotation=as_flag(rotation, "rotation"),
+        scale=as_flag(scale, "scale"),
+        n_samples=n_samples,
+        neighbourhood=int(neighbourhood),
+    )
     cap, tol = jnp.asarray(max_iterations, jnp.int32), jnp.asarray(rtol)
 
     def chunk(rows):

@@ -92,6 +92,32 @@ def as_count(value, name: str, *, minimum: int = 1) -> int:
     return int(value)
 
 
+def as_flag(value, name: str) -> bool:
+    """`value` as a bool (numpy bools accepted); `TypeError` naming `name` otherwise: a string
+    such as "False" is truthy and would silently mean True."""
+    import numpy as np
+
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be True or False, got {value!r}.")
+    return bool(value)
+
+
+def require_finite_values(x, what: str):
+    """`x` unchanged when finite. A concrete array holding NaN or inf raises `InputError`
+    naming `what`; a traced one gets an `eqx.error_if` (raised when the program runs)."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    if isinstance(x, jax.core.Tracer):
+        return eqx.error_if(x, ~jnp.all(jnp.isfinite(x)), f"{what} contains NaN or inf.")
+    a = np.asarray(x)
+    if a.dtype.kind in "fc" and not np.all(np.isfinite(a)):
+        raise InputError(f"{what} contains NaN or inf ({int(np.sum(~np.isfinite(a)))} of {a.size} values).")
+    return x
+
+
 def user_stacklevel() -> int:
     """The `stacklevel` that attributes a warning to the first caller outside rootshape_jax;
     pass it from the function that calls `warnings.warn`. A fixed level pointed inside the

@@ -6,7 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._engine import Registration, apply_registration
+from ._engine import Registration, RegistrationOptions, apply_registration
 from ._errors import as_count
 from ._metric import Weights, as_weights
 from ._registration import register
@@ -88,8 +88,8 @@ def geodesic(
     first and last steps are a's and b's own SRVFs as curves (their round trip, docs/design.md
     §3; b not reparameterised, where a steep warp would cut its corners; so between the last
     two steps the points along a branch slide back to b's own parameterisation). Pass a
-    precomputed `registration` (of b onto a) to skip registering again; other options as in
-    `register`.
+    precomputed `registration` (of b onto a) to skip registering again, or registration
+    options (a `RegistrationOptions`, or its fields as keywords) as in `register`.
 
     Where the path lies: every step's base moves on the straight line from a's base to b's
     (the SRVFs forget translation; the trees' `origin` keeps it), so roots far from the
@@ -130,8 +130,14 @@ def geodesic(
             la = lb = float("nan")
         if not (la > 0 and lb > 0 and jnp.isfinite(la) and jnp.isfinite(lb)):
             raise ValueError(f"sizes must be two positive main-root lengths (length_a, length_b), got {sizes!r}.")
-    if registration is None:
-        registration = register(a, b, weights=weights, **options)
+    if registration is None or isinstance(registration, RegistrationOptions):
+        # Options, as `registration=` means in every other call: register with them.
+        registration = register(a, b, weights=weights, registration=registration, **options)
+    elif not isinstance(registration, Registration):
+        raise TypeError(
+            "geodesic: registration must be the Registration of b onto a (rootshape_jax.register(a, b)) "
+            f"or RegistrationOptions, got a {type(registration).__name__}."
+        )
     weights = as_weights(weights)
     # Whether a has a thickness channel is decided here, on concrete weights (static below).
     thick = registration.registered.has_thickness

@@ -75,7 +75,7 @@ from ._engine import (
     registration_options,
     rotate_batch,
 )
-from ._errors import ConvergenceError, as_count
+from ._errors import ConvergenceError, as_count, as_flag
 from ._executor import LocalExecutor, executor_for
 from ._metric import Weights, as_weights, level_weight, null_costs, pair_lower_bounds, preshape_terms, system_weights
 from ._rotation import optimal_rotation
@@ -918,6 +918,7 @@ def karcher_mean(
     if n_starts is None:
         n_starts = _MULTI_STARTS if n <= _MULTI_START_MAX_N else 1
     n_starts = as_count(n_starts, "n_starts")
+    throw = as_flag(throw, "karcher_mean: throw")
     if isinstance(init, (RootTree, SRVFTree)):
         first = _start_tree(init, samples, weights)
         starts, candidates = [None], [first]

@@ -95,6 +95,8 @@ class Weights(_ByTerm):
 
     def __init__(self, *args, deeper=(), **kwargs):
         values = _by_name("Weights", args, kwargs, defaults=True)
+        for name, v in values.items():
+            _require_real(v, f"Weights.{name}")
         self.values = {k: jnp.asarray(v) for k, v in values.items()}
         try:
             pairs = tuple(tuple(p) for p in deeper)
@@ -104,6 +106,9 @@ class Weights(_ByTerm):
             raise ValueError(
                 f"Weights.deeper must be a sequence of (λs, λp) pairs, one per level from 2 on; got {deeper!r}."
             )
+        for ell, (ls, lp) in enumerate(pairs, start=2):
+            _require_real(ls, f"Weights.deeper[{ell - 2}] λs")
+            _require_real(lp, f"Weights.deeper[{ell - 2}] λp")
         self.deeper = tuple((jnp.asarray(ls), jnp.asarray(lp)) for ls, lp in pairs)
 
     def __check_init__(self):
@@ -138,9 +143,27 @@ class Weights(_ByTerm):
         return out
 
 
+def _require_real(v, name: str) -> None:
+    """`TypeError` unless `v` is a real number (or a traced/array value of a real dtype): a
+    string fails inside JAX, and a complex weight would give a complex distance."""
+    if isinstance(v, jax.core.Tracer):
+        kind = np.dtype(v.dtype).kind
+    elif isinstance(v, (bool, np.bool_)):
+        kind = "b"
+    else:
+        try:
+            kind = np.asarray(v).dtype.kind
+        except (TypeError, ValueError):
+            kind = "O"
+    if kind not in "iuf":
+        raise TypeError(f"{name} must be a real number, got {v!r}.")
+
+
 def as_weights(weights) -> Weights:
     """`weights`, or the paper's `Weights()` for None; `TypeError` for anything else (a tuple
-    or dict would otherwise fail deep inside the metric)."""
+    or dict would otherwise fail deep inside the metric). Traced weights (under jit, where they
+    cannot be checked) that are negative become NaN, so the distance is NaN as for a NaN
+    weight, not a plausible number."""
     if weights is None:
         return Weights()
     if not isinstance(weights, Weights):
@@ -153,6 +176,8 @@ def as_weights(weights) -> Weights:
             f"weights must be a rootshape_jax.Weights, got {type(weights).__name__} {weights!r}; "
             "write Weights(0.02, 1, 1) or Weights(main=0.02, lateral=1, position=1)."
         )
+    if any(isinstance(v, jax.core.Tracer) for v in jax.tree.leaves(weights)):
+        weights = jax.tree.map(lambda v: jnp.where(v >= 0, v, jnp.nan), weights)
     return weights
 
 

@@ -42,7 +42,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from ._curves import l2_norm_squared
 from ._engine import RegistrationOptions, registration_options
-from ._errors import as_count
+from ._errors import InputError, as_count, require_finite_values
 from ._executor import LocalExecutor
 from ._mean import KarcherMean, register_onto
 from ._metric import Weights, system_weights
@@ -265,10 +265,19 @@ def reconstruct(pc: TangentPCA, coefficients, *, srvf: bool = False) -> RootTree
     """Roots ``μ + Σ_i b_i √σ_i Λ_i`` from standardised coefficients ``b`` (``[..., m]``, the
     first m components; m <= number of components). Returns a (batched) `RootTree`, or the
     `SRVFTree` with ``srvf=True``."""
-    b = jnp.asarray(coefficients, pc.mean.q0.dtype)
+    dtype = pc.mean.q0.dtype
+    if np.iscomplexobj(coefficients):
+        raise TypeError("reconstruct: coefficients must be real numbers, got complex ones.")
+    b = require_finite_values(jnp.asarray(coefficients, dtype), "reconstruct: coefficients")
     if b.ndim == 0 or b.shape[-1] > pc.components.shape[0]:
         raise ValueError(f"coefficients must have shape (..., m) with m <= {pc.components.shape[0]}, got {b.shape}.")
     t, curves = _reconstruct(pc, b)
+    if not isinstance(b, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(curves.main))):
+        # Finite coefficients so large that the roots' coordinates overflow the dtype.
+        raise InputError(
+            f"reconstruct: coefficients up to {float(jnp.max(jnp.abs(b))):.3g} standard deviations give "
+            f"roots whose coordinates overflow {dtype}; the data span a few standard deviations."
+        )
     return t if srvf else curves
 
 
@@ -279,8 +288,10 @@ def modes(pc: TangentPCA, alphas: Sequence[float] | Array, *, component: int | S
     components gives shape ``(len(components), len(alphas))``.
     """
     alphas = jnp.asarray(alphas, pc.mean.q0.dtype).reshape(-1)
-    single = isinstance(component, (int, np.integer))
-    comps = [int(component)] if single else [int(c) for c in component]
+    single = isinstance(component, (int, np.integer)) and not isinstance(component, bool)
+    if not single and not (isinstance(component, Sequence) or isinstance(component, np.ndarray)):
+        raise ValueError(f"modes: component must be an integer or a sequence of integers, got {component!r}.")
+    comps = [as_count(c, "modes: component", minimum=0) for c in ([component] if single else component)]
     m = pc.components.shape[0]
     for c in comps:
         if not 0 <= c < m:
@@ -399,6 +410,8 @@ def project(
             unit="root",
         )
         b = jnp.asarray(np.concatenate([r["b"] for r in results]))
-    m = pc.n_components if n_components is None else int(n_components)
+    m = pc.n_components if n_components is None else as_count(n_components, "project: n_components", minimum=0)
+    if m > pc.components.shape[0]:
+        raise ValueError(f"project: n_components must be in [0, {pc.components.shape[0]}], got {m}.")
     b = b[:, :m]
     return b[0] if single else b

@@ -29,7 +29,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._curves import cumulative_sum, safe_norm, trapezoid_weights
-from ._errors import ExtrapolationWarning, user_stacklevel
+from ._errors import ExtrapolationWarning, as_count, require_finite_values, user_stacklevel
 from ._pca import TangentPCA, min_lengths
 from ._tangent import level_min, level_value, limit_lengths, unflatten
 from ._traits import traits as measure_traits
@@ -203,9 +203,11 @@ def _affine_map(pca: TangentPCA, M: np.ndarray):
 def _check_values(reg: "TraitRegression", values):
     # Host-side checks for host data (no device round trip); a traced array passes through.
     dtype = reg.matrix.dtype
-    if isinstance(values, jax.Array):
-        v = values.astype(dtype)
-    else:
+    if np.iscomplexobj(values):
+        raise TypeError("synthesize: trait values must be real numbers, got complex ones.")
+    if isinstance(values, jax.core.Tracer):
+        v = require_finite_values(values.astype(dtype), "synthesize: trait values")
+    else:  # host data, or a concrete JAX array: checked here
         v = np.asarray(values, dtype=dtype)
         if not np.all(np.isfinite(v)):
             raise ValueError("trait values contain NaN or inf.")
@@ -243,7 +245,7 @@ def _synthesize_method(reg: "TraitRegression", values, *, srvf: bool = False) ->
     batch), in the order of `names`."""
     pc = reg.pca
     v = _check_values(reg, values)
-    if not isinstance(v, jax.Array):
+    if not isinstance(v, jax.core.Tracer):
         _warn_extrapolation(reg, v)
     return _synthesize(
         reg.offset,
@@ -331,9 +333,9 @@ class TraitRegression(eqx.Module):
           with `covariate_names`.
         - `n_components`: PCA components regressed (default `pca.n_components`).
         """
-        traits = tuple(traits)
+        traits = (traits,) if isinstance(traits, str) else tuple(traits)  # one name is one trait
         n = pca.scores.shape[0]
-        m = pca.n_components if n_components is None else int(n_components)
+        m = pca.n_components if n_components is None else as_count(n_components, "n_components")
         if not 1 <= m <= pca.components.shape[0]:
             raise ValueError(
                 f"the regression needs 1 <= n_components <= {pca.components.shape[0]}, got {m} "

@@ -26,7 +26,15 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._curves import interpolate_at_fraction, require_finite, srvf, srvf_to_curve
-from ._errors import CapacityError, InvalidRootError, MissingRadiusWarning, UnitError, as_count, user_stacklevel
+from ._errors import (
+    CapacityError,
+    InvalidRootError,
+    MissingRadiusWarning,
+    UnitError,
+    as_count,
+    as_flag,
+    user_stacklevel,
+)
 from ._root import Root, check_range, coordinate_limit, is_plant_system, polyline_length
 from ._thickness import extended_srvf, integrate_branch, wants_thickness
 from ._traits import deepest_order
@@ -664,6 +672,7 @@ def batch(
     dims = {r.dim for r in roots_list}
     if len(dims) != 1:
         raise InvalidRootError(f"batch(): roots mix dimensions {sorted(dims)}; convert 2D roots to 3D (z = 0) first.")
+    normalise_scale = as_flag(normalise_scale, "batch(): normalise_scale")
     if not normalise_scale:
         _check_units(roots_list)
     n_points = as_count(n_points, "n_points", minimum=2)
@@ -753,6 +762,8 @@ def _children_counts(root: Root, depth: int) -> list[int]:
 
 def _capacities(counts, depth, max_laterals, max_children) -> tuple[int, ...]:
     """(K1, …, K(D−1)) from the user's capacities or today's rule, level by level."""
+    if max_laterals is not None:
+        max_laterals = as_count(max_laterals, "batch(): max_laterals", minimum=0)
     if max_children is None:
         caps = [max(2, 2 * n) for n in counts]
         if max_laterals is not None:
@@ -1032,7 +1043,15 @@ def stack(trees: Sequence[eqx.Module]) -> eqx.Module:
 
 def unstack(tree: eqx.Module) -> list:
     """Split a batched Module along its leading axis."""
+    shape = getattr(tree, "batch_shape", None)
+    if shape == ():
+        raise ValueError(
+            f"unstack: this {type(tree).__name__} is a single tree, not a batch (batch shape ()); "
+            "use it as it is, or unstack the batch it came from."
+        )
     leaves = jax.tree.leaves(tree)
+    if not leaves or np.ndim(leaves[0]) == 0:
+        raise ValueError(f"unstack: expected a batched {type(tree).__name__} with a leading axis.")
     n = leaves[0].shape[0]
     return [jax.tree.map(lambda x: x[i], tree) for i in range(n)]
 
@@ -1067,6 +1086,7 @@ def to_srvf(tree: RootTree | SRVFTree, *, weights=None) -> SRVFTree:
             "use rootshape_jax.batch(roots) to build one from Root objects."
         )
     _require_finite_tree(tree)
+    _require_usable_coordinates(tree)
     if weights is not None and tree.main_radius is None and _concrete_positive(weights.thickness):
         warnings.warn(
             f"weights.thickness = {float(np.asarray(weights.thickness)):g} has no effect: these trees carry no "
@@ -1106,6 +1126,28 @@ def _warn_unused_deeper_weights(tree: RootTree | SRVFTree, weights) -> None:
 
 def _concrete_positive(x) -> bool:
     return not isinstance(x, jax.core.Tracer) and bool(np.asarray(x) > 0)
+
+
+def _require_usable_coordinates(tree: RootTree) -> None:
+    """A `RootTree` edited by hand or rescaled (`scale_tree`) must still be what `batch` builds:
+    float32/float64 coordinates whose squares stay finite (`coordinate_limit`)."""
+    dt = np.dtype(tree.main.dtype)
+    if dt not in (np.float32, np.float64):
+        raise TypeError(
+            f"RootTree has {dt.name} coordinates; the metric needs float32 or float64 (build trees with "
+            "rootshape_jax.batch(roots, dtype=...), or cast the floating-point leaves)."
+        )
+    limit = coordinate_limit(dt, tree.main.shape[-2])
+    for x, what in ((tree.main, "main"), (tree.laterals, "laterals"), *((lv.curves, "deeper") for lv in tree.deeper)):
+        if isinstance(x, jax.core.Tracer):  # under jit or grad: not checked
+            continue
+        check_range(
+            np.asarray(x),
+            limit=limit,
+            what=f"RootTree.{what}",
+            fix="Rescale the roots (scale_tree with smaller factors, another unit, or normalise_scale=True "
+            "in batch), or use float64.",
+        )
 
 
 def _require_finite_tree(tree: RootTree | SRVFTree) -> None:

@@ -153,6 +153,9 @@ def test_non_finite_input_under_jit_gives_nan_not_a_distance():
     assert np.isnan(dist(a, bad))
     by_weight = jax.jit(lambda lam: rs.distance(a, b, weights=rs.Weights(main=lam, lateral=1.0, position=1.0)))
     assert np.isfinite(by_weight(0.02)) and np.isnan(by_weight(jnp.nan))
+    # A negative weight cannot be refused under jit either: NaN, not the plausible 0.0 that a
+    # negative energy clipped at 0 gave (an audit found it).
+    assert np.isnan(by_weight(-1.0))
 
 
 @pytest.mark.parametrize("field", ["main", "laterals", "attach"])
@@ -253,3 +256,145 @@ def test_a_tree_where_roots_or_a_matrix_are_expected_is_named():
         rs.to_roots(trees, names=["a", "b"])
     assert [r.name for r in rs.to_roots(trees, names=("a", "b", "c"))] == ["a", "b", "c"]
     assert rs.to_roots(rs.unstack(trees)[0], names="one")[0].name == "one"
+
+
+# --------------------------------------------------------------------------------------------
+# From an audit of bad input across the public API (session 31): each of these returned a NaN,
+# a complex number or a plausible wrong value, or failed inside JAX/numpy with a message that
+# did not name the problem.
+
+
+@pytest.fixture(scope="module")
+def small_pca():
+    from rootshape_jax.datasets import synthetic_roots
+
+    trees = rs.batch(synthetic_roots(5, seed=0), n_points=12, normalise_scale=True)
+    return trees, rs.tangent_pca(rs.karcher_mean(trees, max_steps=5, throw=False))
+
+
+def test_pca_coefficients_must_be_finite_real_and_sized(small_pca):
+    trees, pc = small_pca
+    m = pc.n_components
+    for bad in (np.full(m, np.nan), np.full(m, np.inf), jnp.full(m, jnp.nan)):
+        with pytest.raises(ValueError, match="reconstruct: coefficients contains NaN or inf"):
+            rs.reconstruct(pc, bad)
+    with pytest.raises(ValueError, match="NaN or inf"):
+        rs.modes(pc, [np.nan])
+    with pytest.raises(ValueError, match="overflow"):
+        rs.reconstruct(pc, np.full(m, 1e200))
+    with pytest.raises(TypeError, match="real numbers"):
+        rs.reconstruct(pc, np.ones(m) * 1j)
+    with pytest.raises(ValueError, match="modes: component must be an integer"):
+        rs.modes(pc, [1.0], component=1.5)
+    for bad in (-1, 2.7):
+        with pytest.raises(ValueError, match="project: n_components must be an integer >= 0"):
+            rs.project(pc, trees, n_components=bad, progress=False)
+    with pytest.raises(ValueError, match="project: n_components must be in"):
+        rs.project(pc, trees, n_components=pc.components.shape[0] + 1, progress=False)
+    # A traced NaN is caught when the program runs.
+    with pytest.raises(Exception, match="NaN or inf"):
+        jax.block_until_ready(jax.jit(lambda b: rs.reconstruct(pc, b).main)(jnp.full(m, jnp.nan)))
+
+
+def test_trait_values_are_checked_whatever_their_array_type(small_pca):
+    trees, pc = small_pca
+    reg = rs.TraitRegression.fit(pc, trees, traits="n_laterals")  # one name is one trait
+    assert reg.names == ("n_laterals",) or list(reg.names) == ["n_laterals"]
+    for bad in (np.array([np.nan]), jnp.array([jnp.nan]), jnp.array([jnp.inf])):
+        with pytest.raises(ValueError, match="trait values contain NaN or inf"):
+            reg.synthesize(bad)
+    ok = reg.synthesize(jnp.array([float(np.mean([len(r.laterals) for r in rs.to_roots(trees)]))]))
+    assert np.all(np.isfinite(np.asarray(ok.main)))
+
+
+def test_weights_are_real_numbers_and_trees_stay_in_range(pair):
+    a, b = pair
+    for bad in (dict(main=1j), dict(main="0.5"), dict(lateral=True)):
+        with pytest.raises(TypeError, match=r"Weights\.\w+ must be a real number"):
+            rs.Weights(**bad)
+    with pytest.raises(TypeError, match="must be a real number"):
+        rs.Weights(deeper=((1.0, 1j),))
+    huge = rs.scale_tree(rs.stack([a, b]), jnp.array([1e200, 1.0]))
+    with pytest.raises(rs.CoordinateRangeError, match="RootTree.main: coordinates reach"):
+        rs.distance(*rs.unstack(huge))
+    as_int = jax.tree.map(lambda x: x.astype(jnp.int32) if jnp.issubdtype(x.dtype, jnp.floating) else x, a)
+    with pytest.raises(TypeError, match="int32 coordinates; the metric needs float32 or float64"):
+        rs.distance(as_int, as_int)
+
+
+def test_assignments_labels_and_unstack_name_their_problem():
+    from rootshape_jax import InvalidCostError, LabelError
+
+    with pytest.raises(InvalidCostError, match="permutation of 0..1"):
+        rs.assignment_cost(np.eye(2), np.array([5, 7]))
+    with pytest.raises(InvalidCostError, match="permutation"):
+        rs.assignment_cost(np.eye(2), np.array([0, 0]))
+    assert float(rs.assignment_cost(np.eye(2), np.array([1, 0]))) == 0.0
+    D = np.array([[0, 1, 4, 4], [1, 0, 4, 4], [4, 4, 0, 1], [4, 4, 1, 0]], float)
+    for bad in ([1.0, np.nan, 2.0, 2.0], ["a", None, "b", "b"]):
+        with pytest.raises(LabelError, match=r"labels of roots \[1\] are missing"):
+            rs.loo_accuracy(D, bad)
+    assert rs.loo_accuracy(D, [1, 1, 2, 2])["accuracy"] == 1.0
+    rng = np.random.default_rng(2)
+    one = rs.unstack(rs.batch([random_root(rng, n_laterals=2) for _ in range(2)], n_points=10))[0]
+    with pytest.raises(ValueError, match="unstack: this RootTree is a single tree"):
+        rs.unstack(one)
+
+
+def test_curves_take_integers_and_refuse_what_is_not_a_real_number():
+    x = np.stack([np.arange(6), np.arange(6) ** 2], axis=1)
+    assert np.allclose(rs.srvf(x), rs.srvf(x.astype(float)))
+    assert float(rs.curve_length(x)) == pytest.approx(float(rs.curve_length(x.astype(float))))
+    line = np.stack([np.linspace(0, 1, 10), np.zeros(10)], axis=1)
+    for bad in (line.astype(complex), line > 0.5, line.astype(str)):
+        with pytest.raises(TypeError, match="coordinates must be real numbers"):
+            rs.elastic_curve_distance(bad, line)
+        with pytest.raises(TypeError, match="coordinates must be real numbers"):
+            rs.srvf(bad)
+
+
+def test_boolean_options_refuse_truthy_strings(pair, tmp_path):
+    from rootshape_jax.io import read_rsml, roots_from_image, write_rsml
+
+    rng = np.random.default_rng(5)
+    roots = [random_root(rng, n_laterals=2) for _ in range(2)]
+    with pytest.raises(TypeError, match="normalise_scale must be True or False, got 'False'"):
+        rs.batch(roots, n_points=10, normalise_scale="False")  # a string is truthy: it normalised
+    line = np.stack([np.linspace(0, 1, 10), np.zeros(10)], axis=1)
+    with pytest.raises(TypeError, match="rotation must be True or False"):
+        rs.elastic_curve_distance(line, line, rotation="no")
+    with pytest.raises(TypeError, match="throw must be True or False"):
+        rs.karcher_mean(rs.batch(roots, n_points=10), throw="no")
+    path = tmp_path / "r.rsml"
+    write_rsml(roots, path)
+    with pytest.raises(TypeError, match="strict must be True or False"):
+        read_rsml(path, strict="no")
+    for bad in (5, None):
+        with pytest.raises(TypeError, match="read_rsml: path must be a file name or an open file"):
+            read_rsml(bad)
+    with pytest.raises(IsADirectoryError, match="read_folder"):
+        read_rsml(tmp_path)
+    img = np.zeros((40, 40))
+    for kw, msg in (
+        (dict(spacing=0), "spacing must be a positive"),
+        (dict(spacing=-1), "spacing must be a positive"),
+        (dict(roi=(0, 0, 10)), "roi must be"),
+        (dict(sensitivity=5), "sensitivity must be"),
+        (dict(smooth=None), "smooth must be"),
+    ):
+        with pytest.raises(ValueError, match=msg):
+            roots_from_image(img, **kw)
+    with pytest.raises(TypeError, match="invert must be True or False"):
+        roots_from_image(img, invert="yes")
+    for bad in (-1, 1.5):
+        with pytest.raises(ValueError, match="batch\\(\\): max_laterals must be an integer >= 0"):
+            rs.batch(roots, n_points=10, max_laterals=bad)
+
+
+def test_geodesic_takes_registration_options_as_register_does(pair):
+    a, b = pair
+    by_keyword = rs.geodesic(a, b, n_steps=3, rotation=False)
+    by_options = rs.geodesic(a, b, n_steps=3, registration=rs.RegistrationOptions(rotation=False))
+    assert np.array_equal(np.asarray(by_keyword.main), np.asarray(by_options.main))
+    with pytest.raises(TypeError, match="registration must be the Registration of b onto a"):
+        rs.geodesic(a, b, registration={"rotation": False})

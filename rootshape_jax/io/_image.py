@@ -21,7 +21,7 @@ import scipy.ndimage as ndi
 import scipy.sparse as sp
 from scipy.sparse import csgraph
 
-from .._errors import ImageError
+from .._errors import ImageError, as_flag
 from .._root import Root, project_onto_polyline
 
 _METHODS = ("otsu", "li", "triangle", "yen", "isodata", "mean")
@@ -953,9 +953,26 @@ def roots_from_image(
             raise ValueError(f"{opt} must be a non-negative integer, got {val!r}.")
     if not (root_width > 0):
         raise ValueError(f"root_width must be a positive number of pixels, got {root_width!r}.")
-    low, high = (float(v) for v in sensitivity)
+    try:
+        low, high = (float(v) for v in sensitivity)
+    except (TypeError, ValueError):
+        low = high = math.nan
     if not (0 < low <= high):
         raise ValueError(f"sensitivity must be (low, high) with 0 < low <= high, got {sensitivity!r}.")
+    if isinstance(smooth, bool) or not isinstance(smooth, numbers.Real) or not 0 <= smooth < math.inf:
+        raise ValueError(f"smooth must be a non-negative number of pixels (0: no smoothing), got {smooth!r}.")
+    if spacing is not None and (
+        isinstance(spacing, bool) or not isinstance(spacing, numbers.Real) or not 0 < spacing < math.inf
+    ):
+        raise ValueError(
+            f"spacing must be a positive arc length in pixels, or None to keep every skeleton pixel; got {spacing!r}."
+        )
+    if roi is not None and (isinstance(roi, (str, bytes)) or np.size(roi) != 4):
+        raise ValueError(f"roi must be (top, bottom, left, right) in pixels, got {roi!r}.")
+    if invert is not None:
+        as_flag(invert, "invert")
+    as_flag(refine_junctions, "refine_junctions")
+    as_flag(split_touching, "split_touching")
     if bridge_gaps is None:
         bridge_gaps = max(20.0, 4.0 * float(root_width))
     for opt, val in (("bridge_gaps", bridge_gaps), ("spur_factor", spur_factor)):

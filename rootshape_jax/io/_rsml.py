@@ -29,7 +29,7 @@ from xml.sax.saxutils import escape, quoteattr
 import numpy as np
 from defusedxml import DefusedXmlException, ElementTree as DET
 
-from .._errors import InvalidRootError, RSMLError, RSMLWarning, UnitError, user_stacklevel
+from .._errors import InvalidRootError, RSMLError, RSMLWarning, UnitError, as_flag, user_stacklevel
 from .._root import ROOT_COORDINATE_LIMIT, Root, check_range, is_plant_system, plant_axes
 from .._tree import RootTree, SRVFTree
 from .._units import PIXEL_UNITS, unit_key, units_of
@@ -510,8 +510,18 @@ def read_rsml(
     """
     if by not in ("root", "plant"):
         raise ValueError(f"read_rsml: by must be 'root' or 'plant', got {by!r}.")
+    strict = as_flag(strict, "read_rsml: strict")
+    physical_units = as_flag(physical_units, "read_rsml: physical_units")
+    if not isinstance(path, (str, os.PathLike)) and not hasattr(path, "read"):
+        # An int would be opened as a file descriptor, None fails inside ElementTree.
+        raise TypeError(f"read_rsml: path must be a file name or an open file, got {path!r}.")
     source, stem = _source_name(path)
     problems = _Problems(source, strict)
+    if isinstance(path, (str, os.PathLike)) and Path(path).is_dir():
+        raise IsADirectoryError(
+            f"read_rsml: {source} is a folder; read_rsml reads one file (rootshape_jax.io.read_folder reads "
+            "every RSML file and image of a folder)."
+        )
     if isinstance(path, (str, os.PathLike)) and not Path(path).is_file():
         raise FileNotFoundError(f"RSML file not found: {source}")
 
