@@ -176,6 +176,9 @@ def resample_curve(beta: Float[ArrayLike, "n d"], n_points: int) -> Float[Array,
     beta = jnp.asarray(beta)
     if beta.ndim != 2 or beta.shape[0] < 2:
         raise ValueError(f"resample_curve needs an (n, d) polyline with n >= 2, got {beta.shape}.")
+    from ._errors import as_count
+
+    n_points = as_count(n_points, "resample_curve: n_points", minimum=2)
     fractions = jnp.linspace(0.0, 1.0, n_points, dtype=jnp.result_type(beta.dtype, float))
     return interpolate_at_fraction(beta, fractions)
 

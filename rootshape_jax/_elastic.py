@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._curves import l2_norm_squared, real_coordinates, resample_curve, srvf
+from ._curves import l2_norm_squared, real_coordinates, require_finite, resample_curve, srvf
 from ._devices import split_over_devices
 from ._errors import InvalidRootError, as_count, as_flag
 from ._executor import LocalExecutor
@@ -165,9 +165,13 @@ def elastic_curve_distance(
     options.
     """
     n_samples, max_iterations = _check_options(n_samples, max_iterations, rtol, neighbourhood)
+    beta1 = real_coordinates(beta1, "elastic_curve_distance: beta1")
+    beta2 = real_coordinates(beta2, "elastic_curve_distance: beta2")
+    require_finite(beta1, "elastic_curve_distance: beta1")  # concrete input; traced: eqx.error_if
+    require_finite(beta2, "elastic_curve_distance: beta2")
     return _elastic_curve_distance(
-        real_coordinates(beta1, "elastic_curve_distance: beta1"),
-        real_coordinates(beta2, "elastic_curve_distance: beta2"),
+        beta1,
+        beta2,
         jnp.asarray(max_iterations, jnp.int32),
         jnp.asarray(rtol),
         rotation=as_flag(rotation, "rotation"),

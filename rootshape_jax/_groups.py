@@ -29,6 +29,8 @@ def holm(p_values) -> np.ndarray:
     """Holm's step-down adjustment (controls the family-wise error rate): the i-th smallest
     p-value is multiplied by ``m − i`` (i from 0), made non-decreasing, capped at 1."""
     p = np.asarray(p_values, dtype=np.float64)
+    if p.ndim != 1 or not np.all((p >= 0) & (p <= 1)):  # NaN fails too
+        raise ValueError(f"holm: p_values must be a 1-D sequence of probabilities in [0, 1], got {p_values!r}.")
     m = p.size
     order = np.argsort(p, kind="stable")
     adjusted = np.minimum(1.0, np.maximum.accumulate(p[order] * (m - np.arange(m))))

@@ -66,6 +66,7 @@ from jaxtyping import Array, Bool, Float, Int
 from tqdm.auto import tqdm
 
 from ._assignment import solve
+from ._cluster import check_distances
 from ._curves import l2_norm_squared
 from ._engine import (
     MEAN_REGISTRATION,
@@ -250,11 +251,10 @@ def _zero_tree_energy(samples: SRVFTree, weights: Weights):
 
 
 def _medoid(distances, n: int) -> int:
-    D = np.asarray(distances, dtype=np.float64)
-    if D.shape != (n, n):
-        raise ValueError(f"distances has shape {D.shape}, expected ({n}, {n}) for {n} samples.")
-    if not np.all(np.isfinite(D)):
-        raise ValueError("distances contains NaN or inf; pass a finite distance matrix.")
+    if np.shape(distances) != (n, n):
+        raise ValueError(f"distances has shape {np.shape(distances)}, expected ({n}, {n}) for {n} samples.")
+    check_distances(distances)  # finite, non-negative, symmetric
+    D = np.asarray(distances, dtype=np.float64)  # as given: the medoid of the matrix itself
     return int(np.argmin(np.sum(D**2, axis=1)))
 
 
@@ -919,6 +919,10 @@ def karcher_mean(
         n_starts = _MULTI_STARTS if n <= _MULTI_START_MAX_N else 1
     n_starts = as_count(n_starts, "n_starts")
     throw = as_flag(throw, "karcher_mean: throw")
+    if min_lateral_length is not None and not (
+        np.ndim(min_lateral_length) == 0 and float(min_lateral_length) >= 0  # NaN fails too
+    ):
+        raise ValueError(f"karcher_mean: min_lateral_length must be a number >= 0, got {min_lateral_length!r}.")
     if isinstance(init, (RootTree, SRVFTree)):
         first = _start_tree(init, samples, weights)
         starts, candidates = [None], [first]

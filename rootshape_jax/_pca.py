@@ -192,14 +192,25 @@ def tangent_pca(
         threshold = default_threshold
         slots = _keep_the_means_laterals(mean, threshold)
     else:
+        if not np.all(np.asarray(min_lateral_length, dtype=np.float64) >= 0):  # NaN fails too
+            raise ValueError(f"min_lateral_length must be >= 0, got {min_lateral_length!r}.")
         threshold = jnp.asarray(min_lateral_length, dtype)
         slots = ()
     if max_lateral_length is None:
         longest = default_longest
     else:
-        if not max_lateral_length > 0:
+        if not np.all(np.asarray(max_lateral_length, dtype=np.float64) > 0):
             raise ValueError(f"max_lateral_length must be positive, got {max_lateral_length!r}.")
         longest = jnp.asarray(max_lateral_length, dtype)
+    if (
+        min_lateral_length is not None
+        and max_lateral_length is not None
+        and np.any(np.asarray(min_lateral_length, dtype=np.float64) > np.asarray(max_lateral_length, dtype=np.float64))
+    ):
+        raise ValueError(
+            f"min_lateral_length ({min_lateral_length!r}) is above max_lateral_length ({max_lateral_length!r}): "
+            "every synthesised lateral would be dropped or cut."
+        )
     ratio_np, eig_np = jax.device_get((ratio, eig))
     return TangentPCA(
         mean=mu,

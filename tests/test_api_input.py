@@ -269,11 +269,12 @@ def small_pca():
     from rootshape_jax.datasets import synthetic_roots
 
     trees = rs.batch(synthetic_roots(5, seed=0), n_points=12, normalise_scale=True)
-    return trees, rs.tangent_pca(rs.karcher_mean(trees, max_steps=5, throw=False))
+    km = rs.karcher_mean(trees, max_steps=5, throw=False)
+    return trees, rs.tangent_pca(km), km
 
 
 def test_pca_coefficients_must_be_finite_real_and_sized(small_pca):
-    trees, pc = small_pca
+    trees, pc, km = small_pca
     m = pc.n_components
     for bad in (np.full(m, np.nan), np.full(m, np.inf), jnp.full(m, jnp.nan)):
         with pytest.raises(ValueError, match="reconstruct: coefficients contains NaN or inf"):
@@ -297,7 +298,7 @@ def test_pca_coefficients_must_be_finite_real_and_sized(small_pca):
 
 
 def test_trait_values_are_checked_whatever_their_array_type(small_pca):
-    trees, pc = small_pca
+    trees, pc, km = small_pca
     reg = rs.TraitRegression.fit(pc, trees, traits="n_laterals")  # one name is one trait
     assert reg.names == ("n_laterals",) or list(reg.names) == ["n_laterals"]
     for bad in (np.array([np.nan]), jnp.array([jnp.nan]), jnp.array([jnp.inf])):
@@ -398,3 +399,31 @@ def test_geodesic_takes_registration_options_as_register_does(pair):
     assert np.array_equal(np.asarray(by_keyword.main), np.asarray(by_options.main))
     with pytest.raises(TypeError, match="registration must be the Registration of b onto a"):
         rs.geodesic(a, b, registration={"rotation": False})
+
+
+def test_out_of_range_options_of_statistics_are_refused(small_pca):
+    trees, pc, km = small_pca
+    line = np.stack([np.linspace(0, 1, 10), np.zeros(10)], axis=1)
+    for bad in (0, 1, 2.5):
+        with pytest.raises(ValueError, match="resample_curve: n_points must be an integer >= 2"):
+            rs.resample_curve(line, bad)
+    for bad in ([0.01, np.nan], [0.5, -0.1], [0.2, 1.5]):
+        with pytest.raises(ValueError, match="holm: p_values must be"):
+            rs.holm(bad)
+    D = np.array([[0.0, 1.0, 3.0], [1.0, 0.0, 2.0], [3.0, 2.0, 0.0]])
+    for bad in (np.nan, -1.0, "1"):
+        with pytest.raises(ValueError, match="height must be a finite distance >= 0"):
+            rs.cluster(D, n_clusters=None, height=bad)
+    off = np.ones((5, 5)) - np.eye(5)
+    asym = off.copy()
+    asym[0, 1] = 9.0
+    for bad, msg in ((asym, "symmetric"), (-off, "non-negative")):
+        with pytest.raises(ValueError, match=msg):
+            rs.karcher_mean(trees, distances=bad)
+    for bad in (-1.0, np.nan):
+        with pytest.raises(ValueError, match="min_lateral_length must be a number >= 0"):
+            rs.karcher_mean(trees, min_lateral_length=bad)
+    with pytest.raises(ValueError, match="min_lateral_length .* is above max_lateral_length"):
+        rs.tangent_pca(km, min_lateral_length=5.0, max_lateral_length=1.0)
+    with pytest.raises(ValueError, match="min_lateral_length must be >= 0"):
+        rs.tangent_pca(km, min_lateral_length=np.nan)
