@@ -5,6 +5,11 @@ with null laterals to fixed capacities, so the elastic metric, registration, dis
 and Karcher means are jit/vmap-compiled. See README.md and docs/architecture.md.
 """
 
+from . import _early_interrupt
+
+if _early_interrupt.is_the_program():  # the `rootshape` program: Ctrl-C while JAX loads ends it
+    _early_interrupt.end_on_ctrl_c()
+
 from ._assignment import (
     assignment_cost as assignment_cost,
     linear_assignment as linear_assignment,

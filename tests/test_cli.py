@@ -258,6 +258,15 @@ def test_unknown_condition(tmp_path):
     proc = run_cli("traits", "--synthetic", 2, "--condition", "flooded", "--out", tmp_path / "mine")
     assert_one_line_error(proc, "flooded")
     assert (tmp_path / "mine").is_dir()
+    # The parents it created for --out go too (an audit found nest/a left behind), not more.
+    from rootshape_jax._cli import main
+
+    for out, gone, kept in (
+        (tmp_path / "n" / "a" / "b", tmp_path / "n", tmp_path),
+        (tmp_path / "mine" / "x" / "y", tmp_path / "mine" / "x", tmp_path / "mine"),
+    ):
+        assert main(["traits", "--synthetic", "2", "--condition", "flooded", "--quiet", "--out", str(out)]) == 1
+        assert not gone.exists() and kept.is_dir()
 
 
 def test_bad_requested_csv_fails_before_computing(rsml_files, tmp_path):
@@ -750,6 +759,36 @@ def test_formula_root_labels_are_escaped_in_csv(tmp_path):
     assert names == ['\'=HYPERLINK("http://evil","x")', "-7"]
 
 
+@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="watches /proc/PID/maps for JAX loading")
+def test_ctrl_c_while_the_program_starts_ends_it(tmp_path):
+    """From an audit: Ctrl-C in the first ~2 s (while the package imports JAX, before `main`
+    installs its handler) printed a traceback, or was swallowed by a JAX garbage-collection
+    callback and the run went on to write traits.csv. Now it ends with 130 and one line."""
+    import signal
+    import time
+
+    write_rsml(synthetic_roots(2, seed=1), tmp_path / "r.rsml")
+    for delay in (0.0, 0.3):
+        out = tmp_path / f"o{delay}"
+        p = subprocess.Popen(
+            [sys.executable, "-m", "rootshape_jax", "traits", str(tmp_path / "r.rsml"), "--out", str(out)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+        )
+        # The handler is in place before the package imports JAX: wait until jaxlib is mapped.
+        deadline = time.monotonic() + 60
+        maps = Path(f"/proc/{p.pid}/maps")
+        while time.monotonic() < deadline and p.poll() is None and "jaxlib" not in maps.read_text(errors="replace"):
+            time.sleep(0.005)
+        time.sleep(delay)
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=120)
+        err = err.decode(errors="replace")
+        assert p.returncode == 130, (delay, p.returncode, err[-2000:])
+        assert "Traceback" not in err and "Exception ignored" not in err and "rootshape: interrupted" in err
+        assert not (out / "traits.csv").exists()
+
+
 @pytest.mark.slow
 def test_ctrl_c_during_distances_exits_cleanly(tmp_path):
     """SIGINT while the distance matrix compiles or runs: exit code 130 every time, never a
@@ -856,6 +895,8 @@ def test_store_resumes_after_ctrl_c(tmp_path):
     p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=120)
     assert p.returncode == 130, err.decode(errors="replace")[-2000:]  # 190 pairs: 3 blocks of 64
+    # The message says that the same command resumes (an audit found only the generic line).
+    assert f"--store {store} keeps the blocks of distances finished so far" in err.decode(errors="replace")
     kept = sorted(q.name for q in store.glob("block_*.npz"))
     assert 1 <= len(kept) < 3, kept
     assert not out.exists() or not (out / "distances.csv").exists()
@@ -970,6 +1011,17 @@ def test_a_run_that_fails_midway_says_what_it_left_in_out(tmp_path, monkeypatch,
     assert main(["traits", "--synthetic", "2", "--quiet", "--out", str(out)]) == 1
     assert "--overwrite" in capsys.readouterr().err
     assert main(["traits", "--synthetic", "2", "--quiet", "--overwrite", "--out", str(out)]) == 0
+    # An --overwrite run stopped midway: the earlier run's files it had not yet replaced are
+    # named too, not only the new ones (an audit found an old index.html beside new results,
+    # with "holds only the 1 file written before").
+    (out / "distances.csv").write_text("x\n")  # as left by another command's earlier run
+    earlier = sorted(p.name for p in out.iterdir() if p.name not in ("traits.csv", "rootshape.log"))
+    capsys.readouterr()
+    monkeypatch.setattr(_commands, "_finish", fail)
+    assert main(["traits", "--synthetic", "3", "--quiet", "--overwrite", "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "holds only the 1 file written before (traits.csv)" in err, err
+    assert f"of an earlier run that this run had not replaced ({', '.join(earlier[:6])}" in err, err
 
 
 def test_a_folder_holding_only_a_log_is_not_refused(tmp_path, capsys):

@@ -115,8 +115,10 @@ class Output:
             # The log of a run stopped before its first result: not this run's, so it goes.
             (self.folder / LOG_NAME).unlink(missing_ok=True)
             self.earlier = set()
-        # A folder this run creates is removed again if the run stops before writing into it.
+        # A folder this run creates is removed again if the run stops before writing into it,
+        # with the parents it created for it (`created_top`).
         self.created = not self.folder.exists()
+        self.created_top = _first_missing(self.folder)
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
         except OSError as e:
@@ -214,6 +216,17 @@ class Output:
         print(f"Results are in {self.folder.resolve()}")
 
 
+def _first_missing(folder: Path) -> Path | None:
+    """The outermost of `folder` and its parents that does not exist yet (None if it exists):
+    what ``mkdir(parents=True)`` creates."""
+    top = None
+    for p in [folder, *folder.parents]:
+        if p.exists():
+            break
+        top = p
+    return top
+
+
 class WrittenFolder:
     """The --out folder of a command that writes its files itself (`extract`, through
     `atomic_write`): what it wrote, for the message when it stops early (`unfinished_note`)."""
@@ -221,6 +234,7 @@ class WrittenFolder:
     def __init__(self, folder: str | os.PathLike, paths: list[Path]):
         self.folder = Path(folder)
         self.created = not self.folder.exists()
+        self.created_top = _first_missing(self.folder)
         self.paths = paths  # filled by `recording_writes`
         OPENED.append(self)
 
@@ -237,18 +251,38 @@ def unfinished_note() -> str | None:
     """What a command that stopped early (error, Ctrl-C) leaves in its output folders: the
     files it wrote are complete (atomic writes), the rest is missing, and a plain rerun into
     the same folder is refused (`Output`), so say so."""
+
+    def listed(names: list[str]) -> str:
+        return ", ".join(names[:6]) + (f" and {len(names) - 6} more" if len(names) > 6 else "")
+
     notes = []
     for out in OPENED:
         # The log of skipped files is not a result: it explains the error, so it is kept.
         names = sorted(n for n in out.written if n != LOG_NAME)
-        if not names:
+        # With --overwrite, the earlier run's files this run had not yet replaced are still
+        # there, beside the new ones they no longer match (an old index.html, mean.png, ...).
+        stale = [n for n in out.stale() if n != LOG_NAME] if isinstance(out, Output) else []
+        store = getattr(getattr(out, "args", None), "store", None)
+        if store:  # the blocks finished so far are kept
+            notes.append(
+                f"--store {store} keeps the blocks of distances finished so far: the same command with "
+                "the same --store computes only the rest"
+            )
+        if not names and not stale:
             continue
-        shown = ", ".join(names[:6]) + (f" and {len(names) - 6} more" if len(names) > 6 else "")
-        notes.append(
-            f"the run stopped before its end: {out.folder} holds only the {len(names)} "
-            f"file{'s' if len(names) > 1 else ''} written before ({shown}); run again with "
-            "--overwrite to replace them"
-        )
+        if names:
+            what = (
+                f"{out.folder} holds only the {len(names)} file{'s' if len(names) > 1 else ''} written "
+                f"before ({listed(names)})"
+            )
+        else:
+            what = f"{out.folder} holds no file of this run"
+        if stale:
+            what += (
+                f", and {len(stale)} file{'s' if len(stale) > 1 else ''} of an earlier run that this run "
+                f"had not replaced ({listed(stale)}), which do not come from this run's inputs"
+            )
+        notes.append(f"the run stopped before its end: {what}; run again with --overwrite to replace them")
     return "; ".join(notes) or None
 
 
@@ -257,8 +291,14 @@ def remove_empty_outputs() -> None:
     before the first file): no empty folder stays behind."""
     for out in OPENED:
         if out.created:
-            with contextlib.suppress(OSError):
-                out.folder.rmdir()  # only succeeds when empty
+            # The folder, then each parent the run created for it, while they are empty.
+            for p in [out.folder, *out.folder.parents]:
+                try:
+                    p.rmdir()  # only succeeds when empty
+                except OSError:
+                    break
+                if p == out.created_top:
+                    break
 
 
 def os_reason(e: OSError) -> str:
