@@ -39,8 +39,8 @@ def check_distances(distances) -> np.ndarray:
         raise ValueError(
             f"distances must be an (n, n) matrix of numbers, got {type(distances).__name__} that is not one."
         ) from None
-    if D.ndim != 2 or D.shape[0] != D.shape[1]:
-        raise ValueError(f"distances must be a square (n, n) matrix, got shape {D.shape}.")
+    if D.ndim != 2 or D.shape[0] != D.shape[1] or D.shape[0] == 0:
+        raise ValueError(f"distances must be a square (n, n) matrix with n >= 1, got shape {D.shape}.")
     if not np.all(np.isfinite(D)):
         raise ValueError("distances contains NaN or inf.")
     if np.any(D < 0):

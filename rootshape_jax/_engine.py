@@ -110,7 +110,8 @@ class RegistrationOptions(eqx.Module):
             raise TypeError(f"rotation must be True or False, got {rotation!r}.")
         if assignment not in ("callback", "jax"):
             raise ValueError(f"assignment must be 'callback' or 'jax', got {assignment!r}.")
-        if not rtol >= 0:
+        real = not isinstance(rtol, bool) and np.ndim(rtol) == 0 and np.asarray(rtol).dtype.kind in "iuf"
+        if not (real and rtol >= 0):
             raise ValueError(f"rtol must be a non-negative number, got {rtol!r}.")
         # numpy, not jnp: arrays (traced under jit) that do not start JAX at import time.
         self.rotation = np.asarray(bool(rotation))
@@ -162,6 +163,10 @@ def registration_options(
                 f"give registration options either as `registration=` or as keywords, not both ({sorted(shorthand)})."
             )
         return options
+    if options is not None and not isinstance(options, dict):
+        raise TypeError(
+            f"registration must be a rootshape_jax.RegistrationOptions or a dict of its fields, got {options!r}."
+        )
     given = dict(options or {})
     unknown = (set(given) | set(shorthand)) - set(OPTION_NAMES)
     if unknown:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -156,7 +156,12 @@ class Root:
         if self.attach is None:
             attach = np.array([project_onto_polyline(main, lat[0]) for lat in lats], dtype=main.dtype)
         else:
-            attach = np.asarray(self.attach, dtype=main.dtype).reshape(-1)
+            try:
+                attach = np.asarray(self.attach, dtype=main.dtype).reshape(-1)
+            except (TypeError, ValueError):
+                raise InvalidRootError(
+                    f"{label}: attach must hold numbers (arc-length fractions in [0, 1]), got {self.attach!r}."
+                ) from None
             if attach.shape[0] != len(lats):
                 raise InvalidRootError(
                     f"{label}: {attach.shape[0]} attachment fractions for {len(lats)} laterals; "
@@ -167,10 +172,22 @@ class Root:
                     f"{label}: attachment fractions must lie in [0, 1] (arc-length fraction "
                     f"along the main root), got {attach.tolist()}."
                 )
+        if isinstance(self.children, Root) or not isinstance(self.children, (tuple, list)):
+            raise InvalidRootError(
+                f"{label}: `children` must be a tuple of Roots, one per lateral, got {type(self.children).__name__}."
+            )
         if self.children and len(self.children) != len(lats):
             raise InvalidRootError(
                 f"{label}: `children` must hold one entry per lateral ({len(lats)}), got {len(self.children)}."
             )
+        bad = [i for i, c in enumerate(self.children) if not isinstance(c, Root)]
+        if bad:
+            raise InvalidRootError(
+                f"{label}: children {bad[:5]} are not Roots (got {type(self.children[bad[0]]).__name__}); each "
+                "child is the lateral as a Root with its own laterals."
+            )
+        if not isinstance(self.metadata, Mapping):
+            raise InvalidRootError(f"{label}: metadata must be a dict, got {type(self.metadata).__name__}.")
         main_radius = None
         if self.main_radius is not None:
             main_radius = check_radius(
@@ -196,6 +213,7 @@ class Root:
         object.__setattr__(self, "lateral_radii", lateral_radii)
         object.__setattr__(self, "attach", attach)
         object.__setattr__(self, "metadata", dict(self.metadata))
+        object.__setattr__(self, "children", tuple(self.children))
 
     @property
     def dim(self) -> int:

@@ -427,3 +427,25 @@ def test_out_of_range_options_of_statistics_are_refused(small_pca):
         rs.tangent_pca(km, min_lateral_length=5.0, max_lateral_length=1.0)
     with pytest.raises(ValueError, match="min_lateral_length must be >= 0"):
         rs.tangent_pca(km, min_lateral_length=np.nan)
+
+
+def test_roots_and_options_of_the_wrong_kind_are_named(pair):
+    line = np.stack([np.linspace(0, 1, 10), np.zeros(10)], axis=1)
+    lat = line[:4] * 0.3
+    child = rs.Root(main=lat)
+    for kw, msg in (
+        (dict(laterals=[lat], attach=np.array(["a"])), "attach must hold numbers"),
+        (dict(metadata=[1, 2]), "metadata must be a dict"),
+        (dict(laterals=[lat], children=child), "children` must be a tuple of Roots"),
+        (dict(laterals=[lat], children=(1,)), r"children \[0\] are not Roots"),
+    ):
+        with pytest.raises(InvalidRootError, match=msg):
+            rs.Root(main=line, **kw)
+    assert rs.Root(main=line, laterals=[lat], children=[child]).children == (child,)
+    a, b = pair
+    with pytest.raises(TypeError, match="registration must be a rootshape_jax.RegistrationOptions or a dict"):
+        rs.distance(a, b, registration="x")
+    with pytest.raises(ValueError, match="rtol must be a non-negative number, got 'x'"):
+        rs.distance(a, b, rtol="x")
+    with pytest.raises(ValueError, match="n >= 1"):
+        rs.cluster(np.zeros((0, 0)))
