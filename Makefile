@@ -24,7 +24,7 @@ install: $(VENV)/.installed
 # The cache lives in the checkout unless the environment names another folder (CI keeps one
 # between its runs: .ci/run).
 JAX_COMPILATION_CACHE_DIR ?= $(CURDIR)/.jax_cache
-PYTEST := JAX_COMPILATION_CACHE_DIR=$(JAX_COMPILATION_CACHE_DIR) JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0 \
+PYTEST := JAX_COMPILATION_CACHE_DIR="$(JAX_COMPILATION_CACHE_DIR)" JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0 \
 	$(PY) -m pytest -q -n 2 --dist loadfile
 
 # ruff: lint, import order and formatting (configured in pyproject.toml); part of `make test`.

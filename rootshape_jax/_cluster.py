@@ -116,11 +116,8 @@ def cluster(
             raise ValueError(f"n_clusters must be an integer in [1, {n}], got {n_clusters!r}.")
         raw = sch.fcluster(Z, t=int(n_clusters), criterion="maxclust")
     else:
-        if (
-            isinstance(height, bool)
-            or not isinstance(height, (int, float, np.integer, np.floating))
-            or not (0 <= float(height) < np.inf)
-        ):
+        real = not isinstance(height, bool) and np.ndim(height) == 0 and np.asarray(height).dtype.kind in "iuf"
+        if not (real and 0 <= float(height) < np.inf):  # numbers, numpy and JAX scalars
             raise ValueError(f"height must be a finite distance >= 0, got {height!r}.")
         raw = sch.fcluster(Z, t=float(height), criterion="distance")
     order = sch.leaves_list(Z)

@@ -29,9 +29,31 @@ def _end(signum, frame) -> None:
 
 def is_the_program() -> bool:
     """True while the process is the ``rootshape`` program: its script, or ``python -m
-    rootshape_jax`` (``sys.argv[0]`` is "-m" while Python imports the package to run it)."""
+    rootshape_jax`` (``sys.argv[0]`` is "-m" while Python imports the package to run it; the
+    module named after ``-m`` must be this package, not another one that imports it)."""
     argv0 = sys.argv[0] if sys.argv else ""
-    return argv0 == "-m" or os.path.basename(argv0).removesuffix(".exe") == "rootshape"
+    if os.path.basename(argv0).removesuffix(".exe") == "rootshape":
+        return True
+    return argv0 == "-m" and _module_after_m(getattr(sys, "orig_argv", [])) in (
+        "rootshape_jax",
+        "rootshape_jax.__main__",
+    )
+
+
+def _module_after_m(argv: list[str]) -> str | None:
+    """The module of ``python -m MODULE`` (also written ``-mMODULE``) in the interpreter's own
+    command line, or None."""
+    i = 1
+    while i < len(argv):
+        arg = argv[i]
+        if arg == "-m":
+            return argv[i + 1] if i + 1 < len(argv) else None
+        if arg.startswith("-m"):
+            return arg[2:]
+        if not arg.startswith("-") or arg.startswith("-c"):  # a script or -c: no -m
+            return None
+        i += 2 if arg in ("-W", "-X", "--check-hash-based-pycs") else 1  # options with a value
+    return None
 
 
 def end_on_ctrl_c() -> None:

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import functools
 import types
+from collections.abc import Mapping
 from typing import NamedTuple
 
 import equinox as eqx
@@ -163,7 +164,7 @@ def registration_options(
                 f"give registration options either as `registration=` or as keywords, not both ({sorted(shorthand)})."
             )
         return options
-    if options is not None and not isinstance(options, dict):
+    if options is not None and not isinstance(options, Mapping):
         raise TypeError(
             f"registration must be a rootshape_jax.RegistrationOptions or a dict of its fields, got {options!r}."
         )

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -130,13 +132,13 @@ def geodesic(
             la = lb = float("nan")
         if not (la > 0 and lb > 0 and jnp.isfinite(la) and jnp.isfinite(lb)):
             raise ValueError(f"sizes must be two positive main-root lengths (length_a, length_b), got {sizes!r}.")
-    if registration is None or isinstance(registration, RegistrationOptions):
+    if registration is None or isinstance(registration, (RegistrationOptions, Mapping)):
         # Options, as `registration=` means in every other call: register with them.
         registration = register(a, b, weights=weights, registration=registration, **options)
     elif not isinstance(registration, Registration):
         raise TypeError(
             "geodesic: registration must be the Registration of b onto a (rootshape_jax.register(a, b)) "
-            f"or RegistrationOptions, got a {type(registration).__name__}."
+            f"or registration options (RegistrationOptions or a dict), got a {type(registration).__name__}."
         )
     weights = as_weights(weights)
     # Whether a has a thickness channel is decided here, on concrete weights (static below).

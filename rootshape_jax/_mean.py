@@ -66,7 +66,6 @@ from jaxtyping import Array, Bool, Float, Int
 from tqdm.auto import tqdm
 
 from ._assignment import solve
-from ._cluster import check_distances
 from ._curves import l2_norm_squared
 from ._engine import (
     MEAN_REGISTRATION,
@@ -253,8 +252,11 @@ def _zero_tree_energy(samples: SRVFTree, weights: Weights):
 def _medoid(distances, n: int) -> int:
     if np.shape(distances) != (n, n):
         raise ValueError(f"distances has shape {np.shape(distances)}, expected ({n}, {n}) for {n} samples.")
-    check_distances(distances)  # finite, non-negative, symmetric
     D = np.asarray(distances, dtype=np.float64)  # as given: the medoid of the matrix itself
+    if not np.all(np.isfinite(D)):
+        raise ValueError("distances contains NaN or inf; pass a finite distance matrix.")
+    if np.any(D < 0):
+        raise ValueError("distances must be non-negative (a distance matrix, e.g. from pairwise_distances).")
     return int(np.argmin(np.sum(D**2, axis=1)))
 
 

@@ -299,10 +299,18 @@ def modes(pc: TangentPCA, alphas: Sequence[float] | Array, *, component: int | S
     components gives shape ``(len(components), len(alphas))``.
     """
     alphas = jnp.asarray(alphas, pc.mean.q0.dtype).reshape(-1)
-    single = isinstance(component, (int, np.integer)) and not isinstance(component, bool)
-    if not single and not (isinstance(component, Sequence) or isinstance(component, np.ndarray)):
+
+    def index(c):  # numpy and JAX integer scalars too
+        if not isinstance(c, bool) and np.ndim(c) == 0 and np.asarray(c).dtype.kind in "iu":
+            c = int(c)
+        return as_count(c, "modes: component", minimum=0)
+
+    single = np.ndim(component) == 0
+    if not single and np.ndim(component) != 1:
         raise ValueError(f"modes: component must be an integer or a sequence of integers, got {component!r}.")
-    comps = [as_count(c, "modes: component", minimum=0) for c in ([component] if single else component)]
+    if single and not (not isinstance(component, bool) and np.asarray(component).dtype.kind in "iu"):
+        raise ValueError(f"modes: component must be an integer or a sequence of integers, got {component!r}.")
+    comps = [index(c) for c in ([component] if single else list(component))]
     m = pc.components.shape[0]
     for c in comps:
         if not 0 <= c < m:

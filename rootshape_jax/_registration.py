@@ -63,7 +63,7 @@ def _largest_child_counts(t: SRVFTree) -> list[tuple[int, np.ndarray]]:
     out = []
     for m in masks:
         counts = np.asarray(m).sum(axis=-1)  # [N, K1, …, K(ℓ−1)]: children per parent branch
-        out.append((m.shape[-1], counts.reshape(counts.shape[0], -1).max(axis=1)))
+        out.append((m.shape[-1], counts.reshape(counts.shape[0], -1).max(axis=1, initial=0)))
     return out
 
 
@@ -99,8 +99,8 @@ def warn_forced_matches(a: SRVFTree, b: SRVFTree, what: str, *, pairs: str) -> N
             f"distance can be too large. Batch the roots with a larger {room}, or leave it to its "
             "default. For a Karcher mean: km.energies holds the samples' squared distances to it; "
             "compare other roots with km.mean_srvf (short laterals dropped) rather than km.fitted "
-            "(every slot real), or if that is still too full, batch its curves with them: "
-            "rs.batch(rs.to_roots(km.mean) + roots).",
+            "(every slot real), or if that is still too full, batch its curves with them "
+            "(rs.to_roots(km.mean), then rs.batch with the options the trees were built with).",
             UserWarning,
             stacklevel=user_stacklevel(),
         )

@@ -397,8 +397,10 @@ def test_geodesic_takes_registration_options_as_register_does(pair):
     by_keyword = rs.geodesic(a, b, n_steps=3, rotation=False)
     by_options = rs.geodesic(a, b, n_steps=3, registration=rs.RegistrationOptions(rotation=False))
     assert np.array_equal(np.asarray(by_keyword.main), np.asarray(by_options.main))
+    by_dict = rs.geodesic(a, b, n_steps=3, registration={"rotation": False})
+    assert np.array_equal(np.asarray(by_keyword.main), np.asarray(by_dict.main))
     with pytest.raises(TypeError, match="registration must be the Registration of b onto a"):
-        rs.geodesic(a, b, registration={"rotation": False})
+        rs.geodesic(a, b, registration="rotation=False")
 
 
 def test_out_of_range_options_of_statistics_are_refused(small_pca):
@@ -415,11 +417,18 @@ def test_out_of_range_options_of_statistics_are_refused(small_pca):
         with pytest.raises(ValueError, match="height must be a finite distance >= 0"):
             rs.cluster(D, n_clusters=None, height=bad)
     off = np.ones((5, 5)) - np.eye(5)
-    asym = off.copy()
-    asym[0, 1] = 9.0
-    for bad, msg in ((asym, "symmetric"), (-off, "non-negative")):
-        with pytest.raises(ValueError, match=msg):
-            rs.karcher_mean(trees, distances=bad)
+    with pytest.raises(ValueError, match="non-negative"):  # (not symmetric is fine: a start only)
+        rs.karcher_mean(trees, distances=-off)
+    # Scalars of numpy and JAX, sequences and mappings that worked before still work.
+    assert rs.cluster(D, n_clusters=None, height=jnp.asarray(1.5)).n_clusters == 2
+    assert rs.cluster(D, n_clusters=None, height=np.array(1.5)).n_clusters == 2
+    assert rs.modes(pc, [1.0], component=jnp.arange(2)).main.shape[:2] == (2, 1)
+    import types
+
+    opts = rs.RegistrationOptions(rotation=False)
+    assert rs.register(*rs.unstack(trees)[:2], registration=types.MappingProxyType({"rotation": False})).distance == (
+        rs.register(*rs.unstack(trees)[:2], registration=opts).distance
+    )
     for bad in (-1.0, np.nan):
         with pytest.raises(ValueError, match="min_lateral_length must be a number >= 0"):
             rs.karcher_mean(trees, min_lateral_length=bad)
@@ -449,3 +458,24 @@ def test_roots_and_options_of_the_wrong_kind_are_named(pair):
         rs.distance(a, b, rtol="x")
     with pytest.raises(ValueError, match="n >= 1"):
         rs.cluster(np.zeros((0, 0)))
+
+
+def test_the_early_ctrl_c_handler_is_only_for_the_rootshape_program(monkeypatch):
+    """A review found that any `python -m mypkg` whose package imports rootshape_jax got the
+    handler (sys.argv[0] is "-m" while -m's package imports): Ctrl-C then ended that program."""
+    import sys
+
+    from rootshape_jax import _early_interrupt as early
+
+    for argv, orig, expected in (
+        (["-m"], ["python", "-m", "rootshape_jax", "traits"], True),
+        (["-m"], ["python", "-X", "dev", "-W", "error", "-mrootshape_jax"], True),
+        (["-m"], ["python", "-m", "mypkg"], False),
+        (["-m"], ["python", "-c", "import x", "-m", "rootshape_jax"], False),
+        (["/venv/bin/rootshape", "traits"], ["python", "/venv/bin/rootshape", "traits"], True),
+        (["/venv/bin/pytest"], ["python", "/venv/bin/pytest"], False),
+        (["ipykernel_launcher.py"], ["python", "-m", "ipykernel_launcher"], False),
+    ):
+        monkeypatch.setattr(sys, "argv", argv)
+        monkeypatch.setattr(sys, "orig_argv", orig)
+        assert early.is_the_program() is expected, (argv, orig)

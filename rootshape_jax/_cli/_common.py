@@ -278,10 +278,11 @@ def make_weights(args):
         # A plant's system puts its axes at level 1: their laterals (level 2) take --weights'
         # L,P, and the axes' second-order laterals, the first weighed by --level-weights, are level 3.
         raise CLIError(
-            f"--level-weights weighs second-order laterals and below; with --per plant these are "
-            f"level 3 of a plant's system (its axes are level 1, their laterals level 2, weighed by "
-            f"--weights), which the analysis keeps only with --depth 4; add --depth 4, or leave "
-            f"--level-weights out (got --depth {depth})."
+            "--level-weights weighs second-order laterals and below; with --per plant these are "
+            "level 3 of a plant's system (its axes are level 1, their laterals level 2, weighed by "
+            "--weights), which the analysis keeps only with --depth 4; add --depth 4, or leave "
+            "--level-weights out"
+            + (f" (got --depth {depth})." if getattr(args, "depth", None) else " (the default depth is 2).")
         )
     if deeper and depth < 3:
         raise CLIError(

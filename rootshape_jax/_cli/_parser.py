@@ -159,7 +159,8 @@ def _add_system_options(p: argparse.ArgumentParser, *, metric: bool = True) -> N
         default=(),
         metavar="LS,LP[;LS,LP...]",
         help="weights of the lateral shape and position terms for second-order laterals, then "
-        "third-order (the last pair repeats below; needs --depth 3 or 4). Default: every order "
+        "third-order (the last pair repeats below; needs --depth 3 or 4, with --per plant --depth 4). "
+        "Default: every order "
         "takes the first-order laterals' weights (L,P of --weights)",
     )
 

@@ -127,6 +127,7 @@ class Output:
         OPENED.append(self)
         self.sections: list[Section] = []
         self.written: set[str] = set()
+        self.failed: set[str] = set()  # names whose write failed (the error said so)
         self.log: list[str] = []
 
     @contextlib.contextmanager
@@ -151,6 +152,7 @@ class Output:
         try:
             atomic_write(path, write_to)
         except OSError as e:
+            self.failed.add(name)  # its error names it: the note of what is left does not
             kept = f"the earlier {name} is unchanged" if existed else "nothing was written"
             raise CLIError(f"cannot write {path}: {os_reason(e)} ({kept}).") from None
         self.written.add(name)
@@ -261,12 +263,15 @@ def unfinished_note() -> str | None:
         names = sorted(n for n in out.written if n != LOG_NAME)
         # With --overwrite, the earlier run's files this run had not yet replaced are still
         # there, beside the new ones they no longer match (an old index.html, mean.png, ...).
-        stale = [n for n in out.stale() if n != LOG_NAME] if isinstance(out, Output) else []
+        stale = [n for n in out.stale() if n != LOG_NAME and n not in out.failed] if isinstance(out, Output) else []
         store = getattr(getattr(out, "args", None), "store", None)
-        if store:  # the blocks finished so far are kept
+        kept = len(list(Path(store).glob("block_*.npz"))) if store and Path(store).is_dir() else 0
+        if kept:  # the blocks finished so far are kept
             notes.append(
-                f"--store {store} keeps the blocks of distances finished so far: the same command with "
-                "the same --store computes only the rest"
+                f"--store {store} keeps the {kept} block{'s' if kept > 1 else ''} of distances finished so "
+                "far: the same command with the same --store"
+                + (" and --overwrite" if names else "")
+                + " computes only the missing ones"
             )
         if not names and not stale:
             continue
@@ -280,9 +285,12 @@ def unfinished_note() -> str | None:
         if stale:
             what += (
                 f", and {len(stale)} file{'s' if len(stale) > 1 else ''} of an earlier run that this run "
-                f"had not replaced ({listed(stale)}), which do not come from this run's inputs"
+                f"had not replaced ({listed(stale)}), which may not match the new ones"
             )
-        notes.append(f"the run stopped before its end: {what}; run again with --overwrite to replace them")
+        notes.append(
+            f"the run stopped before its end: {what}; run again with --overwrite to replace "
+            + ("them (files it does not write again stay: delete them, or use a new --out)" if stale else "them")
+        )
     return "; ".join(notes) or None
 
 
