@@ -21,7 +21,7 @@ import numpy as np
 import scipy.cluster.hierarchy as sch
 import scipy.spatial.distance as ssd
 
-from ._errors import LabelError
+from ._errors import LabelError, is_real_scalar, require_labels_present
 from ._tree import RootTree, SRVFTree
 
 LINKAGE_METHODS = ("single", "complete", "average", "weighted", "ward", "centroid", "median")
@@ -116,8 +116,7 @@ def cluster(
             raise ValueError(f"n_clusters must be an integer in [1, {n}], got {n_clusters!r}.")
         raw = sch.fcluster(Z, t=int(n_clusters), criterion="maxclust")
     else:
-        real = not isinstance(height, bool) and np.ndim(height) == 0 and np.asarray(height).dtype.kind in "iuf"
-        if not (real and 0 <= float(height) < np.inf):  # numbers, numpy and JAX scalars
+        if not (is_real_scalar(height) and 0 <= float(height) < np.inf):  # numbers, numpy and JAX scalars
             raise ValueError(f"height must be a finite distance >= 0, got {height!r}.")
         raw = sch.fcluster(Z, t=float(height), criterion="distance")
     order = sch.leaves_list(Z)
@@ -135,11 +134,7 @@ def check_labels(labels, n: int) -> np.ndarray:
     y = np.asarray(labels)
     if y.shape != (n,):
         raise LabelError(f"labels must have shape ({n},), got {y.shape}.")
-    missing = [i for i, v in enumerate(y.tolist()) if v is None or (isinstance(v, float) and np.isnan(v))]
-    if missing:
-        raise LabelError(
-            f"labels of roots {missing[:10]} are missing (NaN or None); drop those roots or give them a label."
-        )
+    require_labels_present(y.tolist())
     return y
 
 

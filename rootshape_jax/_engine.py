@@ -44,7 +44,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ._assignment import HungarianState, assignment_cost, hungarian, solve
 from ._curves import l2_norm_squared, safe_norm, safe_normalise, safe_sqrt, tiny, trapezoid_weights
 from ._devices import split_over_devices
-from ._errors import as_count
+from ._errors import as_count, is_real_scalar
 from ._metric import (
     MetricTerms,
     Weights,
@@ -111,8 +111,7 @@ class RegistrationOptions(eqx.Module):
             raise TypeError(f"rotation must be True or False, got {rotation!r}.")
         if assignment not in ("callback", "jax"):
             raise ValueError(f"assignment must be 'callback' or 'jax', got {assignment!r}.")
-        real = not isinstance(rtol, bool) and np.ndim(rtol) == 0 and np.asarray(rtol).dtype.kind in "iuf"
-        if not (real and rtol >= 0):
+        if not (is_real_scalar(rtol) and rtol >= 0):
             raise ValueError(f"rtol must be a non-negative number, got {rtol!r}.")
         # numpy, not jnp: arrays (traced under jit) that do not start JAX at import time.
         self.rotation = np.asarray(bool(rotation))

@@ -92,6 +92,26 @@ def as_count(value, name: str, *, minimum: int = 1) -> int:
     return int(value)
 
 
+def require_labels_present(values) -> None:
+    """`LabelError` naming the roots whose label is missing (None or NaN): such a label would
+    otherwise be a class of its own. `values`: the labels as Python objects."""
+    missing = [i for i, v in enumerate(values) if v is None or (isinstance(v, float) and v != v)]
+    if missing:
+        raise LabelError(
+            f"labels of roots {missing[:10]} are missing (NaN or None); drop those roots or give them a label."
+        )
+
+
+def is_real_scalar(value, kinds: str = "iuf") -> bool:
+    """True for one real number (Python, numpy or a concrete JAX scalar) whose dtype kind is
+    in `kinds` ("iu": integers); False for bools, strings, arrays of more than one value."""
+    import numpy as np
+
+    if isinstance(value, (bool, np.bool_)) or np.ndim(value) != 0:
+        return False
+    return np.asarray(value).dtype.kind in kinds
+
+
 def as_flag(value, name: str) -> bool:
     """`value` as a bool (numpy bools accepted); `TypeError` naming `name` otherwise: a string
     such as "False" is truthy and would silently mean True."""

@@ -55,7 +55,7 @@ from jaxtyping import Array, Float
 from tqdm.auto import tqdm
 
 from ._engine import RegistrationOptions, apply_registration, canonical_pairs, register_pairs, registration_options
-from ._errors import LabelError
+from ._errors import LabelError, require_labels_present
 from ._executor import LocalExecutor, executor_for
 from ._metric import Weights, as_weights, preshape_terms, unit_energies_by_level, weights_by_level
 from ._pairwise import default_chunk_size
@@ -83,11 +83,7 @@ def check_labels(labels, n: int, *, min_per_class: int = 2) -> np.ndarray:
             f"got {len(values)} labels for {n} roots; give exactly one label per root, in the order of the batch."
         )
     values = [v.item() if isinstance(v, np.generic) else v for v in values]  # np.str_('a') is 'a'
-    missing = [i for i, v in enumerate(values) if v is None or (isinstance(v, (float, np.floating)) and np.isnan(v))]
-    if missing:
-        raise LabelError(
-            f"labels of roots {missing[:10]} are missing (NaN or None); drop those roots or give them a label."
-        )
+    require_labels_present(values)
     try:
         classes = list(dict.fromkeys(values))
     except TypeError:

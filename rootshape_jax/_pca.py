@@ -42,7 +42,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from ._curves import l2_norm_squared
 from ._engine import RegistrationOptions, registration_options
-from ._errors import InputError, as_count, require_finite_values
+from ._errors import InputError, as_count, is_real_scalar, require_finite_values
 from ._executor import LocalExecutor
 from ._mean import KarcherMean, register_onto
 from ._metric import Weights, system_weights
@@ -299,18 +299,11 @@ def modes(pc: TangentPCA, alphas: Sequence[float] | Array, *, component: int | S
     components gives shape ``(len(components), len(alphas))``.
     """
     alphas = jnp.asarray(alphas, pc.mean.q0.dtype).reshape(-1)
-
-    def index(c):  # numpy and JAX integer scalars too
-        if not isinstance(c, bool) and np.ndim(c) == 0 and np.asarray(c).dtype.kind in "iu":
-            c = int(c)
-        return as_count(c, "modes: component", minimum=0)
-
     single = np.ndim(component) == 0
-    if not single and np.ndim(component) != 1:
+    given = [component] if single else list(component) if np.ndim(component) == 1 else []
+    if not given or not all(is_real_scalar(c, "iu") for c in given):  # numpy and JAX integers too
         raise ValueError(f"modes: component must be an integer or a sequence of integers, got {component!r}.")
-    if single and not (not isinstance(component, bool) and np.asarray(component).dtype.kind in "iu"):
-        raise ValueError(f"modes: component must be an integer or a sequence of integers, got {component!r}.")
-    comps = [index(c) for c in ([component] if single else list(component))]
+    comps = [int(c) for c in given]
     m = pc.components.shape[0]
     for c in comps:
         if not 0 <= c < m:

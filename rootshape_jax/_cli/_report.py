@@ -116,8 +116,7 @@ class Output:
             (self.folder / LOG_NAME).unlink(missing_ok=True)
             self.earlier = set()
         # A folder this run creates is removed again if the run stops before writing into it,
-        # with the parents it created for it (`created_top`).
-        self.created = not self.folder.exists()
+        # with the parents it created for it (`created_top`; None: the folder was there).
         self.created_top = _first_missing(self.folder)
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
@@ -235,7 +234,6 @@ class WrittenFolder:
 
     def __init__(self, folder: str | os.PathLike, paths: list[Path]):
         self.folder = Path(folder)
-        self.created = not self.folder.exists()
         self.created_top = _first_missing(self.folder)
         self.paths = paths  # filled by `recording_writes`
         OPENED.append(self)
@@ -298,7 +296,7 @@ def remove_empty_outputs() -> None:
     """Remove the output folders this run created and left empty (an input error, Ctrl-C
     before the first file): no empty folder stays behind."""
     for out in OPENED:
-        if out.created:
+        if out.created_top is not None:
             # The folder, then each parent the run created for it, while they are empty.
             for p in [out.folder, *out.folder.parents]:
                 try:
