@@ -619,7 +619,7 @@ def _warm_up(mu0, blocks, mu_like, weights, opts, *, atol, n_steps, bar, label="
     registered, energies, O = blocks.full_registration(mu0, mu_like, weights, opts)
     mu, F = mu0, float(jnp.mean(energies))
     trace = [F]
-    for _ in range(n_steps):
+    for k in range(n_steps):
         mu_new = _exact_update_jit(registered, mu.s, tuple(lp.s for lp in mu.deeper))
         reg_new, e_new, O_new = blocks.full_registration(mu_new, mu_like, weights, opts)
         F_new = float(jnp.mean(e_new))
@@ -627,8 +627,7 @@ def _warm_up(mu0, blocks, mu_like, weights, opts, *, atol, n_steps, bar, label="
             break
         mu, registered, energies, O = mu_new, reg_new, e_new, O_new
         trace.append(F_new)
-        bar.set_postfix_str(f"F = {F_new:.6g} ({label})")
-        bar.update(1)
+        bar.set_postfix_str(f"F = {F_new:.6g} ({label}, step {k + 1})")
         if F - F_new <= _WARMUP_RTOL * abs(F_new):
             break
         F = F_new
@@ -643,12 +642,14 @@ def _fixed_point(
     with tqdm(desc="mean (fixed point)", unit="step", disable=not progress) as bar:
         best = None
         for i, mu0 in enumerate(mu0s):
-            # The bar counts every start's warm-up steps; `steps` only the chosen start's.
+            # The bar counts the chosen start's steps only (as `steps` does); a warm-up shows
+            # its progress in the bar's text.
             label = f"warm-up of start {i + 1}/{len(mu0s)}" if len(mu0s) > 1 else "warm-up"
             cand = _warm_up(mu0, blocks, mu_like, weights, opts, atol=atol, n_steps=warm_up_steps, bar=bar, label=label)
             if best is None or cand[3][-1] < best[1][3][-1]:
                 best = (i, cand)
         chosen, (mu, registered, O, warm) = best
+        bar.update(len(warm) - 1)
         y = _start_iterate(mu, registered, O)
         # The solve's first record is the energy at the warm-up's last mean: not twice.
         traces, steps = list(warm[:-1]), len(warm) - 1

@@ -610,6 +610,26 @@ def test_folder_skips_unreadable_files_and_summarises(folder_with_bad_files, tmp
     assert "b_notxml.rsml" in log and "c_nogeom.rsml" in log
 
 
+def test_a_run_stopped_after_logging_skipped_files_names_the_log(folder_with_bad_files, tmp_path, monkeypatch, capsys):
+    # The log of skipped files is written as soon as the files are read: a run stopped before
+    # its first result leaves a folder holding only rootshape.log, and says so (it said
+    # nothing). A plain rerun is not refused by a folder holding only a log.
+    from rootshape_jax._cli import _commands, main
+
+    def fail(*args, **kwargs):
+        raise ValueError("simulated failure before the first result")
+
+    monkeypatch.setattr(_commands, "run_traits", fail)
+    out = tmp_path / "o"
+    assert main(["traits", str(folder_with_bad_files), "--quiet", "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == ["rootshape.log"]
+    assert f"{out} holds only rootshape.log, the inputs skipped so far; the same command starts afresh" in err, err
+    monkeypatch.undo()
+    assert main(["traits", str(folder_with_bad_files), "--quiet", "--out", str(out)]) == 0
+    assert (out / "traits.csv").exists()
+
+
 def test_strict_stops_at_first_bad_file(folder_with_bad_files, tmp_path):
     proc = run_cli("traits", folder_with_bad_files, "--strict", "--out", tmp_path / "o")
     assert_one_line_error(proc, "b_notxml.rsml", "not well-formed XML")

@@ -1,5 +1,7 @@
 """Karcher mean: invariances, both solvers, the objective and its pieces against references."""
 
+import re
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -397,3 +399,8 @@ def test_progress_moves_within_a_registration_pass(population, fp_population, mo
     err = capsys.readouterr().err
     assert "registering" in err and "root" in err
     np.testing.assert_allclose(float(res.energy), float(fp_population.energy), rtol=1e-9)
+    # The bar counts the steps the result reports: the chosen start's warm-up and the solve's,
+    # not the warm-up steps of the starts that were not chosen.
+    counts = re.findall(r"mean \(fixed point\): (\d+)step", err)
+    assert counts and int(counts[-1]) == int(res.steps)
+    assert "warm-up" in err

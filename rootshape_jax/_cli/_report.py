@@ -271,7 +271,13 @@ def unfinished_note() -> str | None:
                 + (" and --overwrite" if names else "")
                 + " computes only the missing ones"
             )
+        log = LOG_NAME in out.written
         if not names and not stale:
+            if log:  # a folder that holds only the log is not refused by a plain rerun
+                notes.append(
+                    f"the run stopped before its end: {out.folder} holds only {LOG_NAME}, the inputs "
+                    "skipped so far; the same command starts afresh"
+                )
             continue
         if names:
             what = (
@@ -280,6 +286,8 @@ def unfinished_note() -> str | None:
             )
         else:
             what = f"{out.folder} holds no file of this run"
+        if log:
+            what += f" (and {LOG_NAME}, the inputs skipped so far)"
         if stale:
             what += (
                 f", and {len(stale)} file{'s' if len(stale) > 1 else ''} of an earlier run that this run "
