@@ -48,6 +48,15 @@ def check_distances(distances) -> np.ndarray:
     scale = max(float(np.abs(D).max()), 1e-300)
     if not np.allclose(D, D.T, rtol=1e-6, atol=1e-9 * scale):
         raise ValueError("distances must be symmetric (use pairwise_distances, or (D + D.T) / 2).")
+    # A root's distance to itself is 0 up to the registration's discretisation; a diagonal
+    # of the distances' own size means another kind of matrix (similarities, features).
+    i = int(np.argmax(np.abs(np.diag(D))))
+    if D[i, i] > 1e-3 * scale:
+        raise ValueError(
+            f"distances has a non-zero diagonal ({D[i, i]:.3g} at row {i}, the largest distance being "
+            f"{scale:.3g}): a root's distance to itself is 0. Pass a distance matrix (pairwise_distances), "
+            "not similarities or features."
+        )
     D = 0.5 * (D + D.T)
     np.fill_diagonal(D, 0.0)
     return D

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 
 from ._engine import Registration, RegistrationOptions, apply_registration
 from ._errors import as_count
-from ._metric import Weights, as_weights
+from ._metric import Weights, as_weights, preshape_terms
 from ._registration import register
 from ._tree import RootTree, SRVFLevel, SRVFTree, scale_tree, to_curves, to_srvf, turn_about_base
 
@@ -143,6 +143,7 @@ def geodesic(
     weights = as_weights(weights)
     # Whether a has a thickness channel is decided here, on concrete weights (static below).
     thick = registration.registered.has_thickness
+    _require_registration_of(a, b, registration, weights, thick)
     path = _geodesic_curves(a, b, registration, n_steps, weights if thick else None)
     taus = jnp.linspace(0.0, 1.0, n_steps, dtype=path.main.dtype)
     if in_place:
@@ -153,6 +154,37 @@ def geodesic(
         seeds = (1 - taus)[:, None] * (la * path.main[0, 0]) + taus[:, None] * (lb * path.main[-1, 0])
         path = scale_tree(path, (1 - taus) * la + taus * lb, base=seeds)
     return path
+
+
+def _require_registration_of(a, b, registration: Registration, weights: Weights, thick: bool) -> None:
+    """A `Registration` given to `geodesic` must be of this b onto this a at these weights:
+    applied to b again, it gives its own `registered` tree and energy. Another pair's (of the
+    same batch, so of the same shapes) would give a path between other roots' shapes without
+    any error. Not checked under jit (traced values)."""
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(registration)):
+        return
+    sa, sb = (to_srvf(x, weights=weights if thick else None) for x in (a, b))
+    reg = registration
+    shapes = (reg.permutation.shape, reg.main_warp.shape, reg.rotation.shape)
+    if shapes != ((sa.capacity,), (sa.n_points,), (sa.dim, sa.dim)):
+        raise ValueError(
+            f"geodesic: registration has the shapes of another batch (permutation, warp, rotation {shapes}); "
+            "pass rootshape_jax.register(a, b) of these two trees, or leave registration out."
+        )
+    children = tuple(zip(reg.child_permutations, reg.child_warps))
+    again = apply_registration(sa, sb, reg.rotation, reg.permutation, reg.main_warp, reg.lateral_warps, children)
+    energy = float(preshape_terms(sa, again, weights).total)
+    scale = float(jnp.max(jnp.abs(reg.registered.q0))) + 1e-30
+    same = bool(jnp.allclose(again.q0, reg.registered.q0, atol=1e-3 * scale, rtol=0)) and bool(
+        jnp.allclose(again.q, reg.registered.q, atol=1e-3 * scale, rtol=0)
+    )
+    if not same or abs(energy - float(reg.energy)) > 1e-3 * abs(float(reg.energy)) + 1e-6 * scale**2:
+        raise ValueError(
+            f"geodesic: registration is not the registration of b onto a at these weights (applied to "
+            f"b again it gives d² = {energy:.6g}, not its own {float(reg.energy):.6g}): it was computed for "
+            "another pair, in the other order, or with other weights. Pass rootshape_jax.register(a, b, "
+            "weights=weights), or leave registration out."
+        )
 
 
 def fractional_rotation(R, t):

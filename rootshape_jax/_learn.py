@@ -43,6 +43,7 @@ the test roots are classified by 1-NN and by the nearest class mean.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Hashable, Sequence
 
@@ -55,7 +56,7 @@ from jaxtyping import Array, Float
 from tqdm.auto import tqdm
 
 from ._engine import RegistrationOptions, apply_registration, canonical_pairs, register_pairs, registration_options
-from ._errors import LabelError, require_labels_present
+from ._errors import LabelError, as_count, is_real_scalar, require_labels_present
 from ._executor import LocalExecutor, executor_for
 from ._metric import Weights, as_weights, preshape_terms, unit_energies_by_level, weights_by_level
 from ._pairwise import default_chunk_size
@@ -128,7 +129,7 @@ def stratified_folds(labels, n_folds: int, *, seed: int = 0) -> list[np.ndarray]
     """Test indices of `n_folds` stratified folds (seeded): each class is shuffled and dealt
     round-robin, starting where the previous class stopped, so fold sizes differ by ≤ 1."""
     y = np.asarray(labels)
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(as_count(seed, "seed", minimum=0))
     folds: list[list[int]] = [[] for _ in range(n_folds)]
     start = 0
     for cls in np.unique(y):
@@ -763,7 +764,7 @@ def learn_weights(
     weights, opts, radii = _prepare(trees, weights, registration, options)
     n = batch_size(trees)
     y = check_labels(labels, n)
-    _check_counts(max_reregistrations, max_steps)
+    _check_options(max_reregistrations, max_steps, tol)
     fitter = _Fitter(
         trees,
         weights,
@@ -781,10 +782,11 @@ def learn_weights(
     return result
 
 
-def _check_counts(max_reregistrations, max_steps):
-    for name, v, low in (("max_reregistrations", max_reregistrations, 1), ("max_steps", max_steps, 1)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
-            raise ValueError(f"{name} must be an integer >= {low}, got {v!r}.")
+def _check_options(max_reregistrations, max_steps, tol):
+    as_count(max_reregistrations, "max_reregistrations")
+    as_count(max_steps, "max_steps")
+    if not is_real_scalar(tol) or not (math.isfinite(float(tol)) and tol >= 0):
+        raise ValueError(f"tol must be a number >= 0 (a relative improvement of the loss), got {tol!r}.")
 
 
 # --------------------------------------------------------------------------------------------
@@ -900,7 +902,7 @@ def nested_cv_accuracy(
     if isinstance(n_folds, bool) or not isinstance(n_folds, (int, np.integer)) or n_folds < 2:
         raise ValueError(f"n_folds must be an integer >= 2, got {n_folds!r}.")
     y = check_labels(labels, n, min_per_class=n_folds)
-    _check_counts(max_reregistrations, max_steps)
+    _check_options(max_reregistrations, max_steps, tol)
     fitter = _Fitter(
         trees,
         weights,

@@ -15,6 +15,7 @@ import dataclasses
 import numpy as np
 
 from ._cluster import check_distances, check_labels
+from ._errors import as_count
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,11 +56,10 @@ def permanova(D, labels, permutations: int = 999, seed: int = 0) -> Permanova:
         raise ValueError(
             f"permanova needs at least 2 groups and fewer groups than roots; got {a} group(s) for {n} roots."
         )
-    if isinstance(permutations, bool) or not isinstance(permutations, (int, np.integer)) or permutations < 1:
-        raise ValueError(f"permutations must be an integer >= 1, got {permutations!r}.")
+    as_count(permutations, "permutations")
     D2 = D**2
     f, r2 = _pseudo_f(D2, codes[None], a)
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(as_count(seed, "seed", minimum=0))
     count = 0
     for start in range(0, int(permutations), 256):
         m = min(256, int(permutations) - start)

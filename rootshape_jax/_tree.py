@@ -38,7 +38,7 @@ from ._errors import (
 from ._root import Root, check_range, coordinate_limit, is_plant_system, polyline_length
 from ._thickness import extended_srvf, integrate_branch, wants_thickness
 from ._traits import deepest_order
-from ._units import unit_key
+from ._units import check_unit_name, unit_key
 
 
 def _is_array(x) -> bool:
@@ -947,6 +947,8 @@ def to_roots(tree: RootTree, *, names: Sequence[str] | None = None, unit: str | 
     `write_rsml` cannot know and writes "pixel"."""
     if not isinstance(tree, RootTree):
         raise TypeError(f"to_roots expects a RootTree, got {type(tree).__name__}.")
+    if unit is not None:
+        check_unit_name(unit, "to_roots")
     n_trees = int(np.prod(tree.batch_shape))
     if names is not None:
         names = [names] if isinstance(names, str) else list(names)
@@ -1079,6 +1081,7 @@ def to_srvf(tree: RootTree | SRVFTree, *, weights=None) -> SRVFTree:
             check_thickness(tree, weights)
             _warn_unused_deeper_weights(tree, weights)
         _require_finite_tree(tree)
+        _require_float_dtype(tree.q0.dtype, "SRVFTree")
         return tree
     if not isinstance(tree, RootTree):
         raise TypeError(
@@ -1128,15 +1131,22 @@ def _concrete_positive(x) -> bool:
     return not isinstance(x, jax.core.Tracer) and bool(np.asarray(x) > 0)
 
 
+def _require_float_dtype(dtype, what: str) -> np.dtype:
+    """float32 or float64, else `TypeError`: float16 distances (a tree cast with `astype`) are
+    too coarse to mean anything, and integer trees fail deep inside JAX."""
+    dt = np.dtype(dtype)
+    if dt not in (np.float32, np.float64):
+        raise TypeError(
+            f"{what} has {dt.name} values; the metric needs float32 or float64 (build trees with "
+            "rootshape_jax.batch(roots, dtype=...), or cast the floating-point leaves)."
+        )
+    return dt
+
+
 def _require_usable_coordinates(tree: RootTree) -> None:
     """A `RootTree` edited by hand or rescaled (`scale_tree`) must still be what `batch` builds:
     float32/float64 coordinates whose squares stay finite (`coordinate_limit`)."""
-    dt = np.dtype(tree.main.dtype)
-    if dt not in (np.float32, np.float64):
-        raise TypeError(
-            f"RootTree has {dt.name} coordinates; the metric needs float32 or float64 (build trees with "
-            "rootshape_jax.batch(roots, dtype=...), or cast the floating-point leaves)."
-        )
+    dt = _require_float_dtype(tree.main.dtype, "RootTree")
     limit = coordinate_limit(dt, tree.main.shape[-2])
     for x, what in ((tree.main, "main"), (tree.laterals, "laterals"), *((lv.curves, "deeper") for lv in tree.deeper)):
         if isinstance(x, jax.core.Tracer):  # under jit or grad: not checked

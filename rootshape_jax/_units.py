@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from ._errors import UnitError
+
 # Millimetres per unit; spellings seen in RSML files (SmartRoot writes "inch").
 MM_PER_UNIT = {
     "mm": 1.0,
@@ -34,6 +36,25 @@ MM_PER_UNIT = {
     "in": 25.4,
 }
 PIXEL_UNITS = ("pixel", "pixels", "px")
+# What a scale-normalised output's coordinates are in (never "pixel", whatever the input was).
+NORMALISED_UNIT = "normalised (main-root length = 1)"
+
+
+def is_known_unit(unit: str) -> bool:
+    """Pixels, a length unit of `MM_PER_UNIT` (any spelling there), or `NORMALISED_UNIT`."""
+    key = str(unit).strip().lower()
+    return key in PIXEL_UNITS or key in MM_PER_UNIT or key == NORMALISED_UNIT
+
+
+def check_unit_name(unit: str, where: str) -> str:
+    """`unit` if `is_known_unit`, else `UnitError` naming the known units: a unit stored under
+    a name nothing can convert ("parsec", a typo) would only fail later, far from its cause."""
+    if not isinstance(unit, str) or not is_known_unit(unit):
+        raise UnitError(
+            f"{where}: unknown unit {unit!r}; use pixel, a length unit (mm, cm, m, um, inch) or "
+            f"{NORMALISED_UNIT!r} for scale-normalised coordinates."
+        )
+    return unit
 
 
 def unit_key(unit: str | None) -> str | None:

@@ -548,7 +548,7 @@ def _lerp(values: Array, x: Array) -> Array:
 def _check_monotone(gamma: Array, what: str) -> Array:
     tol = 16 * jnp.finfo(gamma.dtype).eps
     ends_bad = (jnp.abs(gamma[0]) > tol) | (jnp.abs(gamma[-1] - 1) > tol)
-    bad = jnp.any(jnp.diff(gamma) < -tol) | ends_bad
+    bad = jnp.any(jnp.diff(gamma) < -tol) | ends_bad | ~jnp.all(jnp.isfinite(gamma))
     return eqx.error_if(gamma, bad, f"{what}: gamma must be nondecreasing from gamma[0] = 0 to gamma[-1] = 1.")
 
 
@@ -652,6 +652,7 @@ def apply_warp_curve(beta: Float[ArrayLike, "T d"], gamma: Float[ArrayLike, " T"
     if beta.ndim != 2 or beta.shape[0] < 2:
         raise InvalidRootError(f"apply_warp_curve: beta must have shape (T, d), T >= 2; got {beta.shape}.")
     gamma = _check_gamma(gamma, beta.shape[0], beta.dtype, "apply_warp_curve")
+    gamma = _check_monotone(gamma, "apply_warp_curve")
     return _lerp(beta, gamma * (beta.shape[0] - 1))
 
 

@@ -319,8 +319,12 @@ def test_weights_are_real_numbers_and_trees_stay_in_range(pair):
     with pytest.raises(rs.CoordinateRangeError, match="RootTree.main: coordinates reach"):
         rs.distance(*rs.unstack(huge))
     as_int = jax.tree.map(lambda x: x.astype(jnp.int32) if jnp.issubdtype(x.dtype, jnp.floating) else x, a)
-    with pytest.raises(TypeError, match="int32 coordinates; the metric needs float32 or float64"):
+    with pytest.raises(TypeError, match="RootTree has int32 values; the metric needs float32 or float64"):
         rs.distance(as_int, as_int)
+    # An SRVFTree cast to float16 gave float16 distances.
+    half = jax.tree.map(lambda x: x.astype(jnp.float16) if jnp.issubdtype(x.dtype, jnp.floating) else x, rs.to_srvf(a))
+    with pytest.raises(TypeError, match="SRVFTree has float16 values; the metric needs float32 or float64"):
+        rs.distance(half, half)
 
 
 def test_assignments_labels_and_unstack_name_their_problem():
@@ -401,6 +405,15 @@ def test_geodesic_takes_registration_options_as_register_does(pair):
     assert np.array_equal(np.asarray(by_keyword.main), np.asarray(by_dict.main))
     with pytest.raises(TypeError, match="registration must be the Registration of b onto a"):
         rs.geodesic(a, b, registration="rotation=False")
+    # A Registration of another pair, of the other order or at other weights has the same
+    # shapes; it gave a path between other shapes without an error.
+    reg = rs.register(a, b)
+    np.testing.assert_array_equal(
+        rs.geodesic(a, b, n_steps=3, registration=reg).main, rs.geodesic(a, b, n_steps=3).main
+    )
+    for wrong, kwargs in ((rs.register(b, a), {}), (reg, {"weights": rs.Weights(main=1.0, position=5.0)})):
+        with pytest.raises(ValueError, match="registration is not the registration of b onto a at these weights"):
+            rs.geodesic(a, b, n_steps=3, registration=wrong, **kwargs)
 
 
 def test_out_of_range_options_of_statistics_are_refused(small_pca):
@@ -479,3 +492,37 @@ def test_the_early_ctrl_c_handler_is_only_for_the_rootshape_program(monkeypatch)
         monkeypatch.setattr(sys, "argv", argv)
         monkeypatch.setattr(sys, "orig_argv", orig)
         assert early.is_the_program() is expected, (argv, orig)
+
+
+def test_seeds_tolerances_diagonals_and_warps_are_checked(small_pca):
+    # Each of these was accepted and failed later (numpy's message about seeds), ran with a
+    # meaningless value (a negative tolerance), or silently changed the input (a similarity
+    # matrix's diagonal of ones set to 0; a reversed warp read backwards).
+    trees, _, _ = small_pca
+    labels = [0, 0, 1, 1, 1]
+    for bad in (-1, np.nan, "0.1"):
+        with pytest.raises(ValueError, match="tol must be a number >= 0"):
+            rs.learn_weights(trees, labels, tol=bad, progress=False)
+        with pytest.raises(ValueError, match="tol must be a number >= 0"):
+            rs.nested_cv_accuracy(trees, labels, n_folds=2, tol=bad, progress=False)
+    for bad in (-1, "x", 1.5):
+        with pytest.raises(ValueError, match="seed must be an integer >= 0"):
+            rs.nested_cv_accuracy(trees, labels, n_folds=2, seed=bad, progress=False)
+    D = np.array([[0.0, 1.0, 3.0, 3.0], [1.0, 0.0, 3.0, 3.0], [3.0, 3.0, 0.0, 1.0], [3.0, 3.0, 1.0, 0.0]])
+    for bad in ("x", -2):
+        with pytest.raises(ValueError, match="seed must be an integer >= 0"):
+            rs.permanova(D, [0, 0, 1, 1], seed=bad)
+    assert rs.permanova(D, [0, 0, 1, 1], seed=np.int64(3), permutations=9).pseudo_f > 0
+    similarity = np.exp(-D)  # ones on the diagonal
+    for call in (lambda M: rs.cluster(M), lambda M: rs.permanova(M, [0, 0, 1, 1]), lambda M: rs.mds(M)):
+        with pytest.raises(ValueError, match=r"non-zero diagonal \(1 at row 0"):
+            call(similarity)
+    # A diagonal at the registration's discretisation error is a distance matrix's.
+    near = D + 1e-6 * np.eye(4)
+    np.testing.assert_array_equal(rs.cluster(near).labels, rs.cluster(D).labels)
+    beta = np.stack([np.linspace(0.0, 1.0, 6), np.zeros(6)], axis=1)
+    gamma = np.linspace(0.0, 1.0, 6)
+    np.testing.assert_allclose(rs.apply_warp_curve(beta, gamma), beta)
+    for bad in (gamma[::-1], np.r_[gamma[:-1], np.nan]):
+        with pytest.raises(Exception, match="gamma must be nondecreasing from gamma"):
+            rs.apply_warp_curve(beta, bad)

@@ -352,3 +352,62 @@ def test_compare_to_tracing_refuses_two_units():
     assert len(same.plants) == 1 and same.recall == 1.0
     no_unit = dataclasses.replace(a, metadata={k: v for k, v in a.metadata.items() if k != "unit"})
     assert len(io.compare_to_tracing([no_unit], in_unit([a], "pixel"), elastic=False).plants) == 1
+
+
+def test_unit_names_nothing_can_convert_are_refused_where_they_enter(tmp_path):
+    # "parsec" (or a typo) was stored as the roots' unit by every door in, and failed only
+    # later (convert_units, --unit) or never (figures labelled in parsecs).
+    roots = in_unit(synthetic_roots(1, seed=9), "mm")
+    io.write_rsml(roots, tmp_path / "mm.rsml")
+    text = (tmp_path / "mm.rsml").read_text()
+    assert "<unit>mm</unit>" in text
+    bad = tmp_path / "parsec.rsml"
+    bad.write_text(
+        text.replace("<unit>mm</unit>", "<unit>parsec</unit>").replace(
+            "<resolution>1.0</resolution>", "<resolution>2</resolution>"
+        )
+    )
+    assert "<resolution>2</resolution>" in bad.read_text()
+    # Read: kept in pixels (the stored coordinates, not divided by the resolution), with a
+    # warning naming the unit; strict raises.
+    with pytest.warns(rs.RSMLWarning, match="<unit> 'parsec' is not a unit rootshape_jax knows"):
+        (back,) = io.read_rsml(bad)
+    assert back.metadata["unit"] == "pixel"
+    np.testing.assert_allclose(back.main, io.read_rsml(tmp_path / "mm.rsml")[0].main, rtol=1e-6)
+    with pytest.raises(rs.RSMLError, match="parsec"):
+        io.read_rsml(bad, strict=True)
+    # physical_units=False asks for pixels anyway: nothing to warn about.
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert io.read_rsml(bad, physical_units=False)[0].metadata["unit"] == "pixel"
+    # Written, stated or carried, and given to to_roots: refused, naming the known units.
+    with pytest.raises(rs.UnitError, match="write_rsml: unknown unit 'parsec'; use pixel, a length unit"):
+        io.write_rsml(in_unit(roots, "parsec"), tmp_path / "x.rsml")
+    with pytest.raises(rs.UnitError, match="unknown unit 'furlong'"):
+        io.write_rsml(in_unit(roots, "furlong"), tmp_path / "x.rsml", unit="furlong")
+    tree = rs.batch(roots, n_points=12)
+    with pytest.raises(rs.UnitError, match="to_roots: unknown unit 'parsec'"):
+        rs.to_roots(tree, unit="parsec")
+    for unit in ("mm", "Inches", "px", io.NORMALISED_UNIT):
+        assert rs.to_roots(tree, unit=unit)[0].metadata["unit"] == unit
+    assert not (tmp_path / "x.rsml").exists()
+
+
+def test_an_images_unit_needs_its_scale_and_a_length_unit():
+    from rootshape_jax.io._image import image_scale
+
+    assert image_scale(None, 0.05, "mm") == (0.05, "mm")
+    assert image_scale(None, None, "pixel") == (None, "pixel")
+    assert image_scale(20.0, None, "pixel") == (0.05, "mm")
+    with pytest.raises(rs.UnitError, match="unknown length unit 'parsec'"):
+        image_scale(None, 0.05, "parsec")
+    with pytest.raises(ValueError, match="unit='mm' without pixel_size"):
+        image_scale(None, None, "mm")
+    with pytest.raises(TypeError, match="unit must be a string"):
+        image_scale(None, 0.05, None)
+    image = np.zeros((40, 40))
+    image[5:35, 19:21] = 1.0
+    with pytest.raises(rs.UnitError, match="parsec"):
+        io.roots_from_image(image, pixel_size=0.1, unit="parsec")

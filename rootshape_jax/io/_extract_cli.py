@@ -20,7 +20,6 @@ from .._atomic import atomic_write, atomic_write_all
 from .._errors import ImageError, RSMLError, user_stacklevel
 from .._root import Root
 from ._folder import FIGURE_SOFTWARE
-from ._units import check_length_unit
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 _COLOURS = ("#e41a1c", "#ff7f00", "#ffff33", "#4daf4a", "#f781bf", "#a65628", "#984ea3", "#00e5ff")
@@ -150,8 +149,6 @@ def extract_images(
         raise FileNotFoundError(f"no image files in {list(map(str, images))} (looked for {', '.join(IMAGE_SUFFIXES)}).")
     # Checked here, not once per image (where a ValueError would only skip that image).
     pixel_size, unit = image_scale(pixels_per_mm, pixel_size, unit if pixel_size is not None else "pixel")
-    if pixel_size is not None:
-        check_length_unit(unit)
     # Pixels per output unit: the overlay and the tracing comparison work in pixels.
     scale = 1.0 if pixel_size is None else 1.0 / pixel_size
     rows: list[dict] = []

@@ -23,6 +23,8 @@ from scipy.sparse import csgraph
 
 from .._errors import ImageError, as_flag
 from .._root import Root, project_onto_polyline
+from .._units import PIXEL_UNITS
+from ._units import check_length_unit
 
 _METHODS = ("otsu", "li", "triangle", "yen", "isodata", "mean")
 
@@ -810,8 +812,18 @@ def image_scale(pixels_per_mm: float | None, pixel_size: float | None, unit: str
         return 1.0 / float(pixels_per_mm), "mm"
     if pixel_size is not None and not (math.isfinite(pixel_size) and pixel_size > 0):
         raise ValueError(f"pixel_size must be a positive number, got {pixel_size!r}.")
-    if pixel_size is not None and unit.lower() in ("pixel", "pixels", "px"):
+    if not isinstance(unit, str):
+        raise TypeError(f"unit must be a string such as 'mm' or 'pixel', got {type(unit).__name__}.")
+    is_pixel = unit.strip().lower() in PIXEL_UNITS
+    if pixel_size is not None and is_pixel:
         raise ValueError("pixel_size given: pass the physical unit too, e.g. unit='mm'.")
+    if pixel_size is None and not is_pixel:
+        raise ValueError(
+            f"unit={unit!r} without pixel_size: an image's coordinates are pixels until its scale is "
+            f"given; pass pixel_size (the size of one pixel in {unit}) or pixels_per_mm, or leave unit out."
+        )
+    if pixel_size is not None:
+        check_length_unit(unit)
     return pixel_size, unit
 
 

@@ -32,7 +32,7 @@ from defusedxml import DefusedXmlException, ElementTree as DET
 from .._errors import InvalidRootError, RSMLError, RSMLWarning, UnitError, as_flag, user_stacklevel
 from .._root import ROOT_COORDINATE_LIMIT, Root, check_range, is_plant_system, plant_axes
 from .._tree import RootTree, SRVFTree
-from .._units import PIXEL_UNITS, unit_key, units_of
+from .._units import PIXEL_UNITS, check_unit_name, is_known_unit, unit_key, units_of
 
 _PO_NS = "http://www.plantontology.org/xml-dtd/po.dtd"
 
@@ -424,6 +424,13 @@ def _file_metadata(meta_el: ET.Element | None, problems: _Problems, physical_uni
     info["file_unit"] = unit_raw
     info["resolution"] = resolution
     if not physical_units or is_pixel:
+        info["unit"] = "pixel"
+    elif not is_known_unit(unit_raw):
+        problems.report(
+            "<metadata>",
+            f"<unit> {unit_raw!r} is not a unit rootshape_jax knows (pixel, mm, cm, m, um, inch); "
+            "coordinates kept in pixels",
+        )
         info["unit"] = "pixel"
     elif resolution is None:
         if res_raw is None:
@@ -914,6 +921,8 @@ def write_rsml(
                 "(metadata['unit']): write_rsml labels coordinates, it does not convert them. Convert "
                 f"first (rootshape_jax.io.convert_units(roots, {unit!r})), or leave unit= out."
             )
+    # Written as the file's <unit>: one a reader can convert (read_rsml keeps pixels otherwise).
+    check_unit_name(unit, "write_rsml")
     is_pixel = unit.lower() in PIXEL_UNITS
     if resolution is None:
         common = _common(roots, "resolution")

@@ -9,10 +9,7 @@ import numpy as np
 
 from .._errors import UnitError
 from .._root import Root
-from .._units import MM_PER_UNIT as MM_PER_UNIT, PIXEL_UNITS as PIXEL_UNITS
-
-# What a scale-normalised output's coordinates are in (never "pixel", whatever the input was).
-NORMALISED_UNIT = "normalised (main-root length = 1)"
+from .._units import MM_PER_UNIT as MM_PER_UNIT, NORMALISED_UNIT as NORMALISED_UNIT, PIXEL_UNITS as PIXEL_UNITS
 
 
 def unit_label(unit: str | None) -> str:
