@@ -63,7 +63,10 @@ def remove_pending() -> None:
 
 
 def atomic_write_all(
-    writes: Sequence[tuple[str | os.PathLike, Callable[[Path], object]]], *, durable: bool = False
+    writes: Sequence[tuple[str | os.PathLike, Callable[[Path], object]]],
+    *,
+    durable: bool = False,
+    then: Callable[[], object] | None = None,
 ) -> list[Path]:
     """Write several files as one result: each ``write_to(temporary_path)`` first, then every
     rename together, with Ctrl-C held back (`interrupts_held`) until the last. A failed or
@@ -71,7 +74,8 @@ def atomic_write_all(
     are held together against the command line's Ctrl-C handler (`defer_interrupt`); a
     KeyboardInterrupt in library use, or a rename that fails (the target is a folder), can
     still land the first files without the others. Main thread only (signal handlers).
-    `durable`: as in `atomic_write`."""
+    `durable`: as in `atomic_write`. `then`: called right after the renames, still held (e.g.
+    to record the files as done, so that a Ctrl-C handler's `last_words` count them)."""
     done: list[tuple[str, Path]] = []
     try:
         for path, write_to in writes:
@@ -90,6 +94,8 @@ def atomic_write_all(
             for tmp, path in done:
                 os.replace(tmp, path)
                 _record(path)
+            if then is not None:
+                then()
     finally:
         for tmp, _ in done:
             with contextlib.suppress(FileNotFoundError):
@@ -124,3 +130,34 @@ def defer_interrupt(handler: Callable[[], object]) -> bool:
         _DEFERRED.append(handler)
         return True
     return False
+
+
+# Quick, atomic writes of what is finished so far (a run's summary), made on the way out of an
+# interruption: by a KeyboardInterrupt leaving a `last_words` block, or by a Ctrl-C handler
+# that ends the process at once (`run_last_words`).
+_LAST_WORDS: list[Callable[[], object]] = []
+
+
+@contextlib.contextmanager
+def last_words(callback: Callable[[], object]):
+    """Within this block, an interruption runs `callback` before the run ends."""
+    _LAST_WORDS.append(callback)
+    try:
+        yield
+    except KeyboardInterrupt:
+        _LAST_WORDS.remove(callback)
+        callback()
+        raise
+    finally:
+        if callback in _LAST_WORDS:
+            _LAST_WORDS.remove(callback)
+
+
+def run_last_words() -> None:
+    """Run every `last_words` callback (for a Ctrl-C handler that ends the process); a failing
+    one is skipped: the run is ending anyway, and the earlier file stays (atomic writes)."""
+    callbacks = list(reversed(_LAST_WORDS))
+    _LAST_WORDS.clear()
+    for callback in callbacks:
+        with contextlib.suppress(Exception):
+            callback()

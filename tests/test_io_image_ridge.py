@@ -421,8 +421,8 @@ def test_cli_extract_writes_rsml_overlay_and_names_a_bad_image(tmp_path):
         assert proc.returncode != 0 and words in proc.stderr and "Traceback" not in proc.stderr
 
 
-def _two_photos_interrupted_at_the_second_overlay(tmp_path, monkeypatch):
-    """A folder of two seedling photographs; `draw_overlay` writes part of the second overlay,
+def _photos_interrupted_at_the_last_overlay(tmp_path, monkeypatch, n=2):
+    """A folder of `n` seedling photographs; `draw_overlay` writes part of the last overlay,
     then Ctrl-C (KeyboardInterrupt). Returns the folder."""
     import skimage.io
 
@@ -430,7 +430,7 @@ def _two_photos_interrupted_at_the_second_overlay(tmp_path, monkeypatch):
 
     src = tmp_path / "photos"
     src.mkdir()
-    for k, x0 in enumerate((120, 180)):
+    for k, x0 in enumerate((120, 180, 150)[:n]):
         main, lats = _seedling(k, x0=x0)
         img = _draw([main, *lats], shape=(380, 300), width=3, contrast=0.3, noise=0.03, seed=k)
         skimage.io.imsave(src / f"p{k}.png", (img * 255).astype(np.uint8))
@@ -439,7 +439,7 @@ def _two_photos_interrupted_at_the_second_overlay(tmp_path, monkeypatch):
 
     def interrupted(image, roots, out_png, **kw):
         calls.append(out_png)
-        if len(calls) == 2:
+        if len(calls) == n:
             Path(out_png).write_bytes(b"\x89PNG half")  # part of the file, then Ctrl-C
             raise KeyboardInterrupt
         return draw(image, roots, out_png, **kw)
@@ -457,7 +457,7 @@ def test_extract_interrupted_while_writing_leaves_no_half_written_file(tmp_path,
 
     import skimage.io
 
-    src = _two_photos_interrupted_at_the_second_overlay(tmp_path, monkeypatch)
+    src = _photos_interrupted_at_the_last_overlay(tmp_path, monkeypatch)
     out = tmp_path / "out"
     with pytest.raises(KeyboardInterrupt):
         extract_images([src], out, progress=False)
@@ -469,6 +469,36 @@ def test_extract_interrupted_while_writing_leaves_no_half_written_file(tmp_path,
     assert row["image"] == str(src / "p0.png") and row["status"] == "ok" and row["plants"] == 1
 
 
+def test_an_interrupted_extract_brings_its_summary_up_to_the_images_finished(tmp_path, monkeypatch):
+    # summary.json is rewritten at most every _SUMMARY_EVERY seconds: interrupted, it lagged
+    # behind the images whose files were written (here: it listed p0 only, not p1).
+    import json
+
+    from rootshape_jax._atomic import last_words, run_last_words
+    from rootshape_jax.io import _extract_cli
+
+    monkeypatch.setattr(_extract_cli, "_SUMMARY_EVERY", 1e9)
+    src = _photos_interrupted_at_the_last_overlay(tmp_path, monkeypatch, n=3)
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt):
+        extract_images([src], out, progress=False)
+    assert sorted(p.name for p in out.iterdir()) == [
+        "p0.rsml",
+        "p0_overlay.png",
+        "p1.rsml",
+        "p1_overlay.png",
+        "summary.json",
+    ]
+    rows = json.loads((out / "summary.json").read_text())
+    assert [Path(r["image"]).stem for r in rows] == ["p0", "p1"] and all(r["status"] == "ok" for r in rows)
+    # The command line's Ctrl-C handler ends the process at once: it runs the last words.
+    said = []
+    with last_words(lambda: said.append("summary")):
+        run_last_words()
+        run_last_words()  # once only
+    assert said == ["summary"]
+
+
 def test_extract_command_stopped_early_names_the_images_it_finished(tmp_path, monkeypatch, capsys):
     """From a tour: an interrupted `rootshape extract` printed no "stopped before its end" line
     (the other commands do), so the user did not know which images were done."""
@@ -476,7 +506,7 @@ def test_extract_command_stopped_early_names_the_images_it_finished(tmp_path, mo
     from rootshape_jax._cli._main import main
     from rootshape_jax._cli._report import OPENED
 
-    src = _two_photos_interrupted_at_the_second_overlay(tmp_path, monkeypatch)
+    src = _photos_interrupted_at_the_last_overlay(tmp_path, monkeypatch)
     out = tmp_path / "out"
     code = main(["extract", str(src), "--out", str(out), "--quiet"])
     OPENED.clear()

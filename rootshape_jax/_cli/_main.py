@@ -18,7 +18,7 @@ import sys
 import warnings
 from collections.abc import Sequence
 
-from rootshape_jax._atomic import defer_interrupt, remove_pending
+from rootshape_jax._atomic import defer_interrupt, remove_pending, run_last_words
 
 from ._common import (
     EXIT_ERROR,
@@ -135,6 +135,7 @@ def _on_sigint(signum, frame) -> None:
         return
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not interrupt the exit
     remove_pending()
+    run_last_words()  # e.g. extract's summary.json brought up to the images finished
     print(file=sys.stderr)  # end the line of the progress bar
     _say_interrupted()
     _end_process(EXIT_INTERRUPTED)

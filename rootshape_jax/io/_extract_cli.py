@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._atomic import atomic_write, atomic_write_all
+from .._atomic import atomic_write, atomic_write_all, last_words
 from .._errors import ImageError, RSMLError, user_stacklevel
 from .._root import Root
 from ._folder import FIGURE_SOFTWARE
@@ -166,52 +166,57 @@ def extract_images(
         atomic_write(out / "summary.json", lambda p: p.write_text(text))
 
     bar = tqdm(files, desc="extract", unit="image", disable=not progress)
-    for path in bar:
-        bar.set_postfix_str(path.name)
-        row: dict = {"image": str(path), "status": "ok", "reason": None}
-        try:
-            roots = roots_from_image(path, pixel_size=pixel_size, unit=unit, **options)
-        except (ImageError, OSError, ValueError) as e:
-            reason = str(e) if str(path) in str(e) else f"{path}: {e}"
-            warnings.warn(f"skipped {path.name}: {reason}", stacklevel=user_stacklevel())
-            row.update(status="skipped", reason=reason)
-            rows.append(row)
-            write_summary()
-            continue
-        rsml_path = out / f"{path.stem}.rsml"
-        traced: list[Root] = []
-        tpath = _tracing_for(path, tracing, len(files))
-        if tpath is not None:
+    # Interrupted, summary.json is brought up to the images finished (while the run goes on
+    # it is rewritten at most every _SUMMARY_EVERY seconds).
+    with last_words(lambda: write_summary(final=True)):
+        for path in bar:
+            bar.set_postfix_str(path.name)
+            row: dict = {"image": str(path), "status": "ok", "reason": None}
             try:
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore")
-                    traced = read_rsml(tpath, physical_units=False)
-            except (RSMLError, OSError) as e:
-                warnings.warn(
-                    f"{path.name}: tracing {tpath} not read ({e}); overlay without it.", stacklevel=user_stacklevel()
-                )
-        png = out / f"{path.stem}_overlay.png"
-        # An image's RSML and overlay are written together, whole or not at all: a Ctrl-C
-        # leaves every image done complete and no image half done.
-        atomic_write_all(
-            [
-                (rsml_path, lambda p: write_rsml(roots, p)),
-                (png, lambda p: draw_overlay(path, roots, p, tracing=traced, scale=scale)),
-            ]
-        )
-        row.update(
-            plants=len(roots),
-            laterals=[r.n_laterals for r in roots],
-            rsml=str(rsml_path),
-            overlay=str(png),
-        )
-        if traced:
-            # Compare in pixels: the tracing is read in pixels.
-            px = [r.scaled_about(np.zeros(r.dim), scale) for r in roots] if scale != 1.0 else roots
-            cmp = compare_to_tracing(px, traced, elastic=elastic)
-            row.update(tracing=str(tpath), comparison=cmp.as_dict())
-        rows.append(row)
-        write_summary()
+                roots = roots_from_image(path, pixel_size=pixel_size, unit=unit, **options)
+            except (ImageError, OSError, ValueError) as e:
+                reason = str(e) if str(path) in str(e) else f"{path}: {e}"
+                warnings.warn(f"skipped {path.name}: {reason}", stacklevel=user_stacklevel())
+                row.update(status="skipped", reason=reason)
+                rows.append(row)
+                write_summary()
+                continue
+            rsml_path = out / f"{path.stem}.rsml"
+            traced: list[Root] = []
+            tpath = _tracing_for(path, tracing, len(files))
+            if tpath is not None:
+                try:
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore")
+                        traced = read_rsml(tpath, physical_units=False)
+                except (RSMLError, OSError) as e:
+                    warnings.warn(
+                        f"{path.name}: tracing {tpath} not read ({e}); overlay without it.",
+                        stacklevel=user_stacklevel(),
+                    )
+            png = out / f"{path.stem}_overlay.png"
+            row.update(
+                plants=len(roots),
+                laterals=[r.n_laterals for r in roots],
+                rsml=str(rsml_path),
+                overlay=str(png),
+            )
+            if traced:
+                # Compare in pixels: the tracing is read in pixels.
+                px = [r.scaled_about(np.zeros(r.dim), scale) for r in roots] if scale != 1.0 else roots
+                cmp = compare_to_tracing(px, traced, elastic=elastic)
+                row.update(tracing=str(tpath), comparison=cmp.as_dict())
+            # An image's RSML and overlay are written together, whole or not at all: a Ctrl-C
+            # leaves every image done complete and no image half done. Its row joins the
+            # summary's with the renames, before a Ctrl-C held back during them ends the run.
+            atomic_write_all(
+                [
+                    (rsml_path, lambda p: write_rsml(roots, p)),
+                    (png, lambda p: draw_overlay(path, roots, p, tracing=traced, scale=scale)),
+                ],
+                then=lambda: rows.append(row),
+            )
+            write_summary()
     write_summary(final=True)
     return rows
 
