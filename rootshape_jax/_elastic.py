@@ -247,6 +247,8 @@ def elastic_curve_distances(
     shape, so it compiles once; the results equal ``jax.vmap(elastic_curve_distance)`` of the
     same pairs. Options as in `elastic_curve_distance`. Returns a `CurveRegistration` with a
     leading batch axis N. For all pairs between two sets, index them: ``A[I], B[J]``.
+    `workers`: worker threads, one chunk each (default: one per usable core left over by the
+    XLA devices).
     """
     A = real_coordinates(A, "elastic_curve_distances: A")
     B = real_coordinates(B, "elastic_curve_distances: B")

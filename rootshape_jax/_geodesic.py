@@ -72,7 +72,7 @@ def geodesic(
     *,
     n_steps: int = 9,
     weights: Weights | None = None,
-    registration: Registration | None = None,
+    registration: Registration | RegistrationOptions | Mapping | None = None,
     in_place: bool = True,
     sizes: tuple[float, float] | None = None,
     **options,

@@ -87,6 +87,25 @@ def test_plant_rows_override_the_file_row(folder, tmp_path):
     assert by_plant[("a", "1")] == "wt" and by_plant[("a", "2")] == "mutant" and by_plant[("b", "1")] == "wt"
 
 
+def test_read_folder_by_plant_gives_labelled_systems_as_the_command_line_does(folder):
+    # read_folder had no `by`: from Python, plants' systems with labels needed read_paths and
+    # attach_metadata, which no page names.
+    rows = [
+        {"file": "a", "plant": "1", "genotype": "wt"},
+        {"file": "a", "plant": "2", "genotype": "mutant"},
+        {"file": "b.rsml", "plant": "", "genotype": "wt"},
+    ]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rs.RSMLWarning)
+        plants = io.read_folder(folder, metadata=rows, by="plant")
+        singles = io.read_folder(folder, metadata=rows)
+    assert all(p.metadata["virtual_main"] for p in plants) and len(plants) == 3
+    key = lambda r: (Path(r.metadata["source_file"]).stem, r.metadata["plant_id"], r.metadata["genotype"])  # noqa: E731
+    assert sorted(map(key, plants)) == sorted(map(key, singles))
+    with pytest.raises(ValueError, match="by must be 'root' or 'plant', got 'plants'"):
+        io.read_folder(folder, by="plants")
+
+
 def test_root_column_matches_root_name(folder):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", rs.RSMLWarning)

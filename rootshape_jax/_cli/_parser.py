@@ -310,8 +310,7 @@ def _add_store_option(p):
         "--store",
         metavar="DIR",
         help="keep every finished block of distances in DIR; after an interruption, the "
-        "same command with the same --store computes only the missing ones (needs "
-        "Dask: pip install 'rootshape_jax[dask]')",
+        "same command with the same --store computes only the missing ones",
     )
 
 

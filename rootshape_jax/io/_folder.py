@@ -267,6 +267,8 @@ def read_paths(
     in a folder that cannot be read is skipped (one `notice` line, its reason in
     ``report.log``) unless `strict`. Raises `InputError` when nothing at all is readable.
     `by`: ``"root"`` or ``"plant"``, as in `read_rsml`."""
+    if by not in ("root", "plant"):  # checked once, not as a reason to skip every file
+        raise ValueError(f"by must be 'root' or 'plant', got {by!r}.")
     report = ReadReport() if report is None else report
     notice = _default_notice if notice is None else notice
     roots: list[Root] = []
@@ -298,6 +300,7 @@ def read_folder(
     unit: str | None = None,
     pixel_size: float | None = None,
     report: ReadReport | None = None,
+    by: str = "root",
 ) -> list[Root]:
     """Every root system in a folder of RSML files and images, with your labels attached.
 
@@ -315,12 +318,15 @@ def read_folder(
     - `pixel_size`: the length of one pixel, in `unit` (mm by default), for images and for RSML
       roots in pixels without a physical resolution.
     - `report`: a `ReadReport` to fill with counts, skipped files and the full messages.
+    - `by`: ``"root"`` (default): one `Root` per top-level root; ``"plant"``: one per plant,
+      the whole system (as `read_rsml(by="plant")` and the command line's ``--per plant``;
+      batch them with ``depth=3`` or more to keep the axes' laterals).
 
     **Returns** a list of `Root`: names made unique across files, ``metadata["source_file"]``
     set to the file read.
     """
     paths = [path] if isinstance(path, (str, os.PathLike)) else list(path)
-    roots = read_paths(paths, strict=strict, pixel_size=pixel_size, unit=unit, report=report)
+    roots = read_paths(paths, strict=strict, pixel_size=pixel_size, unit=unit, report=report, by=by)
     if unit is not None:
         roots = convert_units(roots, unit)
     if metadata is not None:
