@@ -128,7 +128,10 @@ def _register_pair(a: Root, b: Root, *, n_points, neighbourhood, what):
 
 def fc_srvf_distance(a: Root, b: Root, *, n_points: int = 50, neighbourhood: int = 7) -> float:
     """Father–child elastic distance: ``sqrt`` of the summed DP warp energies of the
-    corresponding edges (b's edges registered onto a's; fixed correspondence)."""
+    corresponding edges (b's edges registered onto a's; fixed correspondence).
+
+    `n_points`: samples per edge's SRVF, uniform in arc length; `neighbourhood`: the DP's move
+    set (coprime steps up to this size), as in `dp_warp`."""
     _, _, energy, _, _ = _register_pair(a, b, n_points=n_points, neighbourhood=neighbourhood, what="fc_srvf_distance")
     return float(np.sqrt(max(float(np.sum(energy)), 0.0)))
 
@@ -143,7 +146,8 @@ def fc_srvf_distance_matrix(
 ) -> np.ndarray:
     """``(N, N)`` matrix of `fc_srvf_distance`: entry (i, j), i < j, registers root j onto
     root i and is mirrored (exactly symmetric, zero diagonal). Every edge DP of every pair runs
-    through `dp_warp_batch` in chunks of `chunk_size` edge pairs (tqdm bar with `progress`)."""
+    through `dp_warp_batch` in chunks of `chunk_size` edge pairs (tqdm bar with `progress`).
+    `n_points`, `neighbourhood`: as in `fc_srvf_distance`."""
     roots = check_roots(roots, "fc_srvf_distance_matrix")
     n_points = check_count(n_points, "n_points", 2)
     n = len(roots)

@@ -57,7 +57,8 @@ def qed_vectors(roots, *, n_landmarks: int = 20) -> np.ndarray:
 def qed_distance(a: Root, b: Root, *, n_landmarks: int = 20) -> float:
     """QED between two roots for the fixed correspondence (laterals by order along the main
     root, the tree with fewer laterals padded with collapsed edges): the Euclidean distance
-    ``sqrt(Σ_edges Σ_landmarks |x_a − x_b|²)`` of their edge-landmark vectors."""
+    ``sqrt(Σ_edges Σ_landmarks |x_a − x_b|²)`` of their edge-landmark vectors. `n_landmarks`:
+    points per edge, uniform in arc length (the edge's start, its father's node, excluded)."""
     X = qed_vectors(_pair(a, b, "qed_distance"), n_landmarks=n_landmarks)
     return float(np.sqrt(np.sum((X[0] - X[1]) ** 2)))
 

@@ -88,7 +88,8 @@ class TMDImages:
 
 
 def tmd_images(roots, *, resolution: int = 100) -> TMDImages:
-    """Persistence images of every root's barcode, on limits common to all (module docstring)."""
+    """Persistence images of every root's barcode, on limits common to all (module docstring);
+    `resolution`: pixels per side of each image."""
     _, _, vec = _tmd()
     bars = [tmd_barcode(r) for r in roots]
     allb = np.concatenate(bars)
