@@ -132,10 +132,11 @@ def geodesic(
             la = lb = float("nan")
         if not (la > 0 and lb > 0 and jnp.isfinite(la) and jnp.isfinite(lb)):
             raise ValueError(f"sizes must be two positive main-root lengths (length_a, length_b), got {sizes!r}.")
+    given = isinstance(registration, Registration)
     if registration is None or isinstance(registration, (RegistrationOptions, Mapping)):
         # Options, as `registration=` means in every other call: register with them.
         registration = register(a, b, weights=weights, registration=registration, **options)
-    elif not isinstance(registration, Registration):
+    elif not given:
         raise TypeError(
             "geodesic: registration must be the Registration of b onto a (rootshape_jax.register(a, b)) "
             f"or registration options (RegistrationOptions or a dict), got a {type(registration).__name__}."
@@ -143,7 +144,8 @@ def geodesic(
     weights = as_weights(weights)
     # Whether a has a thickness channel is decided here, on concrete weights (static below).
     thick = registration.registered.has_thickness
-    _require_registration_of(a, b, registration, weights, thick)
+    if given:
+        _require_registration_of(a, b, registration, weights, thick)
     path = _geodesic_curves(a, b, registration, n_steps, weights if thick else None)
     taus = jnp.linspace(0.0, 1.0, n_steps, dtype=path.main.dtype)
     if in_place:
@@ -174,7 +176,8 @@ def _require_registration_of(a, b, registration: Registration, weights: Weights,
     children = tuple(zip(reg.child_permutations, reg.child_warps))
     again = apply_registration(sa, sb, reg.rotation, reg.permutation, reg.main_warp, reg.lateral_warps, children)
     energy = float(preshape_terms(sa, again, weights).total)
-    scale = float(jnp.max(jnp.abs(reg.registered.q0))) + 1e-30
+    # The size of the SRVFs (a plant's virtual main root is all zeros: its laterals set it).
+    scale = max(float(jnp.max(jnp.abs(x))) for x in (reg.registered.q0, reg.registered.q)) + 1e-30
     same = bool(jnp.allclose(again.q0, reg.registered.q0, atol=1e-3 * scale, rtol=0)) and bool(
         jnp.allclose(again.q, reg.registered.q, atol=1e-3 * scale, rtol=0)
     )

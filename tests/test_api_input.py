@@ -414,6 +414,20 @@ def test_geodesic_takes_registration_options_as_register_does(pair):
     for wrong, kwargs in ((rs.register(b, a), {}), (reg, {"weights": rs.Weights(main=1.0, position=5.0)})):
         with pytest.raises(ValueError, match="registration is not the registration of b onto a at these weights"):
             rs.geodesic(a, b, n_steps=3, registration=wrong, **kwargs)
+    # Plants' systems: the virtual main root's SRVF is all zeros, the laterals' set the
+    # scale of the check (a review found every plant refused, its own registration too).
+    from rootshape_jax.io import plant_system
+
+    rng = np.random.default_rng(5)
+    plants = [plant_system([random_root(rng, n_laterals=2) for _ in range(2)]) for _ in range(2)]
+    pa, pb = rs.unstack(rs.batch(plants, n_points=12))
+    assert pa.virtual_main
+    preg = rs.register(pa, pb)
+    np.testing.assert_array_equal(
+        rs.geodesic(pa, pb, n_steps=3, registration=preg).main, rs.geodesic(pa, pb, n_steps=3).main
+    )
+    with pytest.raises(ValueError, match="registration is not the registration of b onto a"):
+        rs.geodesic(pa, pb, n_steps=3, registration=rs.register(pb, pa))
 
 
 def test_out_of_range_options_of_statistics_are_refused(small_pca):

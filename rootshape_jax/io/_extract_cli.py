@@ -217,7 +217,7 @@ def extract_images(
                 then=lambda: rows.append(row),
             )
             write_summary()
-    write_summary(final=True)
+        write_summary(final=True)  # inside: a Ctrl-C during it still leaves the whole summary
     return rows
 
 
