@@ -96,6 +96,7 @@ from ._registration import distance as distance, register as register
 from ._regression import TraitRegression as TraitRegression
 from ._root import Root as Root, limit_laterals as limit_laterals
 from ._rotation import optimal_rotation as optimal_rotation
+from ._serialise import load as load, save as save
 from ._traits import trait_column as trait_column, traits as traits, traits_to_csv as traits_to_csv
 from ._tree import (
     BranchLevel as BranchLevel,

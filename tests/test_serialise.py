@@ -1,0 +1,153 @@
+"""`save` / `load`: the library's data and results round-trip through one .npz file, nothing
+else is stored or run (no pickle), and what cannot be saved or loaded is named."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import random_root, tree_allclose
+
+import rootshape_jax as rs
+from rootshape_jax.datasets import synthetic_roots
+
+
+def same_exactly(a, b) -> bool:
+    """Same structure, same leaf types (JAX or numpy), dtypes and values (NaN equal to NaN)."""
+    la, ta = jax.tree.flatten(a)
+    lb, tb = jax.tree.flatten(b)
+    return (
+        ta == tb
+        and all(type(x) is type(y) or (isinstance(x, jax.Array) and isinstance(y, jax.Array)) for x, y in zip(la, lb))
+        and all(
+            np.asarray(x).dtype == np.asarray(y).dtype and np.array_equal(np.asarray(x), np.asarray(y), equal_nan=True)
+            for x, y in zip(la, lb)
+        )
+    )
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    rng = np.random.default_rng(7)
+    trees = rs.batch([random_root(rng, n_laterals=3) for _ in range(4)], n_points=12, dtype=np.float64)
+    km = rs.karcher_mean(trees, max_steps=5, progress=False, throw=False)
+    return trees, km, rs.tangent_pca(km)
+
+
+def test_data_and_results_round_trip(fitted, tmp_path):
+    trees, km, pc = fitted
+    srvf = rs.to_srvf(trees)
+    reg = rs.register(*rs.unstack(trees)[:2])
+    for name, obj in [
+        ("trees", trees),
+        ("srvf", srvf),
+        ("mean", km),
+        ("pca", pc),
+        ("registration", reg),
+        ("weights", rs.Weights(main=0.5, position=2.0)),
+    ]:
+        back = rs.load(rs.save(tmp_path / f"{name}.npz", obj))
+        assert type(back) is type(obj) and same_exactly(back, obj), name
+    back = rs.load(tmp_path / "mean.npz")
+    assert bool(back.result == km.result)
+    assert back.init_index == km.init_index and int(back.steps) == int(km.steps)
+    # What a user does with a loaded PCA gives what the original gives.
+    loaded = rs.load(tmp_path / "pca.npz")
+    assert loaded.n_components == pc.n_components
+    np.testing.assert_array_equal(
+        np.asarray(rs.reconstruct(loaded, jnp.ones(pc.n_components)).main),
+        np.asarray(rs.reconstruct(pc, jnp.ones(pc.n_components)).main),
+    )
+
+
+def test_roots_containers_and_plain_values_round_trip(tmp_path):
+    roots = synthetic_roots(2, seed=3)
+    deep = roots[0]
+    obj = {
+        "roots": roots,
+        "pair": (np.float32(1.5), float("nan"), None, True, 3, "mm"),
+        "matrix": np.arange(6, dtype=np.int16).reshape(2, 3),
+        "labels": np.array(["control", "drought"]),
+        "clusters": rs.cluster(np.array([[0.0, 1.0, 4.0], [1.0, 0.0, 4.0], [4.0, 4.0, 0.0]])),
+    }
+    back = rs.load(rs.save(tmp_path / "x.npz", obj))
+    assert set(back) == set(obj)
+    for r, s in zip(back["roots"], roots):
+        assert type(r) is rs.Root and r.name == s.name and r.metadata == s.metadata
+        np.testing.assert_array_equal(r.main, s.main)
+        assert all(np.array_equal(a, b) for a, b in zip(r.laterals, s.laterals))
+        np.testing.assert_array_equal(r.attach, s.attach)
+        assert len(r.children) == len(s.children)
+    assert back["roots"][0].n_laterals == deep.n_laterals
+    p = back["pair"]
+    assert type(p) is tuple and p[0] == np.float32(1.5) and p[0].dtype == np.float32 and np.isnan(p[1])
+    assert p[2:] == (None, True, 3, "mm")
+    assert back["matrix"].dtype == np.int16 and np.array_equal(back["matrix"], obj["matrix"])
+    assert list(back["labels"]) == ["control", "drought"]
+    assert isinstance(back["clusters"], rs.Clustering)
+    np.testing.assert_array_equal(back["clusters"].labels, obj["clusters"].labels)
+    assert tree_allclose(back["clusters"].linkage, obj["clusters"].linkage)
+
+
+def test_what_cannot_be_saved_is_named(tmp_path):
+    @dataclasses.dataclass
+    class Mine:
+        x: int = 1
+
+    cases = [
+        (Mine(), r"obj is a .*Mine, which save cannot store"),
+        ({"f": lambda: 0}, r"obj\[.f.\] is a builtins.function"),
+        ([jax.random.key(0)], r"obj\[0\] is a JAX random key; save jax.random.key_data"),
+        ({1: 2}, "keys that are not strings"),
+        (np.array([object()]), "array of Python objects"),
+    ]
+    for obj, match in cases:
+        with pytest.raises(TypeError, match=match):
+            rs.save(tmp_path / "bad.npz", obj)
+    assert not (tmp_path / "bad.npz").exists()  # nothing half-written
+
+
+def _header_file(path, structure, version=1, **arrays):
+    header = {"format": "rootshape_jax.save", "version": version, "structure": structure}
+    np.savez(path, __rootshape__=np.array(json.dumps(header)), **arrays)
+    return path
+
+
+def test_files_that_are_not_ours_or_name_other_code_are_refused(tmp_path):
+    np.savez(tmp_path / "plain.npz", x=np.ones(3))
+    (tmp_path / "text.npz").write_text("not a zip")
+    for path in (tmp_path / "plain.npz", tmp_path / "text.npz"):
+        with pytest.raises(rs.InputError, match="not a file written by rootshape_jax.save"):
+            rs.load(path)
+    # A file may only name rootshape_jax's data classes: anything else is refused before
+    # it is imported or built (no module of another package is imported, nothing is run).
+    for name in ("os:system", "subprocess:Popen", "rootshape_jax.__main__:main", "rootshape_jax._cli._main:main"):
+        path = _header_file(tmp_path / "evil.npz", {"class": name, "fields": {}})
+        with pytest.raises(rs.InputError, match="not one of rootshape_jax's|does not have"):
+            rs.load(path)
+    assert "rootshape_jax.__main__" not in sys.modules
+    path = _header_file(tmp_path / "new.npz", None, version=99)
+    with pytest.raises(rs.InputError, match="newer rootshape_jax"):
+        rs.load(path)
+    path = _header_file(tmp_path / "old.npz", {"class": "rootshape_jax._metric:Weights", "fields": {"main": 1.0}})
+    with pytest.raises(rs.InputError, match="load it with the version that saved it"):
+        rs.load(path)
+    with pytest.raises(FileNotFoundError):
+        rs.load(tmp_path / "missing.npz")
+
+
+def test_float64_arrays_are_not_rounded_silently(tmp_path):
+    # Loaded where JAX runs in 32 bits (its default), float64 JAX arrays would be rounded.
+    path = rs.save(tmp_path / "f64.npz", rs.Weights(main=0.1))
+    code = (
+        "import rootshape_jax as rs\n"
+        "try:\n    rs.load(r'%s')\nexcept rs.InputError as e:\n    print('refused:', e)\n" % path
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert "refused:" in out.stdout and 'jax.config.update("jax_enable_x64", True)' in out.stdout, out.stderr
