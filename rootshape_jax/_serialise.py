@@ -167,6 +167,15 @@ def _decode(x: Any, arrays: dict, path: Path) -> Any:
             )
         for name, value in x["fields"].items():
             object.__setattr__(obj, name, _decode(value, arrays, path))
+        # The classes' own invariants (shapes, padding), as at construction: a file edited by
+        # hand fails here, naming itself, not later inside JAX.
+        for kls in cls.__mro__:
+            check = kls.__dict__.get("__check_init__")
+            if check is not None:
+                try:
+                    check(obj)
+                except (ValueError, TypeError) as e:
+                    raise InputError(f"{path}: its {cls.__qualname__} is not valid: {e}") from None
         return obj
     raise InputError(f"{path}: not a file written by rootshape_jax.save (unknown entry {str(x)[:60]!r}).")
 

@@ -151,3 +151,16 @@ def test_float64_arrays_are_not_rounded_silently(tmp_path):
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert "refused:" in out.stdout and 'jax.config.update("jax_enable_x64", True)' in out.stdout, out.stderr
+
+
+def test_a_file_edited_by_hand_is_checked_as_the_class_checks_itself(tmp_path):
+    trees = rs.batch(synthetic_roots(2, seed=1), n_points=10)
+    path = rs.save(tmp_path / "t.npz", trees)
+    with np.load(path) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    header = json.loads(str(arrays["__rootshape__"]))
+    mask_key = header["structure"]["fields"]["mask"]["array"]
+    arrays[mask_key] = arrays[mask_key][:, :-1]  # one lateral slot fewer than the curves have
+    np.savez(tmp_path / "edited.npz", **arrays)
+    with pytest.raises(rs.InputError, match="edited.npz: its RootTree is not valid"):
+        rs.load(tmp_path / "edited.npz")
