@@ -491,12 +491,19 @@ def test_an_interrupted_extract_brings_its_summary_up_to_the_images_finished(tmp
     ]
     rows = json.loads((out / "summary.json").read_text())
     assert [Path(r["image"]).stem for r in rows] == ["p0", "p1"] and all(r["status"] == "ok" for r in rows)
-    # The command line's Ctrl-C handler ends the process at once: it runs the last words.
+    # The command line's Ctrl-C handler ends the process at once: it runs the last words
+    # (once), then ends with 130.
+    import signal
+
+    from rootshape_jax._cli import _main
+
     said = []
+    monkeypatch.setattr(_main, "_end_process", lambda code: said.append(code))
+    monkeypatch.setattr(_main.signal, "signal", lambda *args: None)  # keep pytest's handler
     with last_words(lambda: said.append("summary")):
-        run_last_words()
-        run_last_words()  # once only
-    assert said == ["summary"]
+        _main._on_sigint(signal.SIGINT, None)
+        run_last_words()  # nothing left to run
+    assert said == ["summary", 130]
 
 
 def test_extract_command_stopped_early_names_the_images_it_finished(tmp_path, monkeypatch, capsys):
