@@ -74,15 +74,23 @@ def test_file_level_labels_with_and_without_extension(folder, tmp_path):
     assert io.labels_of(roots, "condition") == [r.metadata["condition"] for r in roots]
 
 
-def test_plant_rows_override_the_file_row(folder, tmp_path):
-    rows = [
-        {"file": "a", "plant": "", "genotype": "wt"},
-        {"file": "a", "plant": "2", "genotype": "mutant"},
-        {"file": "b.rsml", "plant": "", "genotype": "wt"},
-    ]
+# A file row and a plant row that overrides it for plant 2 of a.rsml.
+GENOTYPE_ROWS = [
+    {"file": "a", "plant": "", "genotype": "wt"},
+    {"file": "a", "plant": "2", "genotype": "mutant"},
+    {"file": "b.rsml", "plant": "", "genotype": "wt"},
+]
+
+
+def read_quietly(folder, **kwargs):
+    """`read_folder` of the `folder` fixture, whose bad files' warnings are tested elsewhere."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", rs.RSMLWarning)
-        roots = io.read_folder(folder, metadata=rows)
+        return io.read_folder(folder, **kwargs)
+
+
+def test_plant_rows_override_the_file_row(folder, tmp_path):
+    roots = read_quietly(folder, metadata=GENOTYPE_ROWS)
     by_plant = {(Path(r.metadata["source_file"]).stem, r.metadata["plant_id"]): r.metadata["genotype"] for r in roots}
     assert by_plant[("a", "1")] == "wt" and by_plant[("a", "2")] == "mutant" and by_plant[("b", "1")] == "wt"
 
@@ -90,15 +98,8 @@ def test_plant_rows_override_the_file_row(folder, tmp_path):
 def test_read_folder_by_plant_gives_labelled_systems_as_the_command_line_does(folder):
     # read_folder had no `by`: from Python, plants' systems with labels needed read_paths and
     # attach_metadata, which no page names.
-    rows = [
-        {"file": "a", "plant": "1", "genotype": "wt"},
-        {"file": "a", "plant": "2", "genotype": "mutant"},
-        {"file": "b.rsml", "plant": "", "genotype": "wt"},
-    ]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", rs.RSMLWarning)
-        plants = io.read_folder(folder, metadata=rows, by="plant")
-        singles = io.read_folder(folder, metadata=rows)
+    plants = read_quietly(folder, metadata=GENOTYPE_ROWS, by="plant")
+    singles = read_quietly(folder, metadata=GENOTYPE_ROWS)
     assert all(p.metadata["virtual_main"] for p in plants) and len(plants) == 3
     key = lambda r: (Path(r.metadata["source_file"]).stem, r.metadata["plant_id"], r.metadata["genotype"])  # noqa: E731
     assert sorted(map(key, plants)) == sorted(map(key, singles))
