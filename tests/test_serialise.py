@@ -19,14 +19,17 @@ from rootshape_jax.datasets import synthetic_roots
 
 
 def same_exactly(a, b) -> bool:
-    """Same structure, same leaf types (JAX or numpy), dtypes and values (NaN equal to NaN)."""
+    """Same structure, same leaf types (JAX or numpy), dtypes, weak types (a Python number's
+    type, which mixed-precision code and jit caches see) and values (NaN equal to NaN)."""
     la, ta = jax.tree.flatten(a)
     lb, tb = jax.tree.flatten(b)
     return (
         ta == tb
         and all(type(x) is type(y) or (isinstance(x, jax.Array) and isinstance(y, jax.Array)) for x, y in zip(la, lb))
         and all(
-            np.asarray(x).dtype == np.asarray(y).dtype and np.array_equal(np.asarray(x), np.asarray(y), equal_nan=True)
+            np.asarray(x).dtype == np.asarray(y).dtype
+            and getattr(x, "weak_type", None) == getattr(y, "weak_type", None)
+            and np.array_equal(np.asarray(x), np.asarray(y), equal_nan=True)
             for x, y in zip(la, lb)
         )
     )
@@ -143,14 +146,18 @@ def test_files_that_are_not_ours_or_name_other_code_are_refused(tmp_path):
 
 
 def test_float64_arrays_are_not_rounded_silently(tmp_path):
-    # Loaded where JAX runs in 32 bits (its default), float64 JAX arrays would be rounded.
-    path = rs.save(tmp_path / "f64.npz", rs.Weights(main=0.1))
+    # Loaded where JAX runs in 32 bits (its default), float64 JAX arrays would be rounded; a
+    # Python number's weak scalar (the weights) takes that session's width, as the number would.
+    path = rs.save(tmp_path / "f64.npz", {"x": jnp.ones(3, jnp.float64), "w": rs.Weights(main=0.1)})
+    weights = rs.save(tmp_path / "w64.npz", rs.Weights(main=0.1))
     code = (
         "import rootshape_jax as rs\n"
-        "try:\n    rs.load(r'%s')\nexcept rs.InputError as e:\n    print('refused:', e)\n" % path
+        "try:\n    rs.load(r'%s')\nexcept rs.InputError as e:\n    print('refused:', e)\n"
+        "print('weights', rs.load(r'%s').main.dtype)\n" % (path, weights)
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert "refused:" in out.stdout and 'jax.config.update("jax_enable_x64", True)' in out.stdout, out.stderr
+    assert "weights float32" in out.stdout, out.stdout + out.stderr
 
 
 def test_a_file_edited_by_hand_is_checked_as_the_class_checks_itself(tmp_path):
@@ -164,3 +171,65 @@ def test_a_file_edited_by_hand_is_checked_as_the_class_checks_itself(tmp_path):
     np.savez(tmp_path / "edited.npz", **arrays)
     with pytest.raises(rs.InputError, match="edited.npz: its RootTree is not valid"):
         rs.load(tmp_path / "edited.npz")
+
+
+def test_numpy_scalars_weak_types_and_dtypes_npz_cannot_keep(tmp_path):
+    # A review found np.float64 saved as "np.float64(1.5)" (never loadable), bfloat16 coming
+    # back as raw bytes, and weak types lost: then loaded default weights made a float32
+    # distance fail under 64-bit JAX (a float64 carry), which the original weights do not.
+    r = synthetic_roots(1, seed=2)[0]
+    r = dataclasses.replace(r, metadata=dict(r.metadata, resolution=np.float64(179.0)))
+    back = rs.load(rs.save(tmp_path / "r.npz", {"acc": np.float64(1.5), "root": r}))
+    assert back["acc"] == 1.5 and type(back["acc"]) is np.float64
+    assert back["root"].metadata["resolution"] == 179.0
+    import ml_dtypes
+
+    for bad in (np.ones(2, ml_dtypes.bfloat16), jnp.ones(2, jnp.bfloat16)):
+        with pytest.raises(TypeError, match="dtype bfloat16, which .npz cannot keep"):
+            rs.save(tmp_path / "b.npz", bad)
+    w = rs.load(rs.save(tmp_path / "w.npz", rs.Weights()))
+    assert all(x.weak_type for x in jax.tree.leaves(w))
+    a, b = rs.unstack(rs.batch(synthetic_roots(2, seed=4), n_points=10, dtype=np.float32))
+    assert float(rs.distance(a, b, weights=w)) == float(rs.distance(a, b, weights=rs.Weights()))
+
+
+def test_malformed_files_and_misplaced_saves_are_named(tmp_path):
+    bad = [
+        ("list.npz", ["not", "a", "header"], {}),
+        ("nokey.npz", {"format": "rootshape_jax.save", "version": 1, "structure": {"array": "a9", "kind": "jax"}}, {}),
+        (
+            "fields.npz",
+            {
+                "format": "rootshape_jax.save",
+                "version": 1,
+                "structure": {"class": "rootshape_jax._metric:Weights", "fields": [1]},
+            },
+            {},
+        ),
+        ("status.npz", {"format": "rootshape_jax.save", "version": 1, "structure": {"status": "hello"}}, {}),
+        (
+            "foreign.npz",
+            {
+                "format": "rootshape_jax.save",
+                "version": 1,
+                "structure": {"class": "rootshape_jax._serialise:_STATUS", "fields": {}},
+            },
+            {},
+        ),
+        ("boolversion.npz", {"format": "rootshape_jax.save", "version": True, "structure": None}, {}),
+    ]
+    for name, header, arrays in bad:
+        np.savez(tmp_path / name, __rootshape__=np.array(json.dumps(header)), **arrays)
+        with pytest.raises(rs.InputError, match=name):
+            rs.load(tmp_path / name)
+    root = {"class": "rootshape_jax._root:Root", "fields": {f.name: None for f in dataclasses.fields(rs.Root)}}
+    root["fields"]["main"] = "not an array"
+    _header_file(tmp_path / "root.npz", root)
+    with pytest.raises(rs.InputError, match="root.npz: its Root is not valid"):
+        rs.load(tmp_path / "root.npz")
+    with pytest.raises(IsADirectoryError, match="is a folder; give a file name"):
+        rs.save(tmp_path, [1])
+    cycle = []
+    cycle.append(cycle)
+    with pytest.raises(TypeError, match="holds itself"):
+        rs.save(tmp_path / "c.npz", cycle)
