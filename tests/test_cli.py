@@ -624,7 +624,7 @@ def test_a_run_stopped_after_logging_skipped_files_names_the_log(folder_with_bad
     assert main(["traits", str(folder_with_bad_files), "--quiet", "--out", str(out)]) == 1
     err = capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == ["rootshape.log"]
-    assert f"{out} holds only rootshape.log, the inputs skipped so far; the same command starts afresh" in err, err
+    assert f"{out} holds only rootshape.log, the full reasons for the inputs skipped (a rerun" in err, err
     monkeypatch.undo()
     assert main(["traits", str(folder_with_bad_files), "--quiet", "--out", str(out)]) == 0
     assert (out / "traits.csv").exists()
@@ -643,11 +643,13 @@ def test_folder_of_only_bad_files_fails_naming_them(tmp_path):
     proc = run_cli("traits", folder, "--out", tmp_path / "o")
     assert proc.returncode == 1 and "Traceback" not in proc.stderr
     lines = proc.stderr.splitlines()
-    assert len(lines) == 3 and lines[0].startswith("rootshape: warning: skipped") and "x.rsml" in lines[0]
-    assert lines[-1] == (
+    assert len(lines) == 4 and lines[0].startswith("rootshape: warning: skipped") and "x.rsml" in lines[0]
+    assert lines[2] == (
         "rootshape: error: no readable roots: every file was skipped: x.rsml (not well-formed "
         "XML), y.rsml (no <scene> element). Fix or remove these files."
     )
+    # The log of the skipped files is the one file left, and is named with what it holds.
+    assert "o holds only rootshape.log, the full reasons for the inputs skipped" in lines[3], lines
 
 
 @pytest.mark.skipif(not SHARED_RSML.is_dir(), reason="shared RSML data not present")

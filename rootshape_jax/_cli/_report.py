@@ -275,8 +275,8 @@ def unfinished_note() -> str | None:
         if not names and not stale:
             if log:  # a folder that holds only the log is not refused by a plain rerun
                 notes.append(
-                    f"the run stopped before its end: {out.folder} holds only {LOG_NAME}, the inputs "
-                    "skipped so far; the same command starts afresh"
+                    f"the run stopped before its end: {out.folder} holds only {LOG_NAME}, the full reasons "
+                    "for the inputs skipped (a rerun into that folder needs no --overwrite)"
                 )
             continue
         if names:
