@@ -40,7 +40,8 @@ def save(path: str | os.PathLike, obj: Any) -> Path:
     `obj` is one of the library's data or results, or a list, tuple or dict of them: a
     `RootTree`, `SRVFTree`, `Root` (with its children and metadata), `KarcherMean`,
     `TangentPCA`, `TraitRegression`, `Registration`, `Weights`, `LearnedWeights`,
-    `Clustering`, ... with their arrays (JAX or numpy, any dtype), numbers, strings and None.
+    `Clustering`, ... with their arrays (JAX or numpy, in numpy's own dtypes: not bfloat16),
+    numbers, strings and None.
     Compute once, reuse later: ``rs.save("pca.npz", pc)``, then in another session
     ``pc = rs.load("pca.npz")`` and ``rs.project(pc, new_trees)``.
 
