@@ -263,6 +263,54 @@ def test_cluster_by_classifies_the_chosen_label(tmp_path, monkeypatch):
     assert float(acc[0]["accuracy"]) == pytest.approx(ref["accuracy"])
 
 
+def test_pca_scores_table_agrees_with_the_library_and_the_figure(tmp_path, monkeypatch):
+    """pca_scores.csv: each root's row holds its labels and its scores on the kept components
+    (standardised: mean 0, variance 1 over the roots); pca_scores.png plots the CSV's first two
+    columns, one colour per --by group."""
+    from rootshape_jax._cli._inputs import prepare
+    from rootshape_jax._cli._report import Output
+    from rootshape_jax._cli._steps import Context, run_pca
+
+    roots = labelled_roots()
+    args = argparse.Namespace(laterals=4, points=12, normalise_scale=True, by="treatment", modes=2, quiet=True)
+    ctx = Context(prepare(roots, args))
+    ctx.mean = rs.karcher_mean(ctx.pop.tree, progress=False)
+    drawn = {}
+    original = rplot.plot_pca_scores
+
+    def spy(*a, **kw):
+        drawn["fig"], drawn["ax"] = original(*a, **kw)
+        return drawn["fig"], drawn["ax"]
+
+    monkeypatch.setattr(rplot, "plot_pca_scores", spy)
+    run_pca(ctx, Output(tmp_path / "o", args), args)
+    rows = read_csv(tmp_path / "o" / "pca_scores.csv")
+    kept = int(ctx.pca.n_components)
+    assert kept >= 2
+    assert list(rows[0]) == ["root", "treatment", "batch"] + [f"PC{k + 1}" for k in range(kept)]
+    meta = {r.name: r.metadata for r in ctx.pop.roots}
+    assert [r["root"] for r in rows] == ctx.pop.names
+    assert all(r[key] == meta[r["root"]][key] for r in rows for key in ("treatment", "batch"))
+    S = np.array([[float(r[f"PC{k + 1}"]) for k in range(kept)] for r in rows])
+    np.testing.assert_allclose(S, np.asarray(ctx.pca.scores)[:, :kept], rtol=1e-6, atol=1e-6)
+    # Standardised scores of the kept components: centred (the Karcher mean is the tangent
+    # vectors' centre up to its tolerance) with unit sample variance.
+    np.testing.assert_allclose(S.mean(axis=0), 0.0, atol=0.05)
+    np.testing.assert_allclose(S.var(axis=0, ddof=1), 1.0, rtol=1e-4)
+    ax = drawn["ax"]
+    colors = rplot.label_colors([m["treatment"] for m in meta.values()])
+    groups = set()
+    for coll in ax.collections:
+        group = coll.get_label().split(" (n = ")[0]
+        groups.add(group)
+        expect = np.array([[float(r["PC1"]), float(r["PC2"])] for r in rows if r["treatment"] == group])
+        np.testing.assert_allclose(np.asarray(coll.get_offsets()), expect, rtol=1e-6, atol=1e-6)
+        assert hexes(coll.get_facecolor()) == [colors[group]]
+    assert groups == {"control", "drought", "high_nitrate"}
+    ratio = np.asarray(ctx.pca.explained_variance_ratio)
+    assert ax.get_xlabel().startswith(f"PC1 score ({100 * ratio[0]:.0f} % of the variance")
+
+
 def test_regress_by_reads_numeric_covariates_and_names_bad_values(tmp_path):
     from rootshape_jax._cli._common import CLIError
     from rootshape_jax._cli._inputs import covariate_columns, covariate_matrix, read_requested

@@ -123,11 +123,16 @@ def test_demo_variance_plot_covers_every_kept_component(tmp_path, monkeypatch):
     kept = int(np.searchsorted(np.cumsum(ratio), 0.99) + 1)
     assert kept > 30
     fake = types.SimpleNamespace(
-        eigenvalues=eig, explained_variance_ratio=ratio, n_components=kept, variance=float(np.cumsum(ratio)[kept - 1])
+        eigenvalues=eig,
+        explained_variance_ratio=ratio,
+        n_components=kept,
+        variance=float(np.cumsum(ratio)[kept - 1]),
+        scores=np.zeros((len(ctx.pop.names), len(eig))),
     )
     monkeypatch.setattr(rs, "tangent_pca", lambda mean: fake)
     monkeypatch.setattr(rs, "modes", lambda *a, **kw: None)
     monkeypatch.setattr(rplot, "plot_modes", lambda *a, **kw: rplot.plot_energy_trace([1.0, 0.5]))
+    monkeypatch.setattr(rplot, "plot_pca_scores", lambda *a, **kw: rplot.plot_energy_trace([1.0, 0.5]))
     drawn = {}
     original = rplot.plot_explained_variance
 

@@ -515,6 +515,37 @@ def test_plot_mds_takes_an_mds_result(rng, tmp_path):
         P.plot_mds(object())
 
 
+def test_plot_pca_scores_draws_the_scores(pca, tmp_path):
+    labels = ["a", "b", "a", "b"]
+    fig, ax = P.plot_pca_scores(pca, labels, components=(1, 0), names=list("pqrs"))
+    check_png(fig, tmp_path / "scores.png", 1)
+    scores = np.asarray(pca.scores)
+    for coll, idx in zip(ax.collections, ([0, 2], [1, 3])):
+        np.testing.assert_allclose(coll.get_offsets(), scores[idx][:, [1, 0]])
+    assert [t.get_text() for t in ax.texts] == list("pqrs")
+    ratio = np.asarray(pca.explained_variance_ratio)
+    assert ax.get_xlabel().startswith(f"PC2 score ({100 * ratio[1]:.0f} %")
+    assert ax.get_ylabel().startswith(f"PC1 score ({100 * ratio[0]:.0f} %")
+    _, ax2 = P.plot_pca_scores(pca)
+    assert len(ax2.collections) == 1 and ax2.get_legend() is None
+    np.testing.assert_allclose(ax2.collections[0].get_offsets(), scores[:, :2])
+    m = scores.shape[1]
+    for bad, match in (
+        ((0, m), rf"in 0 … {m - 1}"),
+        ((1, 1), "two different components"),
+        ((0,), "two component numbers"),
+        ((0.0, 1), "two component numbers"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            P.plot_pca_scores(pca, components=bad)
+    with pytest.raises(ValueError, match="3 labels for the 4 samples"):
+        P.plot_pca_scores(pca, ["a", "b", "c"])
+    with pytest.raises(ValueError, match="2 names for the 4 samples"):
+        P.plot_pca_scores(pca, names=["a", "b"])
+    with pytest.raises(TypeError, match="TangentPCA"):
+        P.plot_pca_scores(np.zeros((4, 2)))
+
+
 # --------------------------------------------------------------------------------------------
 # Import behaviour
 

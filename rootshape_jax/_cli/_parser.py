@@ -466,15 +466,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add(
         "pca",
-        "main modes of shape variation (modes PNG + explained-variance CSV)",
+        "main modes of shape variation (modes PNG + explained-variance and scores CSV)",
         "Principal modes of variation around the mean root: modes.png shows the mean pushed "
         "±1 and ±2 standard deviations along each mode; explained_variance.csv says how much "
-        "of the variation each mode explains. Also writes the mean.",
+        "of the variation each mode explains; pca_scores.csv gives each root's score on every "
+        "kept mode, and pca_scores.png the first two (coloured by --by). Also writes the mean.",
         cmd_pca,
     )
     _add_common(p)
     _add_mean_options(p)
     _add_pca_options(p)
+    _add_by_option(p, "the colours of the score plot (pca_scores.png)")
 
     p = add(
         "sample",
@@ -488,6 +490,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_mean_options(p)
     _add_pca_options(p)
     _add_sample_options(p)
+    _add_by_option(p, "the colours of the score plot (pca_scores.png)")
 
     p = add(
         "regress",
@@ -680,6 +683,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_mean_options(p)
     _add_pca_options(p)
     _add_sample_options(p)
+    _add_by_option(p, "the colours of the score plot (pca_scores.png)")
     _add_regress_options(p)
     _add_cluster_options(p)
     _add_geodesic_options(p)

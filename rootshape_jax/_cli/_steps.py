@@ -239,6 +239,7 @@ def run_pca(ctx: Context, out: Output, args) -> None:
             "explained_variance.png",
             f"variance explained by each of the {kept} kept components, and cumulated",
         )
+        _pca_scores(ctx, out, sec, pc, kept)
         n_modes = max(1, min(args.modes, len(eig)))
         alphas = [-2.0, -1.0, 0.0, 1.0, 2.0]
         trees = turn(rs.modes(pc, alphas, component=list(range(n_modes))), ctx.turn)
@@ -253,6 +254,39 @@ def run_pca(ctx: Context, out: Output, args) -> None:
             f"{pc.n_components} components explain {100 * pc.variance:.0f} % of the variance "
             f"(first: {100 * ratio[0]:.1f} %)."
         )
+
+
+def _pca_scores(ctx: Context, out: Output, sec, pc, kept: int) -> None:
+    """Each root's scores on the kept components (CSV, with the roots' labels) and the first
+    two as a scatter plot coloured by the --by label (default condition)."""
+    from rootshape_jax.plot import plot_pca_scores
+
+    pop = ctx.pop
+    scores = np.asarray(pc.scores)[:, :kept]  # in the computation's precision (`cell`)
+    header = ["root", *pop.labels, *(f"PC{k + 1}" for k in range(kept))]
+    rows = [[name, *(v[i] for v in pop.labels.values()), *scores[i]] for i, name in enumerate(pop.names)]
+    out.csv(
+        sec,
+        "pca_scores.csv",
+        header,
+        rows,
+        f"each root's score on the {kept} kept component{'s' * (kept != 1)}, in standard deviations of that "
+        "component (mean 0 and variance 1 over the roots): the coefficients rootshape_jax.reconstruct and "
+        "rootshape_jax.project use",
+        table_html=html_table(header, rows, max_rows=8),
+    )
+    if kept < 2:
+        sec.notes.append("one component is kept, so no score plot (pca_scores.png needs two).")
+        return
+    fig, _ = plot_pca_scores(
+        pc,
+        pop.conditions,
+        names=pop.names,
+        label_name=pop.label_name,
+        title=f"{len(pop.names)} roots on the first two principal components",
+    )
+    by = f", coloured by {pop.label_name}" if pop.conditions is not None else ""
+    out.figure(sec, fig, "pca_scores.png", f"each root's scores on the first two components{by} (pca_scores.csv)")
 
 
 def run_sample(ctx: Context, out: Output, args) -> None:

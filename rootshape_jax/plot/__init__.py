@@ -33,7 +33,11 @@ from ._diagnostics import (
     plot_explained_variance as plot_explained_variance,
 )
 from ._draw import branch_color as branch_color, slot_color as slot_color
-from ._labels import label_colors as label_colors, plot_mds as plot_mds
+from ._labels import (
+    label_colors as label_colors,
+    plot_mds as plot_mds,
+    plot_pca_scores as plot_pca_scores,
+)
 from ._roots import (
     plot_geodesic as plot_geodesic,
     plot_mean as plot_mean,

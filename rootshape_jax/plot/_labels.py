@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from .._mds import MDS
+from .._pca import TangentPCA
 from ._draw import as_float_array, new_figure
 
 # Categorical colours (matplotlib's tab10, then tab20's lighter halves, without their greys,
@@ -136,24 +137,87 @@ def plot_mds(
         ax = fig.add_subplot()
     else:
         fig = ax.figure
-    colors = label_colors(values)
-    for g, c in colors.items():
-        idx = [i for i, v in enumerate(values) if v == g]
-        ax.scatter(X[idx, 0], X[idx, 1], s=36, color=c, label=f"{g} (n = {len(idx)})", edgecolor="white", linewidth=0.5)
-    if names is not None and n <= 40:
-        for (x, y), name in zip(X[:, :2], names):
-            ax.annotate(str(name), (x, y), fontsize=6, xytext=(3, 3), textcoords="offset points", color="#444444")
+    _scatter_groups(ax, X[:, :2], values, names, labelled=labels is not None, label_name=label_name)
     for k, setter in enumerate((ax.set_xlabel, ax.set_ylabel)):
         text = f"MDS axis {k + 1}"
         if explained is not None:
             text += f" ({100 * float(explained[k]):.0f} % of the positive eigenvalues)"
         setter(text + " (distance units)")
-    if labels is not None:
-        ax.legend(title=label_name, fontsize=8, title_fontsize=8, frameon=False, loc="best")
     ax.set_aspect("equal", adjustable="datalim")
+    if title:
+        ax.set_title(title, fontsize=11)
+    return fig, ax
+
+
+def _scatter_groups(ax, X, values: list[str], names, *, labelled: bool, label_name: str) -> None:
+    """One scatter collection per label value (its label: the value and its count), names
+    beside the points (up to 40 roots), a legend when the points are `labelled`, and light
+    axes through 0."""
+    colors = label_colors(values)
+    for g, c in colors.items():
+        idx = [i for i, v in enumerate(values) if v == g]
+        ax.scatter(X[idx, 0], X[idx, 1], s=36, color=c, label=f"{g} (n = {len(idx)})", edgecolor="white", linewidth=0.5)
+    if names is not None and len(values) <= 40:
+        for (x, y), name in zip(X, names):
+            ax.annotate(str(name), (x, y), fontsize=6, xytext=(3, 3), textcoords="offset points", color="#444444")
+    if labelled:
+        ax.legend(title=label_name, fontsize=8, title_fontsize=8, frameon=False, loc="best")
     ax.axhline(0, color="#dddddd", linewidth=0.6, zorder=0)
     ax.axvline(0, color="#dddddd", linewidth=0.6, zorder=0)
     ax.spines[["top", "right"]].set_visible(False)
+
+
+def plot_pca_scores(
+    pca: TangentPCA,
+    labels: Sequence[Any] | None = None,
+    *,
+    components: tuple[int, int] = (0, 1),
+    names: Sequence[str] | None = None,
+    label_name: str = "group",
+    ax=None,
+    title: str | None = "Roots on two principal components",
+):
+    """Scatter plot of the samples' scores on two principal components (``pca.scores``, the
+    standardised coefficients that `rootshape_jax.reconstruct` and `rootshape_jax.project`
+    use), one colour per label value with a legend; `names` annotate the points (up to 40
+    roots). The axis names give each component's share of the variance.
+
+    - `components`: the two components, counted from 0 as in `rootshape_jax.modes`
+      (default the first two).
+
+    **Returns** ``(fig, ax)``. Each group is one scatter collection whose label is the group."""
+    if not isinstance(pca, TangentPCA):
+        raise TypeError(
+            f"plot_pca_scores: expected a TangentPCA (rootshape_jax.tangent_pca), got {type(pca).__name__}."
+        )
+    scores = np.asarray(pca.scores, dtype=float)
+    n, m = scores.shape
+    if (
+        not isinstance(components, (tuple, list))
+        or len(components) != 2
+        or not all(isinstance(c, (int, np.integer)) and not isinstance(c, bool) for c in components)
+    ):
+        raise ValueError(f"plot_pca_scores: components must be two component numbers, e.g. (0, 1), got {components!r}.")
+    i, j = (int(c) for c in components)
+    if not (0 <= i < m and 0 <= j < m) or i == j:
+        raise ValueError(
+            f"plot_pca_scores: components {components!r} must be two different components in 0 … {m - 1} "
+            f"(the PCA of {n} samples has {m})."
+        )
+    values = ["all"] * n if labels is None else [str(v) for v in labels]
+    if len(values) != n:
+        raise ValueError(f"plot_pca_scores: {len(values)} labels for the {n} samples of the PCA.")
+    if names is not None and len(names) != n:
+        raise ValueError(f"plot_pca_scores: {len(names)} names for the {n} samples of the PCA.")
+    if ax is None:
+        fig = new_figure((6.4, 5.2))
+        ax = fig.add_subplot()
+    else:
+        fig = ax.figure
+    _scatter_groups(ax, scores[:, [i, j]], values, names, labelled=labels is not None, label_name=label_name)
+    ratio = np.asarray(pca.explained_variance_ratio, dtype=float)
+    for k, setter in zip((i, j), (ax.set_xlabel, ax.set_ylabel)):
+        setter(f"PC{k + 1} score ({100 * ratio[k]:.0f} % of the variance; standard deviations)")
     if title:
         ax.set_title(title, fontsize=11)
     return fig, ax
