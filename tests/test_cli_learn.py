@@ -7,7 +7,10 @@ import csv
 import pytest
 from helpers import run_cli
 
+import rootshape_jax as rs
 from rootshape_jax import io
+from rootshape_jax._cli._common import make_weights
+from rootshape_jax._cli._parser import build_parser
 from rootshape_jax.datasets import synthetic_roots
 
 
@@ -58,6 +61,9 @@ def test_learn_weights_end_to_end(labelled_folder, tmp_path):
         for k in ("learned_1nn", "learned_class_mean", "start_1nn", "start_class_mean"):
             assert 0.0 <= float(r[k]) <= 1.0
     assert (out / "loss_trace.png").is_file()
+    # --weights weights.csv: what the other commands weigh with is the learned column.
+    args = build_parser().parse_args(["distances", str(d), "--weights", str(out / "weights.csv")])
+    assert make_weights(args).to_dict() == pytest.approx({k: float(r["learned"]) for k, r in w.items()})
     # The inner cross-validation picked one of the two penalties given.
     assert "(regularisation 0.001)" in proc.stdout or "(regularisation 0.1)" in proc.stdout, proc.stdout
 
@@ -95,5 +101,59 @@ def test_learn_weights_per_order_at_depth_3(tmp_path):
     assert float(w["lateral_order2"]["start"]) == 2.0 and float(w["position_order2"]["start"]) == 0.5
     assert float(w["lateral_order2"]["learned"]) > 0 and float(w["lateral"]["learned"]) == 1.0
     assert "--level-weights" in proc.stdout
+    # --weights weights.csv at --depth 3 brings the second order's learned weights; at depth 2
+    # they have nothing to weigh, and --level-weights given on the command line wins.
+    learned = {k: float(r["learned"]) for k, r in w.items()}
+    csv_path = str(out / "weights.csv")
+    args = build_parser().parse_args(["distances", str(d), "--depth", "3", "--weights", csv_path])
+    assert make_weights(args).to_dict() == pytest.approx(learned)
+    args = build_parser().parse_args(["distances", str(d), "--weights", csv_path])
+    assert make_weights(args).deeper == ()
+    args = build_parser().parse_args(
+        ["distances", str(d), "--depth", "3", "--weights", csv_path, "--level-weights", "3,4"]
+    )
+    assert make_weights(args).deeper == ((3.0, 4.0),)
     cv = read_csv(out / "cross_validation.csv")
     assert all(float(r["lambda_position_order2"]) > 0 for r in cv[:3])
+
+
+def write_table(path, text):
+    path.write_text(text)
+    return str(path)
+
+
+def test_weights_file_is_read_by_term(tmp_path):
+    """--weights FILE.csv takes the learned column by term name, in any row order; terms
+    left out (thickness) keep their default."""
+    f = write_table(tmp_path / "w.csv", "term,start,learned\nposition,1,0.25\nmain,0.02,0.0125\nlateral,1,1\n")
+    args = build_parser().parse_args(["distances", str(tmp_path), "--weights", f])
+    w = make_weights(args)
+    assert w.to_dict() == pytest.approx({"main": 0.0125, "lateral": 1.0, "position": 0.25, "thickness": 0.0})
+    assert isinstance(w, rs.Weights)
+
+
+@pytest.mark.parametrize(
+    "text, problem",
+    [
+        ("term,weight\nmain,1\n", "no columns 'term' and 'learned'"),
+        ("term,learned\nmain,0.02\nlateral,1\n", "no row for position"),
+        ("term,learned\nmain,x\nlateral,1\nposition,1\n", "'main' has the weight 'x', not a number"),
+        ("term,learned\nmain,-1\nlateral,1\nposition,1\n", "weights are non-negative"),
+        ("term,learned\nmain,nan\nlateral,1\nposition,1\n", "weights are non-negative"),
+        ("term,learned\nmain,1\nmain,2\nlateral,1\nposition,1\n", "'main' appears twice"),
+        ("term,learned\nmain,1\nlateral,1\nposition,1\nroots,2\n", "unknown term 'roots'"),
+        ("term,learned\nmain,0\nlateral,0\nposition,0\n", "every weight is 0"),
+        ("term,learned\nmain,1\nlateral,1\nposition,1\nlateral_order3,1\nposition_order3,1\n", "without gaps"),
+    ],
+)
+def test_bad_weights_file_is_a_usage_error(tmp_path, capsys, text, problem):
+    f = write_table(tmp_path / "w.csv", text)
+    with pytest.raises(SystemExit) as e:
+        build_parser().parse_args(["distances", str(tmp_path), "--weights", f])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "--weights" in err and problem in err and "learn-weights" in err, err
+
+
+def test_missing_weights_file_is_a_usage_error(tmp_path):
+    proc = run_cli("distances", tmp_path, "--weights", tmp_path / "nothing.csv", "--out", tmp_path / "o")
+    assert proc.returncode == 2 and "cannot be read" in proc.stderr, proc.stderr

@@ -274,6 +274,10 @@ def make_weights(args):
 
     deeper = getattr(args, "level_weights", ())  # commands without the option: none
     depth = getattr(args, "depth", None) or 2
+    if not deeper and depth >= (4 if getattr(args, "per", "root") == "plant" else 3):
+        # A weights.csv from learn-weights at --depth 3 carries the deeper orders' weights; at a
+        # depth that keeps no second-order laterals they have nothing to weigh.
+        deeper = getattr(args.weights, "deeper", ())
     if deeper and getattr(args, "per", "root") == "plant" and depth < 4:
         # A plant's system puts its axes at level 1: their laterals (level 2) take --weights'
         # L,P, and the axes' second-order laterals, the first weighed by --level-weights, are level 3.

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import csv
 import math
+import os
+import re
 
 from ._commands import (
     cmd_cluster,
@@ -87,12 +90,22 @@ def _penalties(text: str) -> tuple[float, ...]:
     return values
 
 
+class WeightValues(tuple):
+    """The terms' weights (in the order of `rootshape_jax.TERMS`) and, from a weights file,
+    ``deeper``: (λs, λp) per order from the second (`rootshape_jax.Weights.deeper`)."""
+
+    deeper: tuple = ()
+
+
 def _weights(text: str):
     """One non-negative number per metric term, in the order of `rootshape_jax.TERMS`; terms left
-    out keep their default (so the paper's three values still work)."""
+    out keep their default (so the paper's three values still work). Or the weights.csv that
+    learn-weights writes (its "learned" column)."""
     import rootshape_jax as rs
 
     names = [t.name for t in rs.TERMS]
+    if text.lower().endswith(".csv") or os.path.isfile(text):
+        return _weights_file(text, names)
     parts = text.replace(";", ",").split(",")
     try:
         values = [float(p) for p in parts]
@@ -105,6 +118,58 @@ def _weights(text: str):
             f"zero (e.g. 0.02,1,1 or 0.02,1,1,0.5), got {text!r}"
         )
     return tuple(values) + tuple(t.default_weight for t in rs.TERMS[len(values) :])
+
+
+def _weights_file(path: str, names: list[str]) -> WeightValues:
+    """The "learned" column of learn-weights' weights.csv (rows: term, start, learned), terms
+    by name; ``lateral_order{ℓ}``/``position_order{ℓ}`` rows give the deeper orders' weights."""
+    import rootshape_jax as rs
+
+    def bad(why: str):
+        return argparse.ArgumentTypeError(
+            f"{path}: {why}. Expected the weights.csv that 'rootshape learn-weights' writes (columns "
+            "term and learned; rows main, lateral, position[, thickness]), or numbers M,L,P[,R]"
+        )
+
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            rows = list(csv.DictReader(f))
+    except OSError as e:
+        raise bad(f"cannot be read ({e.strerror or e})") from None
+    except (csv.Error, UnicodeDecodeError) as e:
+        raise bad(f"is not a CSV table ({e})") from None
+    if not rows or not {"term", "learned"} <= set(rows[0]):
+        raise bad("has no columns 'term' and 'learned'")
+    values = {}
+    for row in rows:
+        term, text = (row.get("term") or "").strip(), (row.get("learned") or "").strip()
+        try:
+            v = float(text)
+        except ValueError:
+            raise bad(f"term {term!r} has the weight {text!r}, not a number") from None
+        if not (math.isfinite(v) and v >= 0):
+            raise bad(f"term {term!r} has the weight {text}; weights are non-negative numbers")
+        if term in values:
+            raise bad(f"term {term!r} appears twice")
+        values[term] = v
+    orders = {}
+    for term in values:
+        m = re.fullmatch(r"(lateral|position)_order(\d+)", term)
+        if term not in names and not (m and int(m.group(2)) >= 2):
+            raise bad(f"unknown term {term!r} (the terms are {', '.join(names)}, then lateral_orderN/position_orderN)")
+        if m:
+            orders.setdefault(int(m.group(2)), {})[m.group(1)] = values[term]
+    missing = [n for n in names[:3] if n not in values]
+    if missing:
+        raise bad(f"no row for {', '.join(missing)}")
+    if sum(values.get(n, 0.0) for n in names) <= 0:
+        raise bad("every weight is 0")
+    levels = sorted(orders)
+    if levels != list(range(2, 2 + len(levels))) or any(len(orders[k]) != 2 for k in levels):
+        raise bad("the deeper orders need lateral_orderN and position_orderN rows for N = 2, 3, … without gaps")
+    out = WeightValues(values.get(n, t.default_weight) for n, t in zip(names, rs.TERMS))
+    out.deeper = tuple((orders[k]["lateral"], orders[k]["position"]) for k in levels)
+    return out
 
 
 def _level_weights(text: str) -> tuple[tuple[float, float], ...]:
@@ -280,10 +345,11 @@ def _add_common(
         "--weights",
         type=_weights,
         default=(0.02, 1.0, 1.0, 0.0),
-        metavar="M,L,P[,R]",
+        metavar="M,L,P[,R]|CSV",
         help="importance of main-root shape, lateral shape, lateral positions and (R) "
         "radius along the roots, where the files give diameters, in the distance "
-        "(default 0.02,1,1,0: the paper's; R > 0 compares thickness too)",
+        "(default 0.02,1,1,0: the paper's; R > 0 compares thickness too), or the weights.csv "
+        "that learn-weights wrote (its deeper orders' weights too, unless --level-weights)",
     )
     g.add_argument(
         "--normalise-scale",
@@ -547,8 +613,8 @@ def build_parser() -> argparse.ArgumentParser:
         "learn the metric weights from labelled roots (CSV + loss plot + cross-validation)",
         "Learn how much main-root shape, lateral shape and lateral positions (and thickness, "
         "where the files give diameters) should count so that roots of the same class (--by "
-        "COLUMN of --labels/--metadata) are nearest each other. Writes weights.csv (use them "
-        "with --weights), loss_trace.png, and cross_validation.csv: accuracy on held-out "
+        "COLUMN of --labels/--metadata) are nearest each other. Writes weights.csv (give it to "
+        "the other commands: --weights weights.csv), loss_trace.png, and cross_validation.csv: accuracy on held-out "
         "roots with the weights learned on the other folds only, against the starting weights.",
         cmd_learn_weights,
     )

@@ -19,7 +19,7 @@ import numpy as np
 from rootshape_jax._atomic import atomic_write
 from rootshape_jax.io._folder import FIGURE_SOFTWARE, OUTPUT_LOG
 
-from ._common import CLIError, fmt, version
+from ._common import CLIError, fmt, make_weights, version
 
 
 @dataclasses.dataclass
@@ -430,6 +430,7 @@ def settings(args, pop) -> list[tuple[str, str]]:
     import rootshape_jax as rs
 
     w = args.weights
+    deeper = make_weights(args).deeper  # --level-weights, or a weights file's deeper orders
     return [
         ("roots", str(len(pop.names))),
         ("points per root (T)", str(args.points)),
@@ -441,8 +442,8 @@ def settings(args, pop) -> list[tuple[str, str]]:
         ("weights " + ", ".join(t.name for t in rs.TERMS), ", ".join(f"{v:g}" for v in w)),
         (
             "weights of deeper orders (lateral, position)",
-            "; ".join(f"order {k}: {a:g}, {b:g}" for k, (a, b) in enumerate(args.level_weights, start=2))
-            if getattr(args, "level_weights", ())
+            "; ".join(f"order {k}: {float(a):g}, {float(b):g}" for k, (a, b) in enumerate(deeper, start=2))
+            if deeper
             else "as the first-order laterals'",
         ),
         ("precision", jax.numpy.zeros(()).dtype.name),

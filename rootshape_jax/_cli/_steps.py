@@ -773,7 +773,7 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
             header,
             rows,
             "metric weights: the starting (given) values and the learned ones (lateral held fixed: "
-            "only ratios matter); use them with --weights (and the *_order rows with --level-weights)",
+            "only ratios matter); the other commands take this file: --weights weights.csv",
             table_html=html_table(header, rows),
         )
         from matplotlib.ticker import MaxNLocator
