@@ -1349,15 +1349,20 @@ def upright_rotation(tree: RootTree | SRVFTree, like: RootTree | SRVFTree) -> np
         return None
     main = np.asarray(to_curves(like).main, np.float64)
     main = main.reshape((-1,) + main.shape[-2:])
-    chords = main[:, -1] - main[:, 0]
+    m = np.asarray(to_curves(tree).main, np.float64)
+    if m.ndim != 2:
+        raise ValueError(f"upright_rotation: `tree` must be one root (unbatched), got main of shape {m.shape}.")
+    return rotation_towards_chords(m[-1] - m[0], main[:, -1] - main[:, 0])
+
+
+def rotation_towards_chords(m: np.ndarray, chords: np.ndarray) -> np.ndarray | None:
+    """The smallest rotation ``[d, d]`` turning the direction `m` to the mean direction of the
+    `chords` ``[n, d]`` (each as a unit vector; zero ones ignored); None when they point every
+    way (mean shorter than 0.5) or `m` is zero (`upright_rotation`)."""
     norms = np.linalg.norm(chords, axis=-1)
     if not np.any(norms > 0):
         return None
     target = np.sum(chords[norms > 0] / norms[norms > 0, None], axis=0) / np.sum(norms > 0)
-    m = np.asarray(to_curves(tree).main, np.float64)
-    if m.ndim != 2:
-        raise ValueError(f"upright_rotation: `tree` must be one root (unbatched), got main of shape {m.shape}.")
-    m = m[-1] - m[0]
     if np.linalg.norm(target) < 0.5 or np.linalg.norm(m) == 0:
         return None  # no common direction to turn to
     a, b = m / np.linalg.norm(m), target / np.linalg.norm(target)

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import textwrap
 
+import equinox as eqx
 import jax
 import matplotlib
 import matplotlib.colors as mcolors
@@ -239,6 +240,40 @@ def test_plot_mean(roots, trees, tmp_path):
     assert n_lines == sum(r.n_laterals + 1 for r in roots) + int(np.asarray(mean.mask).sum()) + 1
     with pytest.raises(ValueError, match="layout"):
         P.plot_mean(roots, mean, layout="mosaic")
+
+
+def _longest_chord(ax):
+    """Base-to-tip vector of the longest polyline drawn on ax (the main root)."""
+    segs, _ = segments_and_colors(ax)
+    main = max(segs, key=lambda s: np.sum(np.linalg.norm(np.diff(s, axis=0), axis=1)))
+    return main[-1] - main[0]
+
+
+def _angle(u, v):
+    return float(np.degrees(np.arccos(np.clip(u @ v / np.linalg.norm(u) / np.linalg.norm(v), -1, 1))))
+
+
+def test_plot_mean_turns_a_karcher_mean_upright(mean):
+    """The metric ignores rotation, so a mean's SRVF keeps the tilt of its solver's start: drawn
+    from a KarcherMean or SRVFTree it is turned to point like the samples (upright=False: as
+    fitted); a Root or RootTree mean is the user's own frame, drawn as given."""
+    rng = np.random.default_rng(7)  # the samples of the `mean` fixture
+    roots = [random_root(rng, n_laterals=2) for _ in range(4)]
+    samples = batch(roots, n_points=12, max_laterals=3)
+    target = np.mean([r.main[-1] - r.main[0] for r in roots], axis=0)
+    assert np.linalg.norm(target) > 0.5 * np.mean([np.linalg.norm(r.main[-1] - r.main[0]) for r in roots])
+    t = np.radians(100.0)
+    R = np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+    curves = rs.to_curves(mean.mean)
+    tilted = rs.turn_about_base(rs.turn_about_base(curves, rs.upright_rotation(curves, samples)), R)
+    km = eqx.tree_at(lambda m: m.mean, mean, rs.to_srvf(tilted))  # the fit, 100° off the samples
+    for m in (km, km.mean):
+        _, axes = P.plot_mean(samples, m)
+        assert _angle(_longest_chord(axes["mean"]), target) < 3.0
+        _, axes = P.plot_mean(roots, m, upright=False)
+        assert _angle(_longest_chord(axes["mean"]), target) > 90.0
+    _, axes = P.plot_mean(roots, tilted)
+    assert _angle(_longest_chord(axes["mean"]), target) > 90.0
 
 
 def test_plot_modes(trees, tmp_path):

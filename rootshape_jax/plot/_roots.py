@@ -24,7 +24,9 @@ from typing import Any
 import numpy as np
 from matplotlib.ticker import MaxNLocator
 
+from .._mean import KarcherMean
 from .._pca import TangentPCA, modes
+from .._tree import RootTree, SRVFTree, rotation_towards_chords, to_curves, turn_about_base
 from ._draw import (
     COLUMNS,
     Frame,
@@ -294,6 +296,7 @@ def plot_mean(
     projection: str | None = None,
     unit: str | None = None,
     title: str | None = "Mean root",
+    upright: bool = True,
 ):
     """Input roots beside their (Karcher) mean, as in the paper's "mean root" figure.
 
@@ -311,11 +314,17 @@ def plot_mean(
     - `ncols`: columns of the sample grid (default about square).
     - `colors`, `slot_colors`, `linewidth`, `invert_y`, `projection`, `unit`: as in
       `plot_root` (`unit` labels the scale bars).
+    - `upright`: a mean given as a `KarcherMean` or an `SRVFTree` (whose pose the metric
+      ignores: it keeps the tilt of the root the solver started from) is drawn turned about its
+      base so its main root points where the samples' main roots point on average
+      (`rootshape_jax.upright_rotation`). A `Root` or `RootTree` mean is drawn as given.
 
     **Returns** ``(fig, axes)`` with ``axes = {"samples": [...], "mean": ax}`` (for the
     overlay layout ``"samples"`` is the same single Axes as ``"mean"``).
     """
     drawings = as_drawing_list(samples, what="plot_mean: samples")
+    if upright and isinstance(mean, (KarcherMean, SRVFTree)):
+        mean = _turned_upright(mean, drawings)
     mean_d = as_drawing(mean, what="plot_mean: mean")
     if mean_d.dim != drawings[0].dim:
         raise ValueError(f"plot_mean: the mean is {mean_d.dim}D but the samples are {drawings[0].dim}D.")
@@ -418,6 +427,18 @@ def _mean_overlay(drawings, mean_d, projection, invert_y, style, unit, title):
     ax.set_title(f"{len(drawings)} input roots (grey, bases aligned) and their mean", fontsize=10)
     _suptitle(fig, title)
     return fig, {"samples": ax, "mean": ax}
+
+
+def _turned_upright(mean, drawings: list) -> RootTree:
+    """The mean as curves, turned about its base towards the samples' mean main-root direction
+    (unchanged when they point every way, or for plants' systems)."""
+    tree = to_curves(mean.mean if isinstance(mean, KarcherMean) else mean)
+    if tree.batch_shape != () or tree.virtual_main:
+        return tree  # as_drawing names a batched mean; a plant has no main root to point
+    main = np.asarray(tree.main, np.float64)
+    chords = np.array([d.main[-1] - d.main[0] for d in drawings if d.dim == main.shape[-1]])
+    R = rotation_towards_chords(main[-1] - main[0], chords) if len(chords) else None
+    return tree if R is None else turn_about_base(tree, R)
 
 
 def plot_modes(
