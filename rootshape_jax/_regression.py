@@ -44,7 +44,7 @@ def _measure(trees: RootTree, names: Sequence[str]) -> np.ndarray:
         return np.zeros((n, 0))
     rows = measure_traits(to_roots(trees))
     for k in names:
-        if k not in rows[0]:
+        if k not in rows[0] or k in ("name", "unit"):
             raise ValueError(f"unknown trait {k!r}; use names returned by rootshape_jax.traits().")
     return np.array([[float(r[k]) for k in names] for r in rows], dtype=np.float64)
 

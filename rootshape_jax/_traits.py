@@ -235,6 +235,8 @@ def traits(
     other axes are horizontal. Points are those of the main root and of every lateral.
 
     - ``name``: ``root.name``.
+    - ``unit``: the unit of the lengths, ``root.metadata.get("unit")`` (None when unknown);
+      `traits_to_csv` puts it into the column names.
     - ``main_length``: polyline length of the main root.
     - ``n_laterals``: number of first-order laterals.
     - ``lateral_density``: ``n_laterals / main_length`` (laterals per unit main length).
@@ -284,7 +286,10 @@ def traits(
             f"traits() expects a rootshape_jax.Root or a sequence of them, got {type(root_or_roots).__name__}."
         )
     roots = [root_or_roots] if single else list(root_or_roots)
+    # Each row names its roots' length unit (None when unknown), so `traits_to_csv` labels the
+    # columns with it (main_length_mm, ...).
     rows = [_root_traits(r, window) for r in roots]
+    rows = [{"name": row.pop("name"), "unit": r.metadata.get("unit"), **row} for row, r in zip(rows, roots)]
     if any(is_plant_system(r) for r in roots):
         rows = [
             {"name": row.pop("name"), "n_axes": r.n_laterals if is_plant_system(r) else 1, **row}

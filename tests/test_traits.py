@@ -1,11 +1,12 @@
 import csv
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
 from rootshape_jax import trait_column as rs_trait_column
-from rootshape_jax._errors import InvalidRootError
+from rootshape_jax._errors import InvalidRootError, UnitError
 from rootshape_jax._root import Root
 from rootshape_jax._traits import TRAIT_NAMES, insertion_angles, traits, traits_to_csv
 from rootshape_jax.datasets import synthetic_roots
@@ -41,7 +42,33 @@ def test_l_shaped_root_by_hand():
     # Hull vertices (0,0), (4,6), (2,9), (0,6): shoelace area 18.
     assert t["convex_hull_area"] == pytest.approx(18.0)
     assert math.isnan(t["convex_hull_volume"])
-    assert set(TRAIT_NAMES) | {"name"} == set(t)
+    assert set(TRAIT_NAMES) | {"name", "unit"} == set(t)
+    assert t["unit"] is None  # the hand-made root names no unit
+
+
+def test_traits_name_their_unit_and_the_csv_columns_carry_it(tmp_path):
+    """Each row names its root's unit, so traits_to_csv labels the length columns without
+    being told; roots of different units keep plain names and say their unit per row."""
+    root = l_shaped_root()
+    mm = dataclasses.replace(root, metadata={"unit": "mm"})
+    rows = traits([mm, mm])
+    assert [r["unit"] for r in rows] == ["mm", "mm"] and list(rows[0])[:2] == ["name", "unit"]
+    traits_to_csv(rows, tmp_path / "t.csv")
+    with open(tmp_path / "t.csv", newline="") as f:
+        table = list(csv.DictReader(f))
+    assert {"main_length_mm", "convex_hull_area_mm2", "lateral_density_per_mm"} <= set(table[0])
+    assert table[0]["unit"] == "mm" and float(table[0]["main_length_mm"]) == pytest.approx(10.0)
+    # A plant's system has its axes' unit; axes in different units make no plant.
+    from rootshape_jax.io import plant_system
+
+    assert traits(plant_system([mm, mm]))["unit"] == "mm"
+    with pytest.raises(UnitError, match=r"different units \['cm', 'mm'\].*convert_units"):
+        plant_system([mm, dataclasses.replace(root, metadata={"unit": "cm"})])
+    cm = dataclasses.replace(root, metadata={"unit": "cm"})
+    traits_to_csv(traits([mm, cm]), tmp_path / "mixed.csv")
+    with open(tmp_path / "mixed.csv", newline="") as f:
+        table = list(csv.DictReader(f))
+    assert "main_length" in table[0] and [r["unit"] for r in table] == ["mm", "cm"]
 
 
 @pytest.mark.parametrize("angle", [10.0, 45.0, 90.0, 120.0, 170.0])
@@ -245,7 +272,7 @@ def test_csv_round_trip(tmp_path):
     # Without a unit only the angle's column names its unit (degrees).
     columns = [rs_trait_column(k, None) for k in TRAIT_NAMES]
     assert "mean_insertion_angle_deg" in columns
-    assert list(back[0])[: len(TRAIT_NAMES) + 1] == ["name", *columns]
+    assert list(back[0])[: len(TRAIT_NAMES) + 2] == ["name", "unit", *columns]
     assert back[0]["condition"] == "control" and back[1]["condition"] == ""
     for r, b in zip(rows, back):
         assert b["name"] == r["name"]
@@ -271,7 +298,7 @@ def test_plant_systems_are_described_as_plants():
     lat_lens = [sum(np.linalg.norm(np.diff(lat, axis=0), axis=1)) for a in axes for lat in a.laterals]
     primary = axes[int(np.argmax(lens))]
     pts = np.concatenate([p for a in axes for p in (a.main, *a.laterals)])
-    assert row["n_axes"] == 3 and list(row)[:3] == ["name", "n_axes", "main_length"]
+    assert row["n_axes"] == 3 and list(row)[:4] == ["name", "n_axes", "unit", "main_length"]
     assert row["main_length"] == pytest.approx(max(lens), rel=1e-12)
     assert row["main_tortuosity"] == pytest.approx(traits(primary)["main_tortuosity"], rel=1e-12)
     assert row["n_laterals"] == len(lat_lens) == sum(a.n_laterals for a in axes)

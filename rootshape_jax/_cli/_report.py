@@ -54,6 +54,8 @@ OUTPUT_NAMES = (
     "explained_variance.csv",
     "explained_variance.png",
     "modes.png",
+    "pca_scores.csv",
+    "pca_scores.png",
     "random_roots.rsml",
     "random_roots.csv",
     "random_roots.png",

@@ -751,7 +751,10 @@ def plant_system(axes: Sequence[Root], *, name: str = "", metadata: dict | None 
     `batch` marks such systems (`RootTree.virtual_main`) and registration weighs their axes as
     main roots and every deeper level as the level above it, so plants of one axis each give
     exactly the distances of the axes as taproot systems (at one more level of depth:
-    ``batch(plants, depth=D + 1)`` matches ``batch(axes, depth=D)``)."""
+    ``batch(plants, depth=D + 1)`` matches ``batch(axes, depth=D)``).
+
+    The plant's ``metadata["unit"]`` is its axes' unit (unless `metadata` gives one); axes in
+    different units are a `UnitError`."""
     axes = list(axes)
     if not axes:
         raise InvalidRootError("plant_system: a plant needs at least one axis.")
@@ -760,6 +763,14 @@ def plant_system(axes: Sequence[Root], *, name: str = "", metadata: dict | None 
     collar = np.mean([np.asarray(a.main[0], dtype=np.float64) for a in axes], axis=0).astype(axes[0].main.dtype)
     has_radius = any(a.main_radius is not None for a in axes)
     meta = dict(metadata or {})
+    own = units_of(axes)
+    if len(own) > 1:
+        raise UnitError(
+            f"plant_system: the axes are in different units {sorted(own.values())}; convert them to one "
+            "first (rootshape_jax.io.convert_units(axes, 'mm'))."
+        )
+    if own and meta.get("unit") is None:
+        meta["unit"] = next(iter(own.values()))  # the plant's lengths are its axes'
     meta.update(virtual_main=True, n_axes=len(axes))
     return Root(
         main=np.stack([collar, collar]),
