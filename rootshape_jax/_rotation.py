@@ -34,13 +34,19 @@ def optimal_rotation(
         w = jnp.asarray(weights, A.dtype)[..., None] * tw
     # K = Σ w B Aᵀ (d×d); maximise tr(O K).
     K = jnp.einsum("...t,...ti,...tj->ij", w, B, A)
-    if A.shape[-1] == 2:
+    return rotation_maximising(K)
+
+
+def rotation_maximising(K: Float[Array, "d d"]) -> Float[Array, "d d"]:
+    """The rotation ``O ∈ SO(d)`` maximising ``tr(O K)`` (``K = Σ w B Aᵀ``, see
+    `optimal_rotation`); determinant corrected, never a reflection."""
+    if K.shape[-1] == 2:
         return _rotation_2d(K)
     U, _, Vt = jnp.linalg.svd(K)
     V = Vt.T
     det = jnp.linalg.det(V @ U.T)
-    d = A.shape[-1]
-    D = jnp.ones((d,), A.dtype).at[-1].set(jnp.sign(det) + (det == 0))
+    d = K.shape[-1]
+    D = jnp.ones((d,), K.dtype).at[-1].set(jnp.sign(det) + (det == 0))
     return (V * D) @ U.T
 
 

@@ -443,7 +443,10 @@ def reference_tree_distance(
         longest = [max(t["children"], key=lambda c: _ref_norm2(c["q"]))["q"] for t in (A, B)]
         O = _ref_kabsch([longest[0][:, :d]], [longest[1][:, :d]], [1.0]) if rotation else np.eye(d)
     else:
+        longest = [A["q"], B["q"]]
         O = _ref_kabsch([A["q"][:, :d]], [B["q"][:, :d]], [1.0]) if rotation else np.eye(d)
+    if rotation and d == 3:
+        O = reference_spin_start(A, B, O, longest[0][:, :d], lam_m, level_weights[0], null_cost, rot)
     best_E, best_matches, best_O = np.inf, None, O
     rounds = max_iterations if rotation else 1
     for it in range(rounds):
@@ -457,6 +460,54 @@ def reference_tree_distance(
         if rel < rtol:
             break
     return float(best_E), {"rotation": best_O, "n_dp": n_dp, "matches": best_matches}
+
+
+def reference_spin_start(A: dict, B: dict, O, axis_branch, lam_m, level1, null_cost, rot, n_spins=8, rounds=2):
+    """The engine's 3D start (`_engine.spin_start`), plainly: the main-root start turned about
+    a's reference branch's chord ``∫ q|q| dt`` by each of `n_spins` spins; each improved by
+    `rounds` rounds of [exact assignment of the level-1 branches with identity warps → Kabsch
+    over the main roots and the matched pairs]; the start is the improved rotation of the spin
+    whose last matching costs least at it (the first of equal ones)."""
+    from scipy.optimize import linear_sum_assignment
+
+    lam_s, lam_p = level1
+    ca, cb = A["children"], B["children"]
+    na, nb = len(ca), len(cb)
+    w = _ref_trapezoid(len(axis_branch))
+    chord = np.einsum("t,ti->i", w, axis_branch * np.linalg.norm(axis_branch, axis=1, keepdims=True))
+    k = chord / np.linalg.norm(chord) if np.linalg.norm(chord) > 0 else chord
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+
+    def costs(O):
+        """The main root's energy and the augmented (na + nb)² assignment matrix at O."""
+        C = np.zeros((na + nb, na + nb))
+        C[:na, nb:] = C[na:, :nb] = np.inf
+        for i, x in enumerate(ca):
+            for j, y in enumerate(cb):
+                C[i, j] = lam_s * _ref_norm2(x["q"] - rot(y["q"], O)) + lam_p * (x["s"] - y["s"]) ** 2
+            C[i, nb + i] = null_cost(x, 1)
+        for j, y in enumerate(cb):
+            C[na + j, j] = null_cost(y, 1)
+        return lam_m * _ref_norm2(A["q"] - rot(B["q"], O)), np.where(np.isinf(C), 1e300, C)
+
+    best = (np.inf, O)
+    for s in range(n_spins):
+        t = 2 * np.pi * s / n_spins
+        Os = (np.eye(3) + np.sin(t) * K + (1 - np.cos(t)) * K @ K) @ O
+        for _ in range(rounds):
+            _, C = costs(Os)
+            rows, cols = linear_sum_assignment(C)
+            pairs = [(ca[r]["q"][:, :3], cb[c]["q"][:, :3]) for r, c in zip(rows, cols) if r < na and c < nb]
+            Os = _ref_kabsch(
+                [A["q"][:, :3]] + [x for x, _ in pairs],
+                [B["q"][:, :3]] + [y for _, y in pairs],
+                [lam_m] + [lam_s] * len(pairs),
+            )
+        e_main, C = costs(Os)
+        score = e_main + C[rows, cols].sum()
+        if score < best[0]:
+            best = (score, Os)
+    return best[1]
 
 
 class RecordingBar:
