@@ -396,7 +396,15 @@ def project(
     gives shape ``(m,)``. Registration options default to those the mean used.
 
     More than `block_size` roots are registered in blocks of that many, on worker threads
-    (every core), with a progress bar (`progress`) that moves after every block."""
+    (every core), with a progress bar (`progress`) that moves after every block.
+
+    The tangent space is at the fitted mean (`KarcherMean.fitted`: every lateral slot real),
+    while `reconstruct`, `modes` and `sample` turn laterals shorter than their threshold into
+    nulls (`TangentPCA.slot_min_lengths`). So a synthesised root projects back onto its
+    coefficients only approximately, and ``project(pc, km.mean_srvf)`` (short laterals
+    dropped) is not exactly 0; with ``tangent_pca(..., min_lateral_length=0,
+    max_lateral_length=float("inf"))`` nothing is dropped or shortened and the round trip
+    holds to the registration's accuracy."""
     x = to_srvf(trees, weights=pc.weights)
     single = x.batch_shape == ()
     if single:
