@@ -1343,12 +1343,15 @@ def starting_rotation(a: SRVFTree, b: SRVFTree) -> Float[Array, "B d d"]:
     return jax.vmap(optimal_rotation)(longest(a), longest(b))
 
 
-def _reference_branch(t: SRVFTree) -> Array:
-    """The branch `starting_rotation` aligns: the main root, or a plant's longest axis."""
-    if not t.virtual_main:
-        return t.q0
-    L = jnp.where(t.mask, l2_norm_squared(t.q), -1.0)
-    return jnp.take_along_axis(t.q, jnp.argmax(L, axis=-1)[:, None, None, None], axis=1)[:, 0]
+def longest_axis_view(t: SRVFTree) -> SRVFTree:
+    """A plant's system (batched) as the taproot system of its longest axis (largest
+    ``||q||²``, the first on ties): that axis as the main root, its laterals as the laterals.
+    With one axis per plant it is the taproot tree itself, so the spins of `spin_start` see
+    what a taproot's see (docs/design.md §11: one axis per plant gives the taproot analysis)."""
+    B = t.q.shape[0]
+    i = jnp.argmax(jnp.where(t.mask, l2_norm_squared(t.q), -1.0), axis=-1)
+    view = children_of(t, jnp.arange(B), i)
+    return eqx.tree_at(lambda v: v.q0, view, t.q[jnp.arange(B), i])
 
 
 def _about_axis(axis: Float[Array, "B 3"], angle) -> Float[Array, "B 3 3"]:
@@ -1383,11 +1386,14 @@ def spin_start(
     correspondence and rotation keeps the spin's basin. From the main-root start alone the
     squared distance of 24 random CPlantBox pea pairs was 29 % above the best of eight
     spin starts on average (plate tracings laid in 3D: 13 %, up to 69 %; BENCHMARKS.md).
+    For a plant's system `search` passes the `longest_axis_view` of both trees.
 
-    Each spin ``k`` starts at ``R(axis, 2πk/N_SPINS) O_main``, the axis a's main-root chord
-    ``∫ q|q| dt`` (a plant's longest axis). A round solves the correspondence for identity
-    warps (the exact assignment of the pair costs with ``||qa − O qb||²`` as branch energy,
-    no DP) and refits the rotation to it (weighted Kabsch, main root and matched laterals);
+    Each spin ``k`` starts at ``R(axis, 2πk/N_SPINS) O_main``, the axis ``∫ q|q| dt`` of a's
+    main root over the spatial channels (its chord when there is no thickness channel). A
+    round solves the correspondence of the first-order laterals for identity warps (the exact assignment of the pair costs with
+    ``||qa − O qb||²`` as branch energy, no DP; deeper levels are left to the search, on both
+    sides: an unmatched lateral costs its own norm) and refits the rotation to it (weighted
+    Kabsch, main root and matched laterals; a spin with nothing to align keeps its rotation);
     the start is the refitted rotation of the spin whose matching costs least there. The
     spins are defined by a's main root and b's alignment to it, so the start turns with a
     and b: the distance stays invariant to rotations of either root. Spin 0 is the
@@ -1405,6 +1411,9 @@ def spin_start(
     extra0 = jnp.einsum("t,btc,btc->b", tw, a.q0[..., d:], b.q0[..., d:])
     L0 = l2_norm_squared(a.q0) + l2_norm_squared(b.q0)
     lam_m, lam_s = p.lam_main, p.lam_lateral
+    # Level 1 only, on both sides of the assignment: a real lateral left unmatched costs its own
+    # norm here, not its subtree's (`p.others`), as a matched pair's cost leaves out its children.
+    others = null_costs(p.weights, a, b, p.La, p.Lb)
 
     def pair(O, N, N0, extra, extra0, L0, La, Lb, fixed, others, both, act):
         def cost(O):
@@ -1422,20 +1431,20 @@ def spin_start(
             K = lam_m * N0.T + lam_s * jnp.einsum(
                 "i,inm->mn", matched.astype(dtype), N[jnp.arange(perm.shape[0]), perm]
             )
-            return rotation_maximising(K), perm
+            # Nothing to align (no matched pair, no main root): keep this spin's rotation.
+            return jnp.where(jnp.any(K != 0), rotation_maximising(K), O), perm
 
         O, perms = lax.scan(refit, O, None, length=SPIN_ROUNDS)
         C, e_main = cost(O)
         # The last matching at the refitted rotation: what this start's alternation would begin below.
         return O, e_main + jnp.sum(C[jnp.arange(C.shape[0]), perms[-1]])
 
-    axis = jnp.einsum(
-        "t,bti->bi", tw, _reference_branch(a)[..., :d] * safe_norm(_reference_branch(a)[..., :d])[..., None]
-    )
+    x0 = a.q0[..., :d]
+    axis = jnp.einsum("t,bti->bi", tw, x0 * safe_norm(x0)[..., None])  # a's main-root chord
     starts = jnp.stack([_about_axis(axis, 2 * np.pi * k / N_SPINS) @ O_main for k in range(N_SPINS)])  # [S, B, 3, 3]
     per_pair = jax.vmap(pair)
     O, energy = jax.vmap(per_pair, in_axes=(0,) + (None,) * 11)(
-        starts, N, N0, extra, extra0, L0, p.La, p.Lb, p.fixed, p.others, p.both, active
+        starts, N, N0, extra, extra0, L0, p.La, p.Lb, p.fixed, others, p.both, active
     )
     best = jnp.argmin(jnp.where(jnp.isnan(energy), jnp.inf, energy), axis=0)  # [B]; the first of equal ones
     O = jnp.take_along_axis(O, best[None, :, None, None], axis=0)[0]
@@ -1457,10 +1466,13 @@ def search(a: SRVFTree, b: SRVFTree, weights: Weights, active: Array, options: R
     eye = jnp.broadcast_to(jnp.eye(d, dtype=dtype), (B, d, d))
     rotation = options.rotation
     start = starting_rotation(p.a, p.b)
-    if d == 3:
-        # Pairs that do not search the rotation skip the spins (an inactive pair's lanes do
-        # no work in the assignments' loops either).
-        start = lax.cond(rotation & jnp.any(active), lambda: spin_start(p, start, active, options), lambda: start)
+    if d == 3 and (a.deeper or not a.virtual_main):
+        # A plant's spins are those of its longest axis as a taproot (with its laterals); a
+        # plant without deeper levels has nothing to turn its axes by. Pairs that do not search
+        # the rotation skip the spins (an inactive pair's lanes do no work in the assignments'
+        # loops either).
+        spun = p if not a.virtual_main else prepare(longest_axis_view(p.a), longest_axis_view(p.b), weights)
+        start = lax.cond(rotation & jnp.any(active), lambda: spin_start(spun, start, active, options), lambda: start)
     O_start = jnp.where(rotation, start, eye)
     n_rounds = jnp.where(rotation, options.max_iterations, 1)
 

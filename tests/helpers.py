@@ -443,10 +443,13 @@ def reference_tree_distance(
         longest = [max(t["children"], key=lambda c: _ref_norm2(c["q"]))["q"] for t in (A, B)]
         O = _ref_kabsch([longest[0][:, :d]], [longest[1][:, :d]], [1.0]) if rotation else np.eye(d)
     else:
-        longest = [A["q"], B["q"]]
         O = _ref_kabsch([A["q"][:, :d]], [B["q"][:, :d]], [1.0]) if rotation else np.eye(d)
     if rotation and d == 3:
-        O = reference_spin_start(A, B, O, longest[0][:, :d], lam_m, level_weights[0], null_cost, rot)
+        if not system:
+            O = reference_spin_start(A, B, O, lam_m, level_weights[0], rot)
+        elif depth > 2:  # a plant's spins are its longest axis's, as a taproot with its laterals
+            la, lb = (max(t["children"], key=lambda c: _ref_norm2(c["q"])) for t in (A, B))
+            O = reference_spin_start(la, lb, O, lam_m, level_weights[1], rot)
     best_E, best_matches, best_O = np.inf, None, O
     rounds = max_iterations if rotation else 1
     for it in range(rounds):
@@ -462,19 +465,22 @@ def reference_tree_distance(
     return float(best_E), {"rotation": best_O, "n_dp": n_dp, "matches": best_matches}
 
 
-def reference_spin_start(A: dict, B: dict, O, axis_branch, lam_m, level1, null_cost, rot, n_spins=8, rounds=2):
+def reference_spin_start(A: dict, B: dict, O, lam_m, level1, rot, n_spins=8, rounds=2):
     """The engine's 3D start (`_engine.spin_start`), plainly: the main-root start turned about
-    a's reference branch's chord ``∫ q|q| dt`` by each of `n_spins` spins; each improved by
-    `rounds` rounds of [exact assignment of the level-1 branches with identity warps → Kabsch
-    over the main roots and the matched pairs]; the start is the improved rotation of the spin
-    whose last matching costs least at it (the first of equal ones)."""
+    ``∫ q|q| dt`` of a's main root (spatial channels) by each of `n_spins` spins; each improved
+    by `rounds` rounds of [exact assignment of the first-order laterals with identity warps,
+    an unmatched one costing λs ||q||² (its children left out, as a matched pair's) → Kabsch
+    over the main roots and the matched pairs, or the same rotation when nothing is matched];
+    the start is the improved rotation of the spin whose last matching costs least at it (the
+    first of equal ones)."""
     from scipy.optimize import linear_sum_assignment
 
     lam_s, lam_p = level1
     ca, cb = A["children"], B["children"]
     na, nb = len(ca), len(cb)
-    w = _ref_trapezoid(len(axis_branch))
-    chord = np.einsum("t,ti->i", w, axis_branch * np.linalg.norm(axis_branch, axis=1, keepdims=True))
+    x0 = A["q"][:, :3]
+    w = _ref_trapezoid(len(x0))
+    chord = np.einsum("t,ti->i", w, x0 * np.linalg.norm(x0, axis=1, keepdims=True))
     k = chord / np.linalg.norm(chord) if np.linalg.norm(chord) > 0 else chord
     K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
 
@@ -485,9 +491,9 @@ def reference_spin_start(A: dict, B: dict, O, axis_branch, lam_m, level1, null_c
         for i, x in enumerate(ca):
             for j, y in enumerate(cb):
                 C[i, j] = lam_s * _ref_norm2(x["q"] - rot(y["q"], O)) + lam_p * (x["s"] - y["s"]) ** 2
-            C[i, nb + i] = null_cost(x, 1)
+            C[i, nb + i] = lam_s * _ref_norm2(x["q"])
         for j, y in enumerate(cb):
-            C[na + j, j] = null_cost(y, 1)
+            C[na + j, j] = lam_s * _ref_norm2(y["q"])
         return lam_m * _ref_norm2(A["q"] - rot(B["q"], O)), np.where(np.isinf(C), 1e300, C)
 
     best = (np.inf, O)
@@ -498,6 +504,8 @@ def reference_spin_start(A: dict, B: dict, O, axis_branch, lam_m, level1, null_c
             _, C = costs(Os)
             rows, cols = linear_sum_assignment(C)
             pairs = [(ca[r]["q"][:, :3], cb[c]["q"][:, :3]) for r, c in zip(rows, cols) if r < na and c < nb]
+            if not pairs and lam_m * _ref_norm2(A["q"]) * _ref_norm2(B["q"]) == 0:
+                continue  # nothing to align: the spin keeps its rotation
             Os = _ref_kabsch(
                 [A["q"][:, :3]] + [x for x, _ in pairs],
                 [B["q"][:, :3]] + [y for _, y in pairs],

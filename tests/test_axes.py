@@ -33,10 +33,11 @@ def _matrix(trees, weights=W, **kw):
     )
 
 
-def _taproots(seed=3, n=4):
+def _taproots(seed=3, n=4, d=2):
     rng = np.random.default_rng(seed)
     return [
-        random_root(rng, n_laterals=int(k), main_length=float(L)) for k, L in zip([2, 3, 1, 4], [1.0, 1.3, 0.8, 1.1])
+        random_root(rng, n_laterals=int(k), main_length=float(L), d=d)
+        for k, L in zip([2, 3, 1, 4], [1.0, 1.3, 0.8, 1.1])
     ][:n]
 
 
@@ -85,8 +86,11 @@ def test_per_level_weights_equal_the_reference_at_depth_three(pair):
 # One axis per plant = the taproot analysis
 
 
-def test_one_axis_plants_equal_taproots_distances_and_registration():
-    roots = _taproots()
+@pytest.mark.parametrize("d", [2, 3])
+def test_one_axis_plants_equal_taproots_distances_and_registration(d):
+    # In 3D the search starts from spins about the main root chosen by the laterals
+    # (`_engine.spin_start`): a plant's come from its axis's laterals, as the taproot's.
+    roots = _taproots(d=d)
     plants = [plant_system([r], name=f"p{i}") for i, r in enumerate(roots)]
     taps = rs.batch(roots, n_points=T, dtype=np.float64)
     syst = rs.batch(plants, n_points=T, depth=3, dtype=np.float64)

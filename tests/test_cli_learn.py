@@ -125,7 +125,9 @@ def write_table(path, text):
 def test_weights_file_is_read_by_term(tmp_path):
     """--weights FILE.csv takes the learned column by term name, in any row order; terms
     left out (thickness) keep their default."""
-    f = write_table(tmp_path / "w.csv", "term,start,learned\nposition,1,0.25\nmain,0.02,0.0125\nlateral,1,1\n")
+    # Saved again by a spreadsheet: a byte-order mark, CRLF line ends, a trailing empty row.
+    text = "\ufeffterm,start,learned\r\nposition,1,0.25\r\nmain,0.02,0.0125\r\nlateral,1,1\r\n,,\r\n"
+    f = write_table(tmp_path / "w.csv", text)
     args = build_parser().parse_args(["distances", str(tmp_path), "--weights", f])
     w = make_weights(args)
     assert w.to_dict() == pytest.approx({"main": 0.0125, "lateral": 1.0, "position": 0.25, "thickness": 0.0})

@@ -59,7 +59,7 @@ def reference_energy(a, b, weights, *, neighbourhood=7, iterations=5):
     if O.shape[0] == 3:  # the engine's 3D start: the best of the spins about a's main root
         A = {"q": qa0, "children": [{"q": qa[i], "s": sa[i], "children": []} for i in range(K) if ma[i]]}
         B = {"q": qb0, "children": [{"q": qb[j], "s": sb[j], "children": []} for j in range(K) if mb[j]]}
-        O = reference_spin_start(A, B, O, qa0, lm, (ls, lp), lambda x, _: ls * l2(x["q"]), lambda q, R: q @ R.T)
+        O = reference_spin_start(A, B, O, lm, (ls, lp), lambda q, R: q @ R.T)
     best = np.inf
     for _ in range(iterations):
         rb0 = qb0 @ O.T

@@ -143,6 +143,8 @@ def _weights_file(path: str, names: list[str]) -> WeightValues:
     values = {}
     for row in rows:
         term, text = (row.get("term") or "").strip(), (row.get("learned") or "").strip()
+        if not term and not text:
+            continue  # an empty row (a spreadsheet's trailing ",,")
         try:
             v = float(text)
         except ValueError:
@@ -749,7 +751,6 @@ def build_parser() -> argparse.ArgumentParser:
     _add_mean_options(p)
     _add_pca_options(p)
     _add_sample_options(p)
-    _add_by_option(p, "the colours of the score plot (pca_scores.png)")
     _add_regress_options(p)
     _add_cluster_options(p)
     _add_geodesic_options(p)
