@@ -572,3 +572,16 @@ def run_cli(*args, cwd=None, timeout: float = 1800) -> subprocess.CompletedProce
                 f"{err[-20000:]}\n--- stdout ---\n{out[-3000:]}"
             ) from None
     return subprocess.CompletedProcess(cmd, p.returncode, out, err)
+
+
+def spy_on(monkeypatch, module, name: str) -> dict:
+    """Replace ``module.name`` by a wrapper that calls it and keeps what it returned in the
+    dict this returns (key "out"): tests read a figure a command drew."""
+    original, seen = getattr(module, name), {}
+
+    def spy(*args, **kwargs):
+        seen["out"] = original(*args, **kwargs)
+        return seen["out"]
+
+    monkeypatch.setattr(module, name, spy)
+    return seen

@@ -10,7 +10,7 @@ from pathlib import Path
 import matplotlib.colors as mcolors
 import numpy as np
 import pytest
-from helpers import run_cli
+from helpers import run_cli, spy_on
 from scipy.cluster import hierarchy
 
 import rootshape_jax as rs
@@ -275,14 +275,7 @@ def test_pca_scores_table_agrees_with_the_library_and_the_figure(tmp_path, monke
     args = argparse.Namespace(laterals=4, points=12, normalise_scale=True, by="treatment", modes=2, quiet=True)
     ctx = Context(prepare(roots, args))
     ctx.mean = rs.karcher_mean(ctx.pop.tree, progress=False)
-    drawn = {}
-    original = rplot.plot_pca_scores
-
-    def spy(*a, **kw):
-        drawn["fig"], drawn["ax"] = original(*a, **kw)
-        return drawn["fig"], drawn["ax"]
-
-    monkeypatch.setattr(rplot, "plot_pca_scores", spy)
+    drawn = spy_on(monkeypatch, rplot, "plot_pca_scores")
     run_pca(ctx, Output(tmp_path / "o", args), args)
     rows = read_csv(tmp_path / "o" / "pca_scores.csv")
     kept = int(ctx.pca.n_components)
@@ -297,7 +290,7 @@ def test_pca_scores_table_agrees_with_the_library_and_the_figure(tmp_path, monke
     # vectors' centre up to its tolerance) with unit sample variance.
     np.testing.assert_allclose(S.mean(axis=0), 0.0, atol=0.05)
     np.testing.assert_allclose(S.var(axis=0, ddof=1), 1.0, rtol=1e-4)
-    ax = drawn["ax"]
+    _, ax = drawn["out"]
     colors = rplot.label_colors([m["treatment"] for m in meta.values()])
     groups = set()
     for coll in ax.collections:

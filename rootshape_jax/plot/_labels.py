@@ -129,14 +129,7 @@ def plot_mds(
     if X.ndim != 2 or X.shape[1] < 2:
         raise ValueError(f"plot_mds: expected an (n, 2) embedding (mds(D, n_components=2)), got shape {X.shape}.")
     n = X.shape[0]
-    values = ["all"] * n if labels is None else [str(v) for v in labels]
-    if len(values) != n:
-        raise ValueError(f"plot_mds: {len(values)} labels for {n} points.")
-    if ax is None:
-        fig = new_figure((6.4, 5.2))
-        ax = fig.add_subplot()
-    else:
-        fig = ax.figure
+    fig, ax, values = _scatter_figure(ax, labels, n, f"plot_mds: {{}} labels for {n} points.")
     _scatter_groups(ax, X[:, :2], values, names, labelled=labels is not None, label_name=label_name)
     for k, setter in enumerate((ax.set_xlabel, ax.set_ylabel)):
         text = f"MDS axis {k + 1}"
@@ -147,6 +140,21 @@ def plot_mds(
     if title:
         ax.set_title(title, fontsize=11)
     return fig, ax
+
+
+def _scatter_figure(ax, labels, n: int, message: str):
+    """``(fig, ax, one label per point)``: a new figure unless `ax` is given; every point
+    labelled "all" without `labels`; a ValueError (`message`, formatted with the count of
+    labels) when their count is not `n`."""
+    values = ["all"] * n if labels is None else [str(v) for v in labels]
+    if len(values) != n:
+        raise ValueError(message.format(len(values)))
+    if ax is None:
+        fig = new_figure((6.4, 5.2))
+        ax = fig.add_subplot()
+    else:
+        fig = ax.figure
+    return fig, ax, values
 
 
 def _scatter_groups(ax, X, values: list[str], names, *, labelled: bool, label_name: str) -> None:
@@ -204,16 +212,9 @@ def plot_pca_scores(
             f"plot_pca_scores: components {components!r} must be two different components in 0 … {m - 1} "
             f"(the PCA of {n} samples has {m})."
         )
-    values = ["all"] * n if labels is None else [str(v) for v in labels]
-    if len(values) != n:
-        raise ValueError(f"plot_pca_scores: {len(values)} labels for the {n} samples of the PCA.")
     if names is not None and len(names) != n:
         raise ValueError(f"plot_pca_scores: {len(names)} names for the {n} samples of the PCA.")
-    if ax is None:
-        fig = new_figure((6.4, 5.2))
-        ax = fig.add_subplot()
-    else:
-        fig = ax.figure
+    fig, ax, values = _scatter_figure(ax, labels, n, f"plot_pca_scores: {{}} labels for the {n} samples of the PCA.")
     _scatter_groups(ax, scores[:, [i, j]], values, names, labelled=labels is not None, label_name=label_name)
     ratio = np.asarray(pca.explained_variance_ratio, dtype=float)
     for k, setter in zip((i, j), (ax.set_xlabel, ax.set_ylabel)):
