@@ -1390,9 +1390,10 @@ def spin_start(
 
     Each spin ``k`` starts at ``R(axis, 2πk/N_SPINS) O_main``, the axis ``∫ q|q| dt`` of a's
     main root over the spatial channels (its chord when there is no thickness channel). A
-    round solves the correspondence of the first-order laterals for identity warps (the exact assignment of the pair costs with
-    ``||qa − O qb||²`` as branch energy, no DP; deeper levels are left to the search, on both
-    sides: an unmatched lateral costs its own norm) and refits the rotation to it (weighted
+    round solves the correspondence of the first-order laterals for identity warps (the
+    exact assignment of the pair costs with ``||qa − O qb||²`` as branch energy, no DP;
+    deeper levels are left to the search, on both sides: an unmatched lateral costs its own
+    norm) and refits the rotation to it (weighted
     Kabsch, main root and matched laterals; a spin with nothing to align keeps its rotation);
     the start is the refitted rotation of the spin whose matching costs least there. The
     spins are defined by a's main root and b's alignment to it, so the start turns with a
