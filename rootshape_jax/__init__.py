@@ -63,6 +63,7 @@ from ._learn import (
     CVAccuracy as CVAccuracy,
     LearnedWeights as LearnedWeights,
     fold_accuracy as fold_accuracy,
+    held_out_log_loss as held_out_log_loss,
     learn_weights as learn_weights,
     nested_cv_accuracy as nested_cv_accuracy,
 )

@@ -809,12 +809,42 @@ def fold_predictions(D_test_train: np.ndarray, D_train: np.ndarray, y_train: np.
     return nn, classes[np.argmin(d2, axis=1)]
 
 
+def held_out_log_loss(D_test_train, D_train, y_test, y_train, *, softness: float = 0.1) -> float:
+    """The NCA log-loss of held-out roots against training roots, from distances alone:
+    ``−mean_x log Σ_{j: y_j = y_x} softmax_j(−d²(x, x_j) / τ)`` over the test roots x and the
+    training roots j, with the learning's relative temperature ``τ = softness · mean_{i<j}
+    d²(x_i, x_j)`` over the training pairs. The loss `learn_weights` minimises, scored on roots
+    it never saw: a proper score of how confidently (not only whether) the held-out roots'
+    classes are predicted, comparable across distances of any scale. Lower is better; guessing
+    among C equal classes scores ``log C``."""
+    D_tt = np.asarray(D_test_train, np.float64)
+    D_tr = np.asarray(D_train, np.float64)
+    y_test, y_train = np.asarray(y_test), np.asarray(y_train)
+    iu = np.triu_indices(D_tr.shape[0], 1)
+    tau = softness * float(np.mean(D_tr[iu] ** 2))
+    if not tau > 0:
+        raise ValueError("held_out_log_loss: the training roots are all at distance 0 from each other.")
+    logits = -(D_tt**2) / tau
+    same = y_test[:, None] == y_train[None, :]
+    return float(np.mean(_log_sum_exp(logits, np.ones_like(same)) - _log_sum_exp(logits, same)))
+
+
+def _log_sum_exp(x: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """Row-wise ``log Σ_{where} exp(x)``, stable (each row shifted by its own maximum)."""
+    top = np.max(np.where(where, x, -np.inf), axis=1, keepdims=True)
+    return top[:, 0] + np.log(np.sum(np.where(where, np.exp(x - top), 0.0), axis=1))
+
+
 class CVAccuracy(eqx.Module):
     """Result of `nested_cv_accuracy` (accuracies are on the held-out fold only).
 
     - `learned_nn`, `learned_mean`: per outer fold, 1-NN and nearest-class-mean accuracy with
       λ learned on that fold's training roots.
     - `paper_nn`, `paper_mean`: the same folds at the starting λ (the paper's by default).
+    - `learned_log_loss`, `paper_log_loss`: per outer fold, the held-out NCA log-loss
+      (`held_out_log_loss`, lower is better) at the learned and the starting λ: the loss the
+      learning minimises, on roots it never saw. Accuracy saturates on easy sets (a tie at
+      100 % says nothing); this score still tells whether the learned λ generalises.
     - `weights`: per fold, the learned λ as a dict (`Weights.to_dict`); `folds`: the test indices of each fold.
     - `n_reregistrations`, `status`: per fold, from `learn_weights`.
     - `seconds_learning`: wall time of each fold's learning (registrations included).
@@ -826,6 +856,8 @@ class CVAccuracy(eqx.Module):
     learned_mean: np.ndarray
     paper_nn: np.ndarray
     paper_mean: np.ndarray
+    learned_log_loss: np.ndarray
+    paper_log_loss: np.ndarray
     weights: list
     folds: list
     n_reregistrations: np.ndarray
@@ -834,7 +866,7 @@ class CVAccuracy(eqx.Module):
     regularisation: np.ndarray
 
     def summary(self) -> dict:
-        """Mean and standard deviation over folds of each accuracy."""
+        """Mean and standard deviation over folds of each accuracy and held-out log-loss."""
         return {
             name: (float(np.mean(v)), float(np.std(v)))
             for name, v in (
@@ -842,28 +874,37 @@ class CVAccuracy(eqx.Module):
                 ("learned_mean", self.learned_mean),
                 ("paper_nn", self.paper_nn),
                 ("paper_mean", self.paper_mean),
+                ("learned_log_loss", self.learned_log_loss),
+                ("paper_log_loss", self.paper_log_loss),
             )
         }
 
     def __repr__(self) -> str:
-        # The accuracies, not equinox's array summaries (f64[5](numpy)).
-        cells = ", ".join(f"{k}={100 * m:.1f} ± {100 * sd:.1f} %" for k, (m, sd) in self.summary().items())
-        return f"CVAccuracy({cells}; {len(self.folds)} folds, held-out accuracy: mean ± sd over folds)"
+        # The scores, not equinox's array summaries (f64[5](numpy)).
+        cells = ", ".join(
+            f"{k}={m:.3f} ± {sd:.3f}" if k.endswith("log_loss") else f"{k}={100 * m:.1f} ± {100 * sd:.1f} %"
+            for k, (m, sd) in self.summary().items()
+        )
+        return f"CVAccuracy({cells}; {len(self.folds)} folds, held-out scores: mean ± sd over folds)"
 
 
-def fold_accuracy(distances, labels, *, n_folds: int = 5, seed: int = 0) -> dict:
-    """Cross-validated 1-NN and nearest-class-mean accuracy of a fixed distance matrix (no
-    learning), on the same stratified folds as `nested_cv_accuracy` with the same seed:
-    ``{"nn": per-fold array, "mean": per-fold array}``."""
+def fold_accuracy(distances, labels, *, n_folds: int = 5, seed: int = 0, softness: float = 0.1) -> dict:
+    """Cross-validated scores of a fixed distance matrix (no learning), on the same stratified
+    folds as `nested_cv_accuracy` with the same seed: ``{"nn": ..., "mean": ..., "log_loss":
+    ...}``, one entry per fold: 1-NN and nearest-class-mean accuracy, and the held-out NCA
+    log-loss (`held_out_log_loss` at `softness`)."""
     D = np.asarray(distances, np.float64)
     y = check_labels(labels, D.shape[0], min_per_class=n_folds)
-    nn, mean = [], []
+    nn, mean, loss = [], [], []
     for test in stratified_folds(y, n_folds, seed=seed):
         train = np.setdiff1d(np.arange(len(y)), test)
         p_nn, p_mean = fold_predictions(D[np.ix_(test, train)], D[np.ix_(train, train)], y[train])
         nn.append(np.mean(p_nn == y[test]))
         mean.append(np.mean(p_mean == y[test]))
-    return {"nn": np.asarray(nn), "mean": np.asarray(mean)}
+        loss.append(
+            held_out_log_loss(D[np.ix_(test, train)], D[np.ix_(train, train)], y[test], y[train], softness=softness)
+        )
+    return {"nn": np.asarray(nn), "mean": np.asarray(mean), "log_loss": np.asarray(loss)}
 
 
 def nested_cv_accuracy(
@@ -889,7 +930,7 @@ def nested_cv_accuracy(
     The roots are split into `n_folds` stratified folds (seeded by `seed`). For each fold, λ is
     learned (`learn_weights`) on the other folds only; the held-out roots are registered onto
     the training roots at that λ and classified by 1-NN and by the nearest class mean
-    (`fold_predictions`). The starting λ is scored on the same folds. Every pair is registered
+    (`fold_predictions`), and scored by the held-out NCA log-loss (`held_out_log_loss`). The starting λ is scored on the same folds. Every pair is registered
     once at the starting λ (shared by the folds' first inner solves and the starting λ's
     scores); each fold then re-registers its training pairs up to `max_reregistrations` times
     and its test × training pairs once.
@@ -927,12 +968,19 @@ def nested_cv_accuracy(
     # The paper's λ is scored at the given weights (λr = 0 means no thickness, as given).
     D_paper = D0 if fitter.start is weights else _matrix_at(fitter, weights, I, J, n)
 
-    out = {k: [] for k in ("lnn", "lmean", "pnn", "pmean", "w", "folds", "rereg", "status", "sec", "reg")}
+    out = {
+        k: [] for k in ("lnn", "lmean", "pnn", "pmean", "lloss", "ploss", "w", "folds", "rereg", "status", "sec", "reg")
+    }
     for f, test in enumerate(stratified_folds(y, n_folds, seed=seed)):
         train = np.setdiff1d(np.arange(n), test)
         p_nn, p_mean = fold_predictions(D_paper[np.ix_(test, train)], D_paper[np.ix_(train, train)], y[train])
         out["pnn"].append(np.mean(p_nn == y[test]))
         out["pmean"].append(np.mean(p_mean == y[test]))
+        out["ploss"].append(
+            held_out_log_loss(
+                D_paper[np.ix_(test, train)], D_paper[np.ix_(train, train)], y[test], y[train], softness=softness
+            )
+        )
         li, lj = np.triu_indices(len(train), 1)
         t0 = time.perf_counter()
         res, _ = fitter.fit(
@@ -949,6 +997,7 @@ def nested_cv_accuracy(
         l_nn, l_mean = fold_predictions(D_tt, np.asarray(res.distances, np.float64), y[train])
         out["lnn"].append(np.mean(l_nn == y[test]))
         out["lmean"].append(np.mean(l_mean == y[test]))
+        out["lloss"].append(held_out_log_loss(D_tt, res.distances, y[test], y[train], softness=softness))
         out["w"].append(res.weights.to_dict())
         out["folds"].append(test)
         out["rereg"].append(res.n_reregistrations)
@@ -959,6 +1008,8 @@ def nested_cv_accuracy(
         learned_mean=np.asarray(out["lmean"]),
         paper_nn=np.asarray(out["pnn"]),
         paper_mean=np.asarray(out["pmean"]),
+        learned_log_loss=np.asarray(out["lloss"]),
+        paper_log_loss=np.asarray(out["ploss"]),
         weights=out["w"],
         folds=out["folds"],
         n_reregistrations=np.asarray(out["rereg"]),

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 
+import numpy as np
 import pytest
 from helpers import run_cli
 
@@ -60,6 +61,11 @@ def test_learn_weights_end_to_end(labelled_folder, tmp_path):
     for r in cv[:3]:
         for k in ("learned_1nn", "learned_class_mean", "start_1nn", "start_class_mean"):
             assert 0.0 <= float(r[k]) <= 1.0
+    # The held-out log-loss per fold, and the mean row is the mean of the folds'.
+    for k in ("learned_log_loss", "start_log_loss"):
+        folds = [float(r[k]) for r in cv[:3]]
+        assert all(np.isfinite(v) and v > 0 for v in folds)
+        assert float(cv[3][k]) == pytest.approx(np.mean(folds), rel=1e-6)
     assert (out / "loss_trace.png").is_file()
     # --weights weights.csv: what the other commands weigh with is the learned column.
     args = build_parser().parse_args(["distances", str(d), "--weights", str(out / "weights.csv")])

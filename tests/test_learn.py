@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -383,6 +385,59 @@ def test_fold_accuracy_reference():
         assert acc["mean"][k] == pytest.approx(np.mean(np.array(nm) == y[test]))
 
 
+def _reference_log_loss(D_tt, D_tr, y_test, y_train, softness):
+    # Plain loops, one test root at a time (float64 throughout).
+    n = len(y_train)
+    tau = softness * np.mean([D_tr[i, j] ** 2 for i in range(n) for j in range(i + 1, n)])
+    out = []
+    for x in range(len(y_test)):
+        logits = [-(D_tt[x, j] ** 2) / tau for j in range(n)]
+        top = max(logits)
+        total = sum(math.exp(v - top) for v in logits)
+        same = sum(math.exp(v - top) for v, c in zip(logits, y_train) if c == y_test[x])
+        out.append(-math.log(same / total))
+    return float(np.mean(out))
+
+
+def test_held_out_log_loss_reference_and_invariances():
+    rng = np.random.default_rng(7)
+    X = np.concatenate([rng.normal(0, 1, (7, 3)), rng.normal(2, 1, (7, 3)), rng.normal(-2, 1, (6, 3))])
+    y = np.repeat(["a", "b", "c"], [7, 7, 6])
+    D = np.linalg.norm(X[:, None] - X[None], axis=-1)
+    test, train = np.array([0, 8, 15, 3]), np.setdiff1d(np.arange(20), [0, 8, 15, 3])
+    args = (D[np.ix_(test, train)], D[np.ix_(train, train)], y[test], y[train])
+    got = rs.held_out_log_loss(*args, softness=0.3)
+    assert got == pytest.approx(_reference_log_loss(*args, 0.3), rel=1e-12)
+    # The temperature is relative: the scale of the distances does not matter; nor the order
+    # of the training roots.
+    scaled = rs.held_out_log_loss(args[0] * 37.0, args[1] * 37.0, y[test], y[train], softness=0.3)
+    assert scaled == pytest.approx(got, rel=1e-12)
+    p = rng.permutation(len(train))
+    shuffled = rs.held_out_log_loss(args[0][:, p], args[1][np.ix_(p, p)], y[test], y[train][p], softness=0.3)
+    assert shuffled == pytest.approx(got, rel=1e-12)
+    # Distances that carry no information score log(#classes) when classes are balanced.
+    flat = rs.held_out_log_loss(np.ones((3, 6)), 1 - np.eye(6), np.array([0, 1, 2]), np.repeat([0, 1, 2], 2))
+    assert flat == pytest.approx(math.log(3), rel=1e-12)
+    # A held-out root far from its own class but near another: a large finite loss, not inf
+    # (the same-class terms underflow exp in a naive sum).
+    far = rs.held_out_log_loss(
+        np.array([[40.0, 40.0, 0.1, 0.1]]), 1 - np.eye(4), np.array([0]), np.array([0, 0, 1, 1]), softness=0.1
+    )
+    assert np.isfinite(far) and far > 1000
+
+
+def test_fold_accuracy_log_loss_is_held_out_log_loss_per_fold():
+    rng = np.random.default_rng(3)
+    X = np.concatenate([rng.normal(0, 1, (6, 2)), rng.normal(2, 1, (6, 2))])
+    y = np.repeat([0, 1], 6)
+    D = np.linalg.norm(X[:, None] - X[None], axis=-1)
+    acc = rs.fold_accuracy(D, y, n_folds=3, seed=2, softness=0.2)
+    for k, test in enumerate(stratified_folds(y, 3, seed=2)):
+        train = np.setdiff1d(np.arange(12), test)
+        ref = _reference_log_loss(D[np.ix_(test, train)], D[np.ix_(train, train)], y[test], y[train], 0.2)
+        assert acc["log_loss"][k] == pytest.approx(ref, rel=1e-12)
+
+
 @pytest.mark.slow
 def test_nested_cv_scores_the_paper_weights_like_fold_accuracy():
     roots, labels = position_signal_roots(n_per_class=4, seed=1)
@@ -394,9 +449,20 @@ def test_nested_cv_scores_the_paper_weights_like_fold_accuracy():
     np.testing.assert_allclose(cv.paper_mean, ref["mean"])
     assert cv.learned_nn.shape == (2,) and np.all((cv.learned_nn >= 0) & (cv.learned_nn <= 1))
     assert all(w["lateral"] == 1.0 for w in cv.weights)
-    assert set(cv.summary()) == {"learned_nn", "learned_mean", "paper_nn", "paper_mean"}
+    np.testing.assert_allclose(cv.paper_log_loss, ref["log_loss"], rtol=1e-10)
+    assert cv.learned_log_loss.shape == (2,) and np.all(np.isfinite(cv.learned_log_loss))
+    assert set(cv.summary()) == {
+        "learned_nn",
+        "learned_mean",
+        "paper_nn",
+        "paper_mean",
+        "learned_log_loss",
+        "paper_log_loss",
+    }
     m, sd = cv.summary()["learned_nn"]
     assert f"learned_nn={100 * m:.1f} ± {100 * sd:.1f} %" in repr(cv) and "f64[" not in repr(cv)
+    m, sd = cv.summary()["paper_log_loss"]
+    assert f"paper_log_loss={m:.3f} ± {sd:.3f}" in repr(cv)
 
 
 # --------------------------------------------------------------------------------------------
