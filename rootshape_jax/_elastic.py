@@ -22,7 +22,7 @@ from ._curves import l2_norm_squared, real_coordinates, require_finite, resample
 from ._devices import split_over_devices
 from ._errors import InvalidRootError, as_count, as_flag
 from ._executor import LocalExecutor
-from ._rotation import optimal_rotation
+from ._rotation import kabsch
 from ._warp import check_neighbourhood, dp_warp_if, warp_samples, warp_samples_unchecked
 
 
@@ -79,7 +79,7 @@ def _register(q1, q2, *, rotation: bool, neighbourhood: int, max_iterations, rto
         # problem in O: its Kabsch solution is exact for this γ. Also returns the energy at
         # the rotation the DP used, to measure what the rotation step gained.
         A, B, w = warp_samples_unchecked(q1, q2, gamma)  # γ comes from the DP: no checks needed
-        O = optimal_rotation(A, B, w) if rotation else eye
+        O = kabsch(A, B, w) if rotation else eye
 
         def energy(R):
             diff = A - B @ R.T
@@ -92,7 +92,7 @@ def _register(q1, q2, *, rotation: bool, neighbourhood: int, max_iterations, rto
     # alternation continues from the better. It stops when the rotation step of the best
     # state gained less than rtol (relative): γ is then DP-optimal for (nearly) the final
     # rotation, and another DP would gain about as little. Without rotation one DP is exact.
-    O_kabsch = optimal_rotation(q1, q2) if rotation else eye
+    O_kabsch = kabsch(q1, q2) if rotation else eye
     cap = max_iterations + 1 if rotation else 1
     forced = 2 if rotation else 1
 

@@ -57,7 +57,7 @@ from ._metric import (
     preshape_terms,
     system_weights,
 )
-from ._rotation import optimal_rotation, rotation_maximising
+from ._rotation import axis_angle_rotation, kabsch, rotation_maximising
 from ._tree import SRVFLevel, SRVFTree
 from ._warp import dp_warp_if, warp_srvf
 
@@ -1301,7 +1301,7 @@ def refit_rotation(p: Prepared, perm: Array, g0: Array, gam: Array, children=())
         Bm = jnp.concatenate([Bm, qb.reshape(B, -1, *qb.shape[-2:])[..., :d]], axis=1)
         lam = lateral_weight(p.weights, ell, dtype)
         w = jnp.concatenate([w, lam * matched.reshape(B, -1).astype(dtype)], axis=1)
-    return jax.vmap(optimal_rotation)(A, Bm, w)
+    return jax.vmap(kabsch)(A, Bm, w)
 
 
 class SearchResult(eqx.Module):
@@ -1334,13 +1334,13 @@ def starting_rotation(a: SRVFTree, b: SRVFTree) -> Float[Array, "B d d"]:
     (``||q||²``, first on ties), which is the taproot's start when each plant has one axis."""
     d = a.dim
     if not a.virtual_main:
-        return jax.vmap(optimal_rotation)(a.q0[..., :d], b.q0[..., :d])
+        return jax.vmap(kabsch)(a.q0[..., :d], b.q0[..., :d])
 
     def longest(t):
         L = jnp.where(t.mask, l2_norm_squared(t.q), -1.0)
         return jnp.take_along_axis(t.q, jnp.argmax(L, axis=-1)[:, None, None, None], axis=1)[:, 0, :, :d]
 
-    return jax.vmap(optimal_rotation)(longest(a), longest(b))
+    return jax.vmap(kabsch)(longest(a), longest(b))
 
 
 def longest_axis_view(t: SRVFTree) -> SRVFTree:
@@ -1355,18 +1355,8 @@ def longest_axis_view(t: SRVFTree) -> SRVFTree:
 
 
 def _about_axis(axis: Float[Array, "B 3"], angle) -> Float[Array, "B 3 3"]:
-    """Rotations by `angle` about each unit `axis` (Rodrigues); a zero axis gives the identity."""
-    k = safe_normalise(axis)
-    zero = jnp.zeros_like(k[:, 0])
-    K = jnp.stack(
-        [
-            jnp.stack([zero, -k[:, 2], k[:, 1]], -1),
-            jnp.stack([k[:, 2], zero, -k[:, 0]], -1),
-            jnp.stack([-k[:, 1], k[:, 0], zero], -1),
-        ],
-        axis=1,
-    )
-    return jnp.eye(3, dtype=k.dtype) + jnp.sin(angle) * K + (1 - jnp.cos(angle)) * (K @ K)
+    """Rotations by `angle` about each `axis` (normalised here); a zero axis gives the identity."""
+    return jax.vmap(axis_angle_rotation, in_axes=(0, None))(safe_normalise(axis), angle)
 
 
 # The spins tried about the main root in 3D, and the warp-free alternation rounds each gets.

@@ -12,6 +12,7 @@ from ._engine import Registration, RegistrationOptions, apply_registration
 from ._errors import as_count
 from ._metric import Weights, as_weights, preshape_terms
 from ._registration import register
+from ._rotation import axis_angle_rotation
 from ._tree import RootTree, SRVFLevel, SRVFTree, scale_tree, to_curves, to_srvf, turn_about_base
 
 
@@ -204,9 +205,7 @@ def fractional_rotation(R, t):
     col = sym[:, jnp.argmax(jnp.diag(sym))]
     axis = jnp.where(jnp.linalg.norm(w) > 1e-6, w, col)
     axis = axis / jnp.maximum(jnp.linalg.norm(axis), 1e-30)
-    K = jnp.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    a = angle * t
-    return jnp.eye(3) + jnp.sin(a) * K + (1 - jnp.cos(a)) * (K @ K)
+    return axis_angle_rotation(axis, angle * t)
 
 
 def _unrotate(path: RootTree, rotation, taus) -> RootTree:

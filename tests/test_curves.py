@@ -16,7 +16,7 @@ from rootshape_jax._curves import (
     srvf,
     srvf_to_curve,
 )
-from rootshape_jax._rotation import optimal_rotation, rotate
+from rootshape_jax._rotation import axis_angle_rotation, optimal_rotation, rotate
 from rootshape_jax._tree import resample_polyline
 
 
@@ -179,6 +179,40 @@ def test_optimal_rotation_recovers_known_rotation(d, weighted):
     O = np.asarray(optimal_rotation(A, B, w))
     np.testing.assert_allclose(O, R, atol=1e-10)
     assert abs(np.linalg.det(O) - 1) < 1e-12
+
+
+def test_optimal_rotation_refuses_nan():
+    import equinox as eqx
+
+    import rootshape_jax as rs
+
+    rng = np.random.default_rng(2)
+    A, B = rng.normal(size=(2, 10, 3))
+    for bad_a, bad_b, w in ((A.copy(), B, None), (A, B.copy(), None), (A[None], B[None], np.array([np.nan]))):
+        if w is None:
+            (bad_a if bad_a is not A else bad_b)[3, 1] = np.nan
+        with pytest.raises(rs.InputError, match="NaN or inf"):
+            optimal_rotation(bad_a, bad_b, w)
+    bad = A.copy()
+    bad[0, 0] = np.inf
+    with pytest.raises(eqx.EquinoxRuntimeError, match="NaN or inf"):  # under jit, when it runs
+        jax.block_until_ready(eqx.filter_jit(optimal_rotation)(bad, B))
+    np.testing.assert_allclose(np.asarray(jax.jit(optimal_rotation)(A, B)), np.asarray(optimal_rotation(A, B)))
+
+
+def test_axis_angle_rotation_is_scipys_rotation_vector():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(11)
+    for _ in range(5):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        angle = rng.uniform(-np.pi, np.pi)
+        got = np.asarray(axis_angle_rotation(axis, angle))
+        np.testing.assert_allclose(got, Rotation.from_rotvec(angle * axis).as_matrix(), atol=1e-12)
+        assert got.dtype == np.float64
+    # A zero axis is no rotation (the engine's spin about a main root of zero length).
+    np.testing.assert_array_equal(np.asarray(axis_angle_rotation(np.zeros(3), 1.0)), np.eye(3))
 
 
 def test_optimal_rotation_never_reflects_and_is_optimal():
