@@ -2,7 +2,7 @@
 
 ``d(β1, β2) = min_{O ∈ SO(d), γ} ||q1 − O (q2∘γ)√γ'||``, minimised by alternating the two
 exact partial problems: for a fixed rotation, the DP warp (`dp_warp`); for a fixed warp, weighted
-Kabsch (`optimal_rotation`) on the very quadrature that defines the energy (`warp_samples`).
+Kabsch (`kabsch`) on the very quadrature that defines the energy (`warp_samples`).
 Each step can only lower the energy, so the alternation is monotone. The problem is not
 convex, so it is started twice — from the identity (the result is then never worse than
 without rotation) and from the rotation aligning the unwarped SRVFs — and continued from the

@@ -56,7 +56,7 @@ from jaxtyping import Array, Float
 from tqdm.auto import tqdm
 
 from ._engine import RegistrationOptions, apply_registration, canonical_pairs, register_pairs, registration_options
-from ._errors import LabelError, as_count, is_real_scalar, require_labels_present
+from ._errors import InputError, LabelError, as_count, is_real_scalar, require_labels_present
 from ._executor import LocalExecutor, executor_for
 from ._metric import Weights, as_weights, preshape_terms, unit_energies_by_level, weights_by_level
 from ._pairwise import default_chunk_size
@@ -810,21 +810,44 @@ def fold_predictions(D_test_train: np.ndarray, D_train: np.ndarray, y_train: np.
 
 
 def held_out_log_loss(D_test_train, D_train, y_test, y_train, *, softness: float = 0.1) -> float:
-    """The NCA log-loss of held-out roots against training roots, from distances alone:
+    """The NCA log-loss of held-out roots against training roots, from distances alone.
+
     ``−mean_x log Σ_{j: y_j = y_x} softmax_j(−d²(x, x_j) / τ)`` over the test roots x and the
     training roots j, with the learning's relative temperature ``τ = softness · mean_{i<j}
-    d²(x_i, x_j)`` over the training pairs. The loss `learn_weights` minimises, scored on roots
-    it never saw: a proper score of how confidently (not only whether) the held-out roots'
-    classes are predicted, comparable across distances of any scale. Lower is better; guessing
-    among C equal classes scores ``log C``."""
+    d²(x_i, x_j)`` over the training pairs: the loss `learn_weights` minimises, scored on roots
+    it never saw. A proper score of how confidently (not only whether) the held-out roots'
+    classes are predicted, the same for distances of any scale. Lower is better; distances
+    that carry no information score ``log C`` on C classes of equal size.
+
+    `D_test_train`: ``[n_test, n_train]``; `D_train`: ``[n_train, n_train]``; `y_test`,
+    `y_train`: the labels. Every test root's class needs a training member (`LabelError`)."""
     D_tt = np.asarray(D_test_train, np.float64)
     D_tr = np.asarray(D_train, np.float64)
     y_test, y_train = np.asarray(y_test), np.asarray(y_train)
-    iu = np.triu_indices(D_tr.shape[0], 1)
-    tau = softness * float(np.mean(D_tr[iu] ** 2))
-    if not tau > 0:
+    n_test, n_train = len(y_test), len(y_train)
+    if D_tt.shape != (n_test, n_train) or D_tr.shape != (n_train, n_train) or n_train < 2:
+        raise ValueError(
+            f"held_out_log_loss: D_test_train must be [n_test, n_train] and D_train [n_train, n_train] "
+            f"with n_train >= 2, for {n_test} test and {n_train} training labels; got {D_tt.shape} and {D_tr.shape}."
+        )
+    if not (np.all(np.isfinite(D_tt)) and np.all(np.isfinite(D_tr))) or np.any(D_tt < 0) or np.any(D_tr < 0):
+        raise InputError("held_out_log_loss: distances must be finite and non-negative.")
+    if isinstance(softness, bool) or not is_real_scalar(softness) or not (math.isfinite(softness) and softness > 0):
+        raise ValueError(f"softness must be a positive number, got {softness!r}.")
+    train_classes = set(y_train.tolist())
+    missing = sorted({c for c in y_test.tolist() if c not in train_classes}, key=str)
+    if missing:
+        raise LabelError(
+            f"held_out_log_loss: test classes without a training member ({', '.join(map(str, missing))}); "
+            "split the roots so that every class is in the training roots (stratified folds)."
+        )
+    pairs = D_tr[np.triu_indices(n_train, 1)]
+    top = float(np.max(pairs))
+    if not top > 0:
         raise ValueError("held_out_log_loss: the training roots are all at distance 0 from each other.")
-    logits = -(D_tt**2) / tau
+    scale = top * math.sqrt(float(np.mean((pairs / top) ** 2)))  # √(mean d²), neither over- nor underflowing
+    # d² / τ with the scale divided out first, so that no distance overflows when squared.
+    logits = -((D_tt / scale) ** 2) / softness
     same = y_test[:, None] == y_train[None, :]
     return float(np.mean(_log_sum_exp(logits, np.ones_like(same)) - _log_sum_exp(logits, same)))
 
@@ -832,7 +855,7 @@ def held_out_log_loss(D_test_train, D_train, y_test, y_train, *, softness: float
 def _log_sum_exp(x: np.ndarray, where: np.ndarray) -> np.ndarray:
     """Row-wise ``log Σ_{where} exp(x)``, stable (each row shifted by its own maximum)."""
     top = np.max(np.where(where, x, -np.inf), axis=1, keepdims=True)
-    return top[:, 0] + np.log(np.sum(np.where(where, np.exp(x - top), 0.0), axis=1))
+    return top[:, 0] + np.log(np.sum(np.exp(np.where(where, x - top, -np.inf)), axis=1))
 
 
 class CVAccuracy(eqx.Module):
@@ -894,6 +917,10 @@ def fold_accuracy(distances, labels, *, n_folds: int = 5, seed: int = 0, softnes
     ...}``, one entry per fold: 1-NN and nearest-class-mean accuracy, and the held-out NCA
     log-loss (`held_out_log_loss` at `softness`)."""
     D = np.asarray(distances, np.float64)
+    if D.ndim != 2 or D.shape[0] != D.shape[1]:
+        raise ValueError(f"fold_accuracy: distances must be a square [n, n] matrix, got shape {D.shape}.")
+    if not np.all(np.isfinite(D)) or np.any(D < 0):
+        raise InputError("fold_accuracy: distances must be finite and non-negative.")
     y = check_labels(labels, D.shape[0], min_per_class=n_folds)
     nn, mean, loss = [], [], []
     for test in stratified_folds(y, n_folds, seed=seed):

@@ -78,7 +78,7 @@ from ._engine import (
 from ._errors import ConvergenceError, as_count, as_flag
 from ._executor import LocalExecutor, executor_for
 from ._metric import Weights, as_weights, level_weight, null_costs, pair_lower_bounds, preshape_terms, system_weights
-from ._rotation import optimal_rotation
+from ._rotation import kabsch
 from ._tangent import LevelParams, TreeParams, branch_weight, params_of, params_to_tree, unwhiten, whiten, whitening
 from ._tree import RootTree, SRVFLevel, SRVFTree, batch_size, check_compatible, is_traced, to_curves, to_srvf
 
@@ -444,7 +444,7 @@ def fp_update(y: FPIterate, registered: SRVFTree, energies, weights: Weights):
             [lam_m[None], lam_s * mask.astype(dtype)]
             + [lam * (cl.reg_real > 0.5).reshape(-1).astype(dtype) for lam, cl in zip(lam_deeper, bdeep)]
         )
-        O_new = optimal_rotation(A, Bm, w)
+        O_new = kabsch(A, Bm, w)
         # Degenerate data (all weights zero) gives no information: keep the old rotation.
         return jnp.where(jnp.sum(w) > 0, O_new, O_old)
 

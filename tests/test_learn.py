@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import equinox as eqx
 import jax
@@ -426,6 +427,35 @@ def test_held_out_log_loss_reference_and_invariances():
     assert np.isfinite(far) and far > 1000
 
 
+def test_held_out_log_loss_extreme_scales_and_bad_input():
+    rng = np.random.default_rng(8)
+    X = rng.normal(size=(9, 2))
+    y = np.array([0, 0, 0, 1, 1, 1, 2, 2, 2])
+    D = np.linalg.norm(X[:, None] - X[None], axis=-1)
+    test, train = np.array([0, 3, 6]), np.setdiff1d(np.arange(9), [0, 3, 6])
+    args = (D[np.ix_(test, train)], D[np.ix_(train, train)], y[test], y[train])
+    ref = rs.held_out_log_loss(*args)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no overflow or divide warnings on the way
+        for c in (1e160, 1e-160):
+            assert rs.held_out_log_loss(args[0] * c, args[1] * c, y[test], y[train]) == pytest.approx(ref, rel=1e-12)
+        rs.held_out_log_loss(np.array([[40.0, 40.0, 0.1, 0.1]]), 1 - np.eye(4), np.array([0]), np.array([0, 0, 1, 1]))
+    nan = args[0].copy()
+    nan[1, 2] = np.nan
+    with pytest.raises(rs.InputError, match="finite"):
+        rs.held_out_log_loss(nan, args[1], y[test], y[train])
+    with pytest.raises(ValueError, match=r"D_test_train must be \[n_test, n_train\]"):
+        rs.held_out_log_loss(args[0][:, :-1], args[1], y[test], y[train])
+    with pytest.raises(ValueError, match="softness must be a positive number"):
+        rs.held_out_log_loss(*args, softness=0.0)
+    with pytest.raises(LabelError, match=r"without a training member \(7\)"):
+        rs.held_out_log_loss(args[0], args[1], np.array([0, 1, 7]), y[train])
+    with pytest.raises(ValueError, match="all at distance 0"):
+        rs.held_out_log_loss(np.zeros((3, 6)), np.zeros((6, 6)), y[test], y[train])
+    with pytest.raises(rs.InputError, match="fold_accuracy: distances must be finite"):
+        rs.fold_accuracy(np.where(np.eye(9, dtype=bool), 0.0, np.nan), y, n_folds=3)
+
+
 def test_fold_accuracy_log_loss_is_held_out_log_loss_per_fold():
     rng = np.random.default_rng(3)
     X = np.concatenate([rng.normal(0, 1, (6, 2)), rng.normal(2, 1, (6, 2))])
@@ -450,7 +480,13 @@ def test_nested_cv_scores_the_paper_weights_like_fold_accuracy():
     assert cv.learned_nn.shape == (2,) and np.all((cv.learned_nn >= 0) & (cv.learned_nn <= 1))
     assert all(w["lateral"] == 1.0 for w in cv.weights)
     np.testing.assert_allclose(cv.paper_log_loss, ref["log_loss"], rtol=1e-10)
-    assert cv.learned_log_loss.shape == (2,) and np.all(np.isfinite(cv.learned_log_loss))
+    # The learned λ's score is on that fold's distances at its own λ (registered afresh).
+    for f, test in enumerate(cv.folds):
+        train = np.setdiff1d(np.arange(len(labels)), test)
+        D_f = np.asarray(rs.pairwise_distances(trees, weights=Weights(**cv.weights[f]), progress=False))
+        y = np.asarray(labels)
+        want = rs.held_out_log_loss(D_f[np.ix_(test, train)], D_f[np.ix_(train, train)], y[test], y[train])
+        assert cv.learned_log_loss[f] == pytest.approx(want, rel=1e-6)
     assert set(cv.summary()) == {
         "learned_nn",
         "learned_mean",

@@ -616,8 +616,8 @@ def build_parser() -> argparse.ArgumentParser:
         "Learn how much main-root shape, lateral shape and lateral positions (and thickness, "
         "where the files give diameters) should count so that roots of the same class (--by "
         "COLUMN of --labels/--metadata) are nearest each other. Writes weights.csv (give it to "
-        "the other commands: --weights weights.csv), loss_trace.png, and cross_validation.csv: accuracy on held-out "
-        "roots with the weights learned on the other folds only, against the starting weights.",
+        "the other commands: --weights weights.csv), loss_trace.png, and cross_validation.csv: accuracy and log-loss on "
+        "held-out roots with the weights learned on the other folds only, against the starting weights.",
         cmd_learn_weights,
     )
     _add_common(p)
