@@ -334,7 +334,12 @@ def markdown(results) -> str:
             if "log_loss" in acc[ours] and "log_loss" in acc["paper"]:
                 mine, theirs = float(np.mean(acc[ours]["log_loss"])), float(np.mean(acc["paper"]["log_loss"]))
                 word = "beats" if mine < theirs else "ties" if mine == theirs else "trails"
-                verdict.append(f"held-out log-loss: {word} the paper's λ ({mine:.3f} against {theirs:.3f})")
+                # Fold by fold (the same folds): is the mean's difference consistent or one fold's?
+                diff = np.round(np.asarray(acc[ours]["log_loss"]) - np.asarray(acc["paper"]["log_loss"]), 4)
+                verdict.append(
+                    f"held-out log-loss: {word} the paper's λ ({mine:.3f} against {theirs:.3f}; lower in "
+                    f"{int(np.sum(diff < 0))} of {diff.size} folds, higher in {int(np.sum(diff > 0))})"
+                )
             who = "learned λ" if ours == "learned" else "learned λ, penalty by inner CV"
             lines.append(f"- {tag}, {who}: " + "; ".join(verdict) + ".")
     lines += [
