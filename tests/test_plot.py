@@ -276,6 +276,32 @@ def test_plot_mean_turns_a_karcher_mean_upright(mean):
     assert _angle(_longest_chord(axes["mean"]), target) > 90.0
 
 
+def test_plot_modes_and_samples_turned_by_a_rotation(pca):
+    """rotation=R draws every root turned about its base by R: the same segments as drawing
+    the trees turned with turn_about_base (how the command line draws them upright)."""
+    t = np.radians(35.0)
+    R = np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+    alphas = [-1.0, 0.0, 1.0]
+    row = rs.modes(pca, alphas, component=0)
+    _, turned = P.plot_modes(pca, alphas, components=0, rotation=R)
+    _, want = P.plot_modes(rs.turn_about_base(rs.to_curves(row), R), alphas, components=0)
+    _, plain = P.plot_modes(pca, alphas, components=0)
+    samples = rs.to_curves(rs.modes(pca, [-2.0, -1.0, 1.0, 2.0], component=0))
+    dist = [2.0, 1.0, 1.0, 2.0]
+    _, s_turned = P.plot_samples_by_distance(samples, dist, n_groups=2, rotation=R)
+    _, s_want = P.plot_samples_by_distance(rs.turn_about_base(samples, R), dist, n_groups=2)
+    for got_rows, want_rows in ((turned, want), (s_turned, s_want)):
+        for a, b in zip(sum(got_rows, []), sum(want_rows, [])):
+            (segs_a, _), (segs_b, _) = segments_and_colors(a), segments_and_colors(b)
+            assert len(segs_a) == len(segs_b) > 0
+            for sa, sb in zip(segs_a, segs_b):
+                np.testing.assert_allclose(sa, sb, atol=1e-9)
+    # ... and not what is drawn without it.
+    assert _angle(_longest_chord(turned[0][1]), _longest_chord(plain[0][1])) == pytest.approx(35.0, abs=0.01)
+    with pytest.raises(ValueError, match=r"rotation must be a finite \[2, 2\] matrix"):
+        P.plot_modes(pca, alphas, rotation=np.eye(3))
+
+
 def test_plot_modes(trees, tmp_path):
     t = unstack(trees)
     alphas = [-2.0, -1.0, 0.0, 1.0, 2.0]

@@ -94,14 +94,37 @@ class Drawing:
 
     def shifted(self, shift: np.ndarray) -> "Drawing":
         """The same drawing translated by ``shift`` (radii, names and units kept)."""
+        return self._moved(lambda x: x + shift)
+
+    def turned(self, rotation: np.ndarray) -> "Drawing":
+        """The same drawing turned by ``rotation`` ``[d, d]`` about its main root's base."""
+        o = self.main[0]
+        return self._moved(lambda x: o + (x - o) @ rotation.T)
+
+    def _moved(self, f) -> "Drawing":
+        """Every point of the drawing mapped by ``f`` (radii, names and units kept)."""
         return dataclasses.replace(
             self,
-            main=self.main + shift,
-            laterals=tuple((k, lat + shift) for k, lat in self.laterals),
-            nulls=tuple((k, p + shift) for k, p in self.nulls),
-            deeper=tuple((slot, b + shift, r) for slot, b, r in self.deeper),
-            deeper_nulls=tuple((slot, p + shift) for slot, p in self.deeper_nulls),
+            main=f(self.main),
+            laterals=tuple((k, f(lat)) for k, lat in self.laterals),
+            nulls=tuple((k, f(p)) for k, p in self.nulls),
+            deeper=tuple((slot, f(b), r) for slot, b, r in self.deeper),
+            deeper_nulls=tuple((slot, f(p)) for slot, p in self.deeper_nulls),
         )
+
+
+def turned_drawings(drawings: list, rotation: Any, *, what: str) -> list:
+    """`drawings` turned about their bases by `rotation` (``[d, d]``), or as they are for None."""
+    if rotation is None:
+        return drawings
+    R = np.asarray(rotation, dtype=float)
+    d = drawings[0].dim
+    if R.shape != (d, d) or not np.all(np.isfinite(R)):
+        raise ValueError(
+            f"{what}: rotation must be a finite [{d}, {d}] matrix (rootshape_jax.upright_rotation(mean, "
+            f"trees)), got shape {R.shape}."
+        )
+    return [x.turned(R) for x in drawings]
 
 
 def _root_deeper(root: Root) -> tuple:

@@ -49,6 +49,7 @@ from ._draw import (
     panel_size,
     resolve_projection,
     subplot_kw,
+    turned_drawings,
 )
 
 _MINUS = "\u2212"
@@ -454,6 +455,7 @@ def plot_modes(
     unit: str | None = None,
     panel_height: float = 2.2,
     title: str | None = "Principal modes of variation",
+    rotation: Any = None,
 ):
     """Grid of the roots along principal modes: rows = components, columns = α.
 
@@ -474,6 +476,10 @@ def plot_modes(
     - `components`: the component of each row, as passed to `modes` (0-based; row ``i`` is
       labelled ``PC components[i] + 1``); default ``0, 1, ...``.
     - `colors`, `linewidth`, `invert_y`, `projection`, `unit`: as in `plot_root`.
+    - `rotation`: a ``[d, d]`` rotation every root is turned by about its base before drawing.
+      The metric ignores rotation, so a mean (and the modes around it) keeps the tilt of the
+      root its solver started from; ``rotation=rs.upright_rotation(pc.mean, trees)`` draws
+      the modes upright like the `trees` the PCA was fitted to, as the command line does.
 
     **Returns** ``(fig, axes)`` with `axes` a list of rows of Axes.
     """
@@ -486,6 +492,7 @@ def plot_modes(
         comps = _row_components(components, 1 if one else len(components))
         mode_trees = modes(mode_trees, alphas, component=comps)
     rows = as_drawing_grid(mode_trees, what="plot_modes: mode_trees")
+    rows = [turned_drawings(row, rotation, what="plot_modes") for row in rows]
     alphas = np.asarray(alphas, dtype=float).reshape(-1)
     for i, row in enumerate(rows):
         if len(row) != alphas.shape[0]:
@@ -573,6 +580,7 @@ def plot_samples_by_distance(
     unit: str | None = None,
     panel_height: float = 1.9,
     title: str | None = "Random roots from the fitted model, grouped by distance to the mean",
+    rotation: Any = None,
 ):
     """Sampled roots in rows of increasing distance to the mean (the paper's random-synthesis
     figure): samples are sorted by distance and cut into `n_groups` groups of equal size.
@@ -583,10 +591,13 @@ def plot_samples_by_distance(
     - `n_groups`: number of rows, closest group first.
     - `max_per_group`: panels per row; larger groups show evenly spaced members (by distance).
     - `colors`, `linewidth`, `invert_y`, `projection`, `unit`: as in `plot_root`.
+    - `rotation`: as in `plot_modes` (``rs.upright_rotation(pc.mean, trees)`` draws samples of
+      a `TangentPCA` upright like the trees it was fitted to).
 
     **Returns** ``(fig, axes)`` with `axes` a list of rows of Axes.
     """
     drawings = as_drawing_list(samples, what="plot_samples_by_distance: samples")
+    drawings = turned_drawings(drawings, rotation, what="plot_samples_by_distance")
     dist = np.asarray(distances_to_mean, dtype=float).reshape(-1)
     if dist.shape[0] != len(drawings):
         raise ValueError(f"plot_samples_by_distance: {dist.shape[0]} distances for {len(drawings)} samples.")
