@@ -858,6 +858,14 @@ def _log_sum_exp(x: np.ndarray, where: np.ndarray) -> np.ndarray:
     return top[:, 0] + np.log(np.sum(np.exp(np.where(where, x - top, -np.inf)), axis=1))
 
 
+def _fold_scores(D_test_train, D_train, y_test, y_train, softness: float) -> tuple[float, float, float]:
+    """One fold's held-out scores from its distances: 1-NN and nearest-class-mean accuracy
+    (`fold_predictions`) and the NCA log-loss (`held_out_log_loss`)."""
+    p_nn, p_mean = fold_predictions(D_test_train, D_train, y_train)
+    loss = held_out_log_loss(D_test_train, D_train, y_test, y_train, softness=softness)
+    return float(np.mean(p_nn == y_test)), float(np.mean(p_mean == y_test)), loss
+
+
 class CVAccuracy(eqx.Module):
     """Result of `nested_cv_accuracy` (accuracies are on the held-out fold only).
 
@@ -925,12 +933,9 @@ def fold_accuracy(distances, labels, *, n_folds: int = 5, seed: int = 0, softnes
     nn, mean, loss = [], [], []
     for test in stratified_folds(y, n_folds, seed=seed):
         train = np.setdiff1d(np.arange(len(y)), test)
-        p_nn, p_mean = fold_predictions(D[np.ix_(test, train)], D[np.ix_(train, train)], y[train])
-        nn.append(np.mean(p_nn == y[test]))
-        mean.append(np.mean(p_mean == y[test]))
-        loss.append(
-            held_out_log_loss(D[np.ix_(test, train)], D[np.ix_(train, train)], y[test], y[train], softness=softness)
-        )
+        scores = _fold_scores(D[np.ix_(test, train)], D[np.ix_(train, train)], y[test], y[train], softness)
+        for acc, score in zip((nn, mean, loss), scores):
+            acc.append(score)
     return {"nn": np.asarray(nn), "mean": np.asarray(mean), "log_loss": np.asarray(loss)}
 
 
@@ -1000,14 +1005,9 @@ def nested_cv_accuracy(
     }
     for f, test in enumerate(stratified_folds(y, n_folds, seed=seed)):
         train = np.setdiff1d(np.arange(n), test)
-        p_nn, p_mean = fold_predictions(D_paper[np.ix_(test, train)], D_paper[np.ix_(train, train)], y[train])
-        out["pnn"].append(np.mean(p_nn == y[test]))
-        out["pmean"].append(np.mean(p_mean == y[test]))
-        out["ploss"].append(
-            held_out_log_loss(
-                D_paper[np.ix_(test, train)], D_paper[np.ix_(train, train)], y[test], y[train], softness=softness
-            )
-        )
+        paper = _fold_scores(D_paper[np.ix_(test, train)], D_paper[np.ix_(train, train)], y[test], y[train], softness)
+        for key, score in zip(("pnn", "pmean", "ploss"), paper):
+            out[key].append(score)
         li, lj = np.triu_indices(len(train), 1)
         t0 = time.perf_counter()
         res, _ = fitter.fit(
@@ -1021,10 +1021,9 @@ def nested_cv_accuracy(
         TI, TJ = (x.ravel() for x in np.meshgrid(test, train, indexing="ij"))
         cross = fitter.register(res.weights, TI, TJ, f"fold {f + 1}: test × train")
         D_tt = np.sqrt(np.maximum(cross.energy, 0.0)).reshape(len(test), len(train))
-        l_nn, l_mean = fold_predictions(D_tt, np.asarray(res.distances, np.float64), y[train])
-        out["lnn"].append(np.mean(l_nn == y[test]))
-        out["lmean"].append(np.mean(l_mean == y[test]))
-        out["lloss"].append(held_out_log_loss(D_tt, res.distances, y[test], y[train], softness=softness))
+        learned = _fold_scores(D_tt, np.asarray(res.distances, np.float64), y[test], y[train], softness)
+        for key, score in zip(("lnn", "lmean", "lloss"), learned):
+            out[key].append(score)
         out["w"].append(res.weights.to_dict())
         out["folds"].append(test)
         out["rereg"].append(res.n_reregistrations)
