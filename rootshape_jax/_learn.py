@@ -877,10 +877,16 @@ class CVAccuracy(eqx.Module):
       learning minimises, on roots it never saw. Accuracy saturates on easy sets (a tie at
       100 % says nothing); this score still tells whether the learned λ generalises.
     - `weights`: per fold, the learned λ as a dict (`Weights.to_dict`); `folds`: the test indices of each fold.
+    - `repeats`: per fold, which repetition of the cross-validation it belongs to (0 … n_repeats − 1;
+      repetition r splits the roots with seed ``seed + r``). Every per-fold array lists the
+      folds of repetition 0 first, then those of repetition 1, and so on.
     - `n_reregistrations`, `status`: per fold, from `learn_weights`.
     - `seconds_learning`: wall time of each fold's learning (registrations included).
     - `regularisation`: per fold, the penalty used (chosen on the training roots when several
       were given).
+
+    `summary()` gives the mean and spread over folds; `fold_comparison()` counts the folds where
+    the learned λ does better, the same or worse than the starting λ.
     """
 
     learned_nn: np.ndarray
@@ -895,9 +901,11 @@ class CVAccuracy(eqx.Module):
     status: tuple = eqx.field(static=True)
     seconds_learning: np.ndarray
     regularisation: np.ndarray
+    repeats: np.ndarray
 
     def summary(self) -> dict:
-        """Mean and standard deviation over folds of each accuracy and held-out log-loss."""
+        """Mean and standard deviation over every fold (of every repetition) of each accuracy
+        and held-out log-loss."""
         return {
             name: (float(np.mean(v)), float(np.std(v)))
             for name, v in (
@@ -916,22 +924,52 @@ class CVAccuracy(eqx.Module):
             f"{k}={m:.3f} ± {sd:.3f}" if k.endswith("log_loss") else f"{k}={100 * m:.1f} ± {100 * sd:.1f} %"
             for k, (m, sd) in self.summary().items()
         )
-        return f"CVAccuracy({cells}; {len(self.folds)} folds, held-out scores: mean ± sd over folds)"
+        n_repeats = len(np.unique(self.repeats))
+        folds = (
+            f"{len(self.folds)} folds"
+            if n_repeats == 1
+            else f"{n_repeats} repeats × {len(self.folds) // n_repeats} folds"
+        )
+        better = ", ".join(f"{k} {b}/{t}/{w}" for k, (b, t, w) in self.fold_comparison().items())
+        return (
+            f"CVAccuracy({cells}; {folds}, held-out scores: mean ± sd over folds; "
+            f"folds where learned λ is better/equal/worse: {better})"
+        )
+
+    def fold_comparison(self) -> dict:
+        """For each score, the number of folds where the learned λ is better than, equal to
+        and worse than the starting λ on the same held-out roots: ``{"nn": (better, equal,
+        worse), "mean": ..., "log_loss": ...}`` (accuracy: higher is better; log-loss: lower,
+        compared to 4 decimals so that rounding is not a win). A mean over folds can hide that
+        one fold carries the difference; these counts show whether it is consistent."""
+        out = {}
+        for key, learned, start, sign in (
+            ("nn", self.learned_nn, self.paper_nn, 1.0),
+            ("mean", self.learned_mean, self.paper_mean, 1.0),
+            ("log_loss", self.learned_log_loss, self.paper_log_loss, -1.0),
+        ):
+            gain = sign * np.round(np.asarray(learned, np.float64) - np.asarray(start, np.float64), 4)
+            out[key] = (int(np.sum(gain > 0)), int(np.sum(gain == 0)), int(np.sum(gain < 0)))
+        return out
 
 
-def fold_accuracy(distances, labels, *, n_folds: int = 5, seed: int = 0, softness: float = 0.1) -> dict:
+def fold_accuracy(
+    distances, labels, *, n_folds: int = 5, seed: int = 0, n_repeats: int = 1, softness: float = 0.1
+) -> dict:
     """Cross-validated scores of a fixed distance matrix (no learning), on the same stratified
-    folds as `nested_cv_accuracy` with the same seed: ``{"nn": ..., "mean": ..., "log_loss":
-    ...}``, one entry per fold: 1-NN and nearest-class-mean accuracy, and the held-out NCA
-    log-loss (`held_out_log_loss` at `softness`)."""
+    folds as `nested_cv_accuracy` with the same seed and `n_repeats`: ``{"nn": ..., "mean":
+    ..., "log_loss": ...}``, one entry per fold (the folds of repetition 0 first): 1-NN and
+    nearest-class-mean accuracy, and the held-out NCA log-loss (`held_out_log_loss` at
+    `softness`)."""
     D = np.asarray(distances, np.float64)
     if D.ndim != 2 or D.shape[0] != D.shape[1]:
         raise ValueError(f"fold_accuracy: distances must be a square [n, n] matrix, got shape {D.shape}.")
     if not np.all(np.isfinite(D)) or np.any(D < 0):
         raise InputError("fold_accuracy: distances must be finite and non-negative.")
+    n_folds, n_repeats = _check_folds(n_folds, n_repeats)
     y = check_labels(labels, D.shape[0], min_per_class=n_folds)
     nn, mean, loss = [], [], []
-    for test in stratified_folds(y, n_folds, seed=seed):
+    for _, test in _repeated_folds(y, n_folds, seed, n_repeats):
         train = np.setdiff1d(np.arange(len(y)), test)
         scores = _fold_scores(D[np.ix_(test, train)], D[np.ix_(train, train)], y[test], y[train], softness)
         for acc, score in zip((nn, mean, loss), scores):
@@ -945,6 +983,7 @@ def nested_cv_accuracy(
     *,
     n_folds: int = 5,
     seed: int = 0,
+    n_repeats: int = 1,
     weights: Weights | None = None,
     max_reregistrations: int = 2,
     tol: float = 1e-3,
@@ -967,13 +1006,19 @@ def nested_cv_accuracy(
     scores); each fold then re-registers its training pairs up to `max_reregistrations` times
     and its test × training pairs once.
 
+    `n_repeats`: repeat the whole cross-validation on this many different splits (repetition
+    r uses the seed ``seed + r``; repeated stratified k-fold). On small sets one split's folds
+    decide a comparison by a root or two; several splits show whether a difference holds
+    beyond one split. The registrations at the starting λ are computed once and shared by
+    every repetition; each fold's learning and test registrations are done per fold, so the
+    cost of the learning grows with `n_repeats`.
+
     Every class needs at least `n_folds` members (`LabelError` otherwise, before any work).
     Other options as in `learn_weights`.
     """
     weights, opts, radii = _prepare(trees, weights, registration, options)
     n = batch_size(trees)
-    if isinstance(n_folds, bool) or not isinstance(n_folds, (int, np.integer)) or n_folds < 2:
-        raise ValueError(f"n_folds must be an integer >= 2, got {n_folds!r}.")
+    n_folds, n_repeats = _check_folds(n_folds, n_repeats)
     y = check_labels(labels, n, min_per_class=n_folds)
     _check_options(max_reregistrations, max_steps, tol)
     fitter = _Fitter(
@@ -1001,9 +1046,24 @@ def nested_cv_accuracy(
     D_paper = D0 if fitter.start is weights else _matrix_at(fitter, weights, I, J, n)
 
     out = {
-        k: [] for k in ("lnn", "lmean", "pnn", "pmean", "lloss", "ploss", "w", "folds", "rereg", "status", "sec", "reg")
+        k: []
+        for k in (
+            "lnn",
+            "lmean",
+            "pnn",
+            "pmean",
+            "lloss",
+            "ploss",
+            "w",
+            "folds",
+            "rereg",
+            "status",
+            "sec",
+            "reg",
+            "rep",
+        )
     }
-    for f, test in enumerate(stratified_folds(y, n_folds, seed=seed)):
+    for f, (rep, test) in enumerate(_repeated_folds(y, n_folds, seed, n_repeats)):
         train = np.setdiff1d(np.arange(n), test)
         paper = _fold_scores(D_paper[np.ix_(test, train)], D_paper[np.ix_(train, train)], y[test], y[train], softness)
         for key, score in zip(("pnn", "pmean", "ploss"), paper):
@@ -1019,7 +1079,8 @@ def nested_cv_accuracy(
         )
         out["sec"].append(time.perf_counter() - t0)
         TI, TJ = (x.ravel() for x in np.meshgrid(test, train, indexing="ij"))
-        cross = fitter.register(res.weights, TI, TJ, f"fold {f + 1}: test × train")
+        name = f"fold {f + 1}" if n_repeats == 1 else f"repeat {rep + 1}, fold {f % n_folds + 1}"
+        cross = fitter.register(res.weights, TI, TJ, f"{name}: test × train")
         D_tt = np.sqrt(np.maximum(cross.energy, 0.0)).reshape(len(test), len(train))
         learned = _fold_scores(D_tt, np.asarray(res.distances, np.float64), y[test], y[train], softness)
         for key, score in zip(("lnn", "lmean", "lloss"), learned):
@@ -1029,6 +1090,7 @@ def nested_cv_accuracy(
         out["rereg"].append(res.n_reregistrations)
         out["status"].append(res.status)
         out["reg"].append(res.regularisation)
+        out["rep"].append(rep)
     return CVAccuracy(
         learned_nn=np.asarray(out["lnn"]),
         learned_mean=np.asarray(out["lmean"]),
@@ -1042,7 +1104,21 @@ def nested_cv_accuracy(
         status=tuple(out["status"]),
         seconds_learning=np.asarray(out["sec"]),
         regularisation=np.asarray(out["reg"]),
+        repeats=np.asarray(out["rep"], np.int64),
     )
+
+
+def _check_folds(n_folds, n_repeats) -> tuple[int, int]:
+    if isinstance(n_folds, bool) or not isinstance(n_folds, (int, np.integer)) or n_folds < 2:
+        raise ValueError(f"n_folds must be an integer >= 2, got {n_folds!r}.")
+    return int(n_folds), as_count(n_repeats, "n_repeats")
+
+
+def _repeated_folds(y, n_folds: int, seed: int, n_repeats: int):
+    """(repetition, test indices) of every fold: repetition r splits with seed ``seed + r``."""
+    for rep in range(n_repeats):
+        for test in stratified_folds(y, n_folds, seed=as_count(seed, "seed", minimum=0) + rep):
+            yield rep, test
 
 
 def _matrix_at(fitter, weights, I, J, n):

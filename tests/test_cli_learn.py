@@ -48,7 +48,7 @@ def test_learn_weights_end_to_end(labelled_folder, tmp_path):
     out = tmp_path / "o"
     proc = run_cli(
         "learn-weights", d, "--labels", table, "--by", "condition", "--out", out, "--points", "12",
-        "--laterals", "3", "--folds", "3", "--reregistrations", "1", "--quiet",
+        "--laterals", "3", "--folds", "3", "--repeats", "2", "--reregistrations", "1", "--quiet",
         "--regularisation", "1e-3,0.1",
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
@@ -56,16 +56,23 @@ def test_learn_weights_end_to_end(labelled_folder, tmp_path):
     assert set(w) == {"main", "lateral", "position", "thickness"}
     assert float(w["lateral"]["learned"]) == 1.0 and w["main"]["start"] == "0.02"  # float32, shortest text
     cv = read_csv(out / "cross_validation.csv")
-    assert [r["fold"] for r in cv] == ["1", "2", "3", "mean", "sd"]
-    assert sum(int(r["held_out"]) for r in cv[:3]) == 6
-    for r in cv[:3]:
+    # Two repeats of 3 folds, then the mean and sd over all six.
+    assert [(r["repeat"], r["fold"]) for r in cv] == [
+        ("1", "1"), ("1", "2"), ("1", "3"), ("2", "1"), ("2", "2"), ("2", "3"), ("", "mean"), ("", "sd")
+    ]  # fmt: skip
+    # Each repeat holds every root out once.
+    assert sum(int(r["held_out"]) for r in cv[:3]) == sum(int(r["held_out"]) for r in cv[3:6]) == 6
+    for r in cv[:6]:
         for k in ("learned_1nn", "learned_class_mean", "start_1nn", "start_class_mean"):
             assert 0.0 <= float(r[k]) <= 1.0
     # The held-out log-loss per fold, and the mean row is the mean of the folds'.
     for k in ("learned_log_loss", "start_log_loss"):
-        folds = [float(r[k]) for r in cv[:3]]
+        folds = [float(r[k]) for r in cv[:6]]
         assert all(np.isfinite(v) and v > 0 for v in folds)
-        assert float(cv[3][k]) == pytest.approx(np.mean(folds), rel=1e-6)
+        assert float(cv[6][k]) == pytest.approx(np.mean(folds), rel=1e-6)
+    # The note's fold counts are the table's: folds where the learned log-loss is lower.
+    lower = sum(round(float(r["learned_log_loss"]) - float(r["start_log_loss"]), 4) < 0 for r in cv[:6])
+    assert "log-loss " + str(lower) + " / " in proc.stdout, proc.stdout
     assert (out / "loss_trace.png").is_file()
     # --weights weights.csv: what the other commands weigh with is the learned column.
     args = build_parser().parse_args(["distances", str(d), "--weights", str(out / "weights.csv")])

@@ -386,6 +386,46 @@ def test_fold_accuracy_reference():
         assert acc["mean"][k] == pytest.approx(np.mean(np.array(nm) == y[test]))
 
 
+def test_fold_accuracy_repeats_are_the_seeds_in_turn():
+    rng = np.random.default_rng(6)
+    X = np.concatenate([rng.normal(0, 1, (7, 2)), rng.normal(1.5, 1, (8, 2))])
+    y = np.repeat(["a", "b"], [7, 8])
+    D = np.linalg.norm(X[:, None] - X[None], axis=-1)
+    got = rs.fold_accuracy(D, y, n_folds=3, seed=4, n_repeats=3)
+    parts = [rs.fold_accuracy(D, y, n_folds=3, seed=s) for s in (4, 5, 6)]
+    for key in ("nn", "mean", "log_loss"):
+        np.testing.assert_array_equal(got[key], np.concatenate([p[key] for p in parts]))
+    # Different seeds split differently (else the repeats would add nothing).
+    assert not all(np.array_equal(a, b) for a, b in zip(stratified_folds(y, 3, seed=4), stratified_folds(y, 3, seed=5)))
+    for bad in (0, 1.5, True, -1):
+        with pytest.raises(ValueError, match="n_repeats"):
+            rs.fold_accuracy(D, y, n_folds=3, n_repeats=bad)
+    with pytest.raises(ValueError, match="n_folds"):
+        rs.fold_accuracy(D, y, n_folds=1)
+
+
+def test_fold_comparison_counts_folds_by_direction():
+    zeros = np.zeros(4)
+    cv = learn.CVAccuracy(
+        learned_nn=np.array([1.0, 0.5, 0.75, 1.0]),
+        learned_mean=np.array([0.5, 0.5, 0.5, 0.5]),
+        paper_nn=np.array([0.75, 0.75, 0.75, 1.0]),
+        paper_mean=np.array([0.5, 0.5, 0.5, 0.5]),
+        # log-loss: lower is better; a difference below the 4th decimal is a tie.
+        learned_log_loss=np.array([0.1, 0.3, 0.20000001, 0.5]),
+        paper_log_loss=np.array([0.2, 0.2, 0.2, 0.6]),
+        weights=[{}] * 4,
+        folds=[np.arange(2)] * 4,
+        n_reregistrations=zeros,
+        status=("converged",) * 4,
+        seconds_learning=zeros,
+        regularisation=zeros,
+        repeats=np.array([0, 0, 1, 1]),
+    )
+    assert cv.fold_comparison() == {"nn": (1, 2, 1), "mean": (0, 4, 0), "log_loss": (2, 1, 1)}
+    assert "2 repeats × 2 folds" in repr(cv) and "log_loss 2/1/1" in repr(cv)
+
+
 def _reference_log_loss(D_tt, D_tr, y_test, y_train, softness):
     # Plain loops, one test root at a time (float64 throughout).
     n = len(y_train)
@@ -472,12 +512,16 @@ def test_fold_accuracy_log_loss_is_held_out_log_loss_per_fold():
 def test_nested_cv_scores_the_paper_weights_like_fold_accuracy():
     roots, labels = position_signal_roots(n_per_class=4, seed=1)
     trees = rs.batch(roots, n_points=20, normalise_scale=True, dtype=np.float64)
-    cv = rs.nested_cv_accuracy(trees, labels, n_folds=2, seed=0, progress=False, max_reregistrations=1)
+    cv = rs.nested_cv_accuracy(trees, labels, n_folds=2, seed=0, n_repeats=2, progress=False, max_reregistrations=1)
     D = np.asarray(rs.pairwise_distances(trees, progress=False))
-    ref = rs.fold_accuracy(D, labels, n_folds=2, seed=0)
+    # Two repetitions of 2 folds: the splits of seeds 0 and 1, in turn, every score on them.
+    ref = rs.fold_accuracy(D, labels, n_folds=2, seed=0, n_repeats=2)
+    np.testing.assert_array_equal(cv.repeats, [0, 0, 1, 1])
+    want_folds = stratified_folds(labels, 2, seed=0) + stratified_folds(labels, 2, seed=1)
+    assert all(np.array_equal(a, b) for a, b in zip(cv.folds, want_folds))
     np.testing.assert_allclose(cv.paper_nn, ref["nn"])
     np.testing.assert_allclose(cv.paper_mean, ref["mean"])
-    assert cv.learned_nn.shape == (2,) and np.all((cv.learned_nn >= 0) & (cv.learned_nn <= 1))
+    assert cv.learned_nn.shape == (4,) and np.all((cv.learned_nn >= 0) & (cv.learned_nn <= 1))
     assert all(w["lateral"] == 1.0 for w in cv.weights)
     np.testing.assert_allclose(cv.paper_log_loss, ref["log_loss"], rtol=1e-10)
     # The learned λ's score is on that fold's distances at its own λ (registered afresh).
@@ -556,6 +600,9 @@ def test_nested_cv_needs_n_folds_members_per_class(no_registration):
     trees = rs.batch(roots, n_points=12, dtype=np.float64)
     with pytest.raises(LabelError, match="fewer members than the 5 cross-validation folds.*at most 3 folds"):
         rs.nested_cv_accuracy(trees, ["a"] * 3 + ["b"] * 3, n_folds=5, progress=False)
+    for bad in (0, 2.0, False):
+        with pytest.raises(ValueError, match="n_repeats must be an integer >= 1"):
+            rs.nested_cv_accuracy(trees, ["a"] * 3 + ["b"] * 3, n_folds=3, n_repeats=bad, progress=False)
 
 
 def test_zero_per_order_start_weight_is_refused_before_registering(no_registration):

@@ -631,6 +631,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="outer cross-validation folds (default 5; every class needs N members; 0 skips it)",
     )
     g.add_argument(
+        "--repeats",
+        type=_positive_int,
+        default=1,
+        metavar="R",
+        help="repeat the cross-validation on R different splits (seeds --seed … --seed + R − 1; "
+        "default 1): on small sets one split decides by a root or two",
+    )
+    g.add_argument(
         "--reregistrations",
         type=_positive_int,
         default=2,

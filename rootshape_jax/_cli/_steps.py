@@ -800,13 +800,15 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
             )
         )
         if args.folds:
-            say(args, f"Nested cross-validation ({args.folds} folds): learning on the training folds only...")
+            splits = f"{args.folds} folds" + (f", {args.repeats} repeats" if args.repeats > 1 else "")
+            say(args, f"Nested cross-validation ({splits}): learning on the training folds only...")
             try:
                 cv = rs.nested_cv_accuracy(
                     pop.tree,
                     labels,
                     n_folds=args.folds,
                     seed=args.seed,
+                    n_repeats=args.repeats,
                     weights=start,
                     max_reregistrations=args.reregistrations,
                     regularisation=_penalty(args.regularisation),
@@ -815,28 +817,36 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
             except rs.LabelError as e:
                 sec.notes.append(f"cross-validation skipped: {e}")
                 return
-            header = ["fold", "held_out", "learned_1nn", "learned_class_mean", "start_1nn", "start_class_mean"]
+            header = ["repeat", "fold", "held_out", "learned_1nn", "learned_class_mean", "start_1nn"]
+            header += ["start_class_mean"]
             header += ["learned_log_loss", "start_log_loss"]
             # The learned weights (lateral is held fixed), every order's where they are learned.
             names = [k for k in cv.weights[0] if k != "lateral"]
             header += [f"lambda_{k}" for k in names]
             cv_rows = [
-                [f + 1, len(cv.folds[f]), cv.learned_nn[f], cv.learned_mean[f], cv.paper_nn[f], cv.paper_mean[f]]
-                + [cv.learned_log_loss[f], cv.paper_log_loss[f]]
+                [cv.repeats[f] + 1, f % args.folds + 1, len(cv.folds[f]), cv.learned_nn[f], cv.learned_mean[f]]
+                + [cv.paper_nn[f], cv.paper_mean[f], cv.learned_log_loss[f], cv.paper_log_loss[f]]
                 + [cv.weights[f][k] for k in names]
                 for f in range(len(cv.folds))
             ]
             s = cv.summary()
             scores = ("learned_nn", "learned_mean", "paper_nn", "paper_mean", "learned_log_loss", "paper_log_loss")
-            cv_rows.append(["mean", sum(len(f) for f in cv.folds)] + [s[k][0] for k in scores] + [""] * len(names))
-            cv_rows.append(["sd", ""] + [s[k][1] for k in scores])
+            # Over every fold of every repeat; a root is held out once per repeat.
+            cv_rows.append(["", "mean", sum(len(f) for f in cv.folds)] + [s[k][0] for k in scores] + [""] * len(names))
+            cv_rows.append(["", "sd", ""] + [s[k][1] for k in scores])
             cv_rows[-1] += [""] * len(names)
             out.csv(
                 sec,
                 "cross_validation.csv",
                 header,
                 cv_rows,
-                f"scores on held-out roots, {args.folds} stratified folds (seed {args.seed}): weights "
+                f"scores on held-out roots, {args.folds} stratified folds (seed {args.seed}"
+                + (
+                    f"; {args.repeats} repeats, seeds {args.seed}–{args.seed + args.repeats - 1}"
+                    if args.repeats > 1
+                    else ""
+                )
+                + "): weights "
                 "learned on the other folds vs the starting weights; 1-NN and nearest-class-mean "
                 "accuracy, and the NCA log-loss the learning minimises (lower is better)",
                 table_html=html_table(header, cv_rows),
@@ -848,5 +858,10 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
                 f"1-NN {100 * s['paper_nn'][0]:.0f} ± {100 * s['paper_nn'][1]:.0f} %, class mean "
                 f"{100 * s['paper_mean'][0]:.0f} ± {100 * s['paper_mean'][1]:.0f} %. Held-out log-loss "
                 f"(lower is better): learned {s['learned_log_loss'][0]:.3f}, starting weights "
-                f"{s['paper_log_loss'][0]:.3f}."
+                f"{s['paper_log_loss'][0]:.3f}. Folds where the learned weights do better / the same / worse: "
+                + "; ".join(
+                    f"{name} {b} / {t} / {w}"
+                    for name, (b, t, w) in zip(("1-NN", "class mean", "log-loss"), cv.fold_comparison().values())
+                )
+                + "."
             )
