@@ -104,6 +104,7 @@ def main(argv=None):
     args = p.parse_args(argv)
     if args.merge:
         merged: dict = {}
+        merged_split: dict = {}
         for item in args.merge.split(","):
             # FOLDER, FOLDER:set+set, or FOLDER:set+set:earlier (rows of an earlier version's run)
             folder, _, rest = item.partition(":")
@@ -111,8 +112,12 @@ def main(argv=None):
             part = json.loads((Path(folder) / "learn_weights.json").read_text())
             if only:
                 part["sets"] = {k: v for k, v in part["sets"].items() if k in only.split("+")}
+            split = {k: part["args"].get(k, 1 if k == "repeats" else None) for k in ("n_folds", "seed", "repeats")}
+            if merged and part["sets"] and split != merged_split:
+                # Fold-by-fold comparisons and the report's one description need the same folds.
+                raise SystemExit(f"--merge: {folder} was split with {split}, the first part with {merged_split}")
             if not merged:
-                merged = part
+                merged, merged_split = part, split
             else:
                 if part.get("learn_53"):  # a later folder's timing replaces an earlier one
                     merged["learn_53"] = {
@@ -122,7 +127,7 @@ def main(argv=None):
                 for tag, row in part["sets"].items():
                     row["max_reregistrations_run"] = part["args"]["max_reregistrations"]
                     if earlier:
-                        keys = ("T", "n_folds", "seed", "max_reregistrations")
+                        keys = ("T", "n_folds", "seed", "repeats", "max_reregistrations")
                         row["note"] = "from an earlier run of this script (its older stopping rule), with " + ", ".join(
                             f"{k} {part['args'].get(k)}" for k in keys
                         )
@@ -271,6 +276,8 @@ def pct(v) -> str:
 def markdown(results) -> str:
     import numpy as np
 
+    from rootshape_jax._learn import fold_better
+
     a = results["args"]
     default_command = f"`python benchmarks/bench_learn.py --T {a['T']}`"
     lines = [
@@ -343,21 +350,22 @@ def markdown(results) -> str:
                 d_paper = mean[ours][k] - mean["paper"][k]
                 b = max(base, key=lambda m, k=k: mean[m][k])
                 d_base = mean[ours][k] - mean[b][k]
-                gain = np.round(np.asarray(acc[ours][key]) - np.asarray(acc["paper"][key]), 4)
+                better, _, worse = fold_better(acc[ours][key], acc["paper"][key], higher_is_better=True)
+                d_paper, d_base = round(d_paper, 6), round(d_base, 6)  # a float mean's last bits are no win
                 verdict.append(
                     f"{rule}: {'beats' if d_paper > 0 else 'ties' if d_paper == 0 else 'trails'} the paper's λ "
-                    f"({d_paper:+.1f}; better in {int(np.sum(gain > 0))} of {gain.size} folds, worse in "
-                    f"{int(np.sum(gain < 0))}) and {'beats' if d_base > 0 else 'ties' if d_base == 0 else 'trails'} the "
+                    f"({d_paper:+.1f}; better in {better} of {len(acc[ours][key])} folds, worse in "
+                    f"{worse}) and {'beats' if d_base > 0 else 'ties' if d_base == 0 else 'trails'} the "
                     f"best baseline, {LABEL[b]} ({d_base:+.1f})"
                 )
             if "log_loss" in acc[ours] and "log_loss" in acc["paper"]:
                 mine, theirs = float(np.mean(acc[ours]["log_loss"])), float(np.mean(acc["paper"]["log_loss"]))
                 word = "beats" if mine < theirs else "ties" if mine == theirs else "trails"
                 # Fold by fold (the same folds): is the mean's difference consistent or one fold's?
-                diff = np.round(np.asarray(acc[ours]["log_loss"]) - np.asarray(acc["paper"]["log_loss"]), 4)
+                lower, _, higher = fold_better(acc[ours]["log_loss"], acc["paper"]["log_loss"], higher_is_better=False)
                 verdict.append(
                     f"held-out log-loss: {word} the paper's λ ({mine:.3f} against {theirs:.3f}; lower in "
-                    f"{int(np.sum(diff < 0))} of {diff.size} folds, higher in {int(np.sum(diff > 0))})"
+                    f"{lower} of {len(acc[ours]['log_loss'])} folds, higher in {higher})"
                 )
             who = "learned λ" if ours == "learned" else "learned λ, penalty by inner CV"
             lines.append(f"- {tag}, {who}: " + "; ".join(verdict) + ".")

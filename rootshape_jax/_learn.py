@@ -939,18 +939,26 @@ class CVAccuracy(eqx.Module):
     def fold_comparison(self) -> dict:
         """For each score, the number of folds where the learned λ is better than, equal to
         and worse than the starting λ on the same held-out roots: ``{"nn": (better, equal,
-        worse), "mean": ..., "log_loss": ...}`` (accuracy: higher is better; log-loss: lower,
-        compared to 4 decimals so that rounding is not a win). A mean over folds can hide that
-        one fold carries the difference; these counts show whether it is consistent."""
-        out = {}
-        for key, learned, start, sign in (
-            ("nn", self.learned_nn, self.paper_nn, 1.0),
-            ("mean", self.learned_mean, self.paper_mean, 1.0),
-            ("log_loss", self.learned_log_loss, self.paper_log_loss, -1.0),
-        ):
-            gain = sign * np.round(np.asarray(learned, np.float64) - np.asarray(start, np.float64), 4)
-            out[key] = (int(np.sum(gain > 0)), int(np.sum(gain == 0)), int(np.sum(gain < 0)))
-        return out
+        worse), "mean": ..., "log_loss": ...}`` (accuracy: higher is better; log-loss: lower).
+        Scores within a relative 1e-4 of each other count as equal (`fold_better`), so that
+        rounding is not a win. A mean over folds can hide that one fold carries the difference;
+        these counts show whether it is consistent."""
+        return {
+            "nn": fold_better(self.learned_nn, self.paper_nn, higher_is_better=True),
+            "mean": fold_better(self.learned_mean, self.paper_mean, higher_is_better=True),
+            "log_loss": fold_better(self.learned_log_loss, self.paper_log_loss, higher_is_better=False),
+        }
+
+
+def fold_better(scores, reference, *, higher_is_better: bool) -> tuple[int, int, int]:
+    """(better, equal, worse): fold by fold, how `scores` compare with `reference` on the same
+    folds. Equal means within a relative 1e-4 (and 1e-12 absolute) of each other."""
+    a, b = np.asarray(scores, np.float64), np.asarray(reference, np.float64)
+    if a.shape != b.shape:
+        raise ValueError(f"fold_better: scores and reference differ in shape, {a.shape} and {b.shape}.")
+    equal = np.isclose(a, b, rtol=1e-4, atol=1e-12)
+    up = (a > b) if higher_is_better else (a < b)
+    return int(np.sum(up & ~equal)), int(np.sum(equal)), int(np.sum(~up & ~equal))
 
 
 def fold_accuracy(
@@ -966,7 +974,7 @@ def fold_accuracy(
         raise ValueError(f"fold_accuracy: distances must be a square [n, n] matrix, got shape {D.shape}.")
     if not np.all(np.isfinite(D)) or np.any(D < 0):
         raise InputError("fold_accuracy: distances must be finite and non-negative.")
-    n_folds, n_repeats = _check_folds(n_folds, n_repeats)
+    n_folds, n_repeats, seed = _check_folds(n_folds, n_repeats, seed)
     y = check_labels(labels, D.shape[0], min_per_class=n_folds)
     nn, mean, loss = [], [], []
     for _, test in _repeated_folds(y, n_folds, seed, n_repeats):
@@ -1018,7 +1026,7 @@ def nested_cv_accuracy(
     """
     weights, opts, radii = _prepare(trees, weights, registration, options)
     n = batch_size(trees)
-    n_folds, n_repeats = _check_folds(n_folds, n_repeats)
+    n_folds, n_repeats, seed = _check_folds(n_folds, n_repeats, seed)
     y = check_labels(labels, n, min_per_class=n_folds)
     _check_options(max_reregistrations, max_steps, tol)
     fitter = _Fitter(
@@ -1108,16 +1116,17 @@ def nested_cv_accuracy(
     )
 
 
-def _check_folds(n_folds, n_repeats) -> tuple[int, int]:
+def _check_folds(n_folds, n_repeats, seed) -> tuple[int, int, int]:
+    """The cross-validation's options checked before any work (registrations are slow)."""
     if isinstance(n_folds, bool) or not isinstance(n_folds, (int, np.integer)) or n_folds < 2:
         raise ValueError(f"n_folds must be an integer >= 2, got {n_folds!r}.")
-    return int(n_folds), as_count(n_repeats, "n_repeats")
+    return int(n_folds), as_count(n_repeats, "n_repeats"), as_count(seed, "seed", minimum=0)
 
 
 def _repeated_folds(y, n_folds: int, seed: int, n_repeats: int):
     """(repetition, test indices) of every fold: repetition r splits with seed ``seed + r``."""
     for rep in range(n_repeats):
-        for test in stratified_folds(y, n_folds, seed=as_count(seed, "seed", minimum=0) + rep):
+        for test in stratified_folds(y, n_folds, seed=seed + rep):
             yield rep, test
 
 

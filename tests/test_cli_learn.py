@@ -70,9 +70,16 @@ def test_learn_weights_end_to_end(labelled_folder, tmp_path):
         folds = [float(r[k]) for r in cv[:6]]
         assert all(np.isfinite(v) and v > 0 for v in folds)
         assert float(cv[6][k]) == pytest.approx(np.mean(folds), rel=1e-6)
-    # The note's fold counts are the table's: folds where the learned log-loss is lower.
-    lower = sum(round(float(r["learned_log_loss"]) - float(r["start_log_loss"]), 4) < 0 for r in cv[:6])
-    assert "log-loss " + str(lower) + " / " in proc.stdout, proc.stdout
+    # The note's fold counts are the table's (better / same / worse than the starting weights).
+    for name, learned, start, sign in (
+        ("1-NN", "learned_1nn", "start_1nn", 1),
+        ("class mean", "learned_class_mean", "start_class_mean", 1),
+        ("log-loss", "learned_log_loss", "start_log_loss", -1),
+    ):
+        a, b = np.array([float(r[learned]) for r in cv[:6]]), np.array([float(r[start]) for r in cv[:6]])
+        same = np.isclose(a, b, rtol=1e-4, atol=1e-12)
+        better, worse = np.sum((sign * (a - b) > 0) & ~same), np.sum((sign * (a - b) < 0) & ~same)
+        assert f"{name} {better} / {np.sum(same)} / {worse}" in proc.stdout, proc.stdout
     assert (out / "loss_trace.png").is_file()
     # --weights weights.csv: what the other commands weigh with is the learned column.
     args = build_parser().parse_args(["distances", str(d), "--weights", str(out / "weights.csv")])
@@ -128,6 +135,8 @@ def test_learn_weights_per_order_at_depth_3(tmp_path):
     assert make_weights(args).deeper == ((3.0, 4.0),)
     cv = read_csv(out / "cross_validation.csv")
     assert all(float(r["lambda_position_order2"]) > 0 for r in cv[:3])
+    # Without --repeats, one split: every fold row is repeat 1.
+    assert [(r["repeat"], r["fold"]) for r in cv] == [("1", "1"), ("1", "2"), ("1", "3"), ("", "mean"), ("", "sd")]
 
 
 def write_table(path, text):

@@ -391,7 +391,7 @@ def test_fold_accuracy_repeats_are_the_seeds_in_turn():
     X = np.concatenate([rng.normal(0, 1, (7, 2)), rng.normal(1.5, 1, (8, 2))])
     y = np.repeat(["a", "b"], [7, 8])
     D = np.linalg.norm(X[:, None] - X[None], axis=-1)
-    got = rs.fold_accuracy(D, y, n_folds=3, seed=4, n_repeats=3)
+    got = rs.fold_accuracy(D, y, n_folds=np.int64(3), seed=np.int64(4), n_repeats=np.int64(3))
     parts = [rs.fold_accuracy(D, y, n_folds=3, seed=s) for s in (4, 5, 6)]
     for key in ("nn", "mean", "log_loss"):
         np.testing.assert_array_equal(got[key], np.concatenate([p[key] for p in parts]))
@@ -407,13 +407,13 @@ def test_fold_accuracy_repeats_are_the_seeds_in_turn():
 def test_fold_comparison_counts_folds_by_direction():
     zeros = np.zeros(4)
     cv = learn.CVAccuracy(
-        learned_nn=np.array([1.0, 0.5, 0.75, 1.0]),
-        learned_mean=np.array([0.5, 0.5, 0.5, 0.5]),
+        learned_nn=np.array([1.0, 0.5, 1.0, 1.0]),
+        learned_mean=np.array([0.5, 0.5, 0.5, 0.25]),
         paper_nn=np.array([0.75, 0.75, 0.75, 1.0]),
         paper_mean=np.array([0.5, 0.5, 0.5, 0.5]),
-        # log-loss: lower is better; a difference below the 4th decimal is a tie.
-        learned_log_loss=np.array([0.1, 0.3, 0.20000001, 0.5]),
-        paper_log_loss=np.array([0.2, 0.2, 0.2, 0.6]),
+        # log-loss: lower is better; within a relative 1e-4 is a tie, however small the loss.
+        learned_log_loss=np.array([0.1, 0.3, 0.20000001, 1e-6]),
+        paper_log_loss=np.array([0.2, 0.2, 0.2, 2e-6]),
         weights=[{}] * 4,
         folds=[np.arange(2)] * 4,
         n_reregistrations=zeros,
@@ -422,7 +422,12 @@ def test_fold_comparison_counts_folds_by_direction():
         regularisation=zeros,
         repeats=np.array([0, 0, 1, 1]),
     )
-    assert cv.fold_comparison() == {"nn": (1, 2, 1), "mean": (0, 4, 0), "log_loss": (2, 1, 1)}
+    assert cv.fold_comparison() == {"nn": (2, 1, 1), "mean": (0, 3, 1), "log_loss": (2, 1, 1)}
+    assert learn.fold_better([0.3, 0.1], [0.2, 0.2], higher_is_better=True) == (1, 0, 1)
+    assert learn.fold_better([0.3, 0.1], [0.2, 0.2], higher_is_better=False) == (1, 0, 1)
+    assert learn.fold_better([0.3, 0.2], [0.2, 0.2], higher_is_better=False) == (0, 1, 1)
+    with pytest.raises(ValueError, match="differ in shape"):
+        learn.fold_better([0.3], [0.2, 0.2], higher_is_better=True)
     assert "2 repeats × 2 folds" in repr(cv) and "log_loss 2/1/1" in repr(cv)
 
 
@@ -603,6 +608,9 @@ def test_nested_cv_needs_n_folds_members_per_class(no_registration):
     for bad in (0, 2.0, False):
         with pytest.raises(ValueError, match="n_repeats must be an integer >= 1"):
             rs.nested_cv_accuracy(trees, ["a"] * 3 + ["b"] * 3, n_folds=3, n_repeats=bad, progress=False)
+    for bad in (-1, 1.5, None):
+        with pytest.raises(ValueError, match="seed must be an integer >= 0"):
+            rs.nested_cv_accuracy(trees, ["a"] * 3 + ["b"] * 3, n_folds=3, seed=bad, progress=False)
 
 
 def test_zero_per_order_start_weight_is_refused_before_registering(no_registration):
