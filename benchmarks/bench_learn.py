@@ -120,9 +120,9 @@ def main(argv=None):
                 merged, merged_split = part, split
             else:
                 if part.get("learn_53"):  # a later folder's timing replaces an earlier one
-                    merged["learn_53"] = {
-                        **part["learn_53"],
+                    merged["learn_53"] = {  # a merged record keeps the load it was measured at
                         "load_before": part["machine"].get("load_average_1min_at_start"),
+                        **part["learn_53"],
                     }
                 for tag, row in part["sets"].items():
                     row["max_reregistrations_run"] = part["args"]["max_reregistrations"]
