@@ -31,7 +31,11 @@ labelled set gives an exact, cheap objective in λ:
     warps are continuous and move a little with λ, so they are not compared), or
   - the loss at the fresh registrations improved by less than `tol` (relative): the
     registrations minimise each d², not the loss, so the alternation is no descent method and
-    a re-registration can make the loss worse; the best entry is returned, or
+    a re-registration can make the loss worse; the best entry is returned. Before stopping on
+    a worse loss, λ steps halfway back toward the best λ so far (log scale) and is registered
+    again, at most twice per inner solve: the solve's step is right for the old registrations
+    and can overshoot once they move (on CPlantBox species folds the full step's loss was
+    worse and the half step's better than the start's), or
   - the inner solve left λ where it was, or after `max_reregistrations`.
   (Before these rules the stop was exact equality of the whole permutation, null slots
   included: null slots are shuffled among themselves at almost every re-registration, so
@@ -300,8 +304,9 @@ class LearnedWeights(eqx.Module):
     - `weights`: the learned `Weights` (λ_lateral held at its starting value).
     - `softness`: the loss's relative temperature (``τ = softness · mean d²``).
     - `loss_trace`: the NCA loss (penalty included) at freshly registered distances: entry 0
-      at the starting λ and τ, entry k after the k-th re-registration (at the λ and τ that
-      the k-th inner solve found).
+      at the starting λ and τ, entry k after the k-th re-registration, at the λ that an inner
+      solve found or, where that λ's loss was worse than the best so far, at a λ halfway
+      back toward the best (log scale; at most twice per solve).
     - `inner_loss_trace`: the loss reached by each inner solve (registrations fixed).
     - `status`: "converged" (no lateral correspondence changed at the last re-registration,
       or the inner solve left λ where it was), "loss" (the loss at the fresh registrations
@@ -477,6 +482,9 @@ def correspondence_changed(old: PairRegistrations, new: PairRegistrations, masks
 
 # The inner solve's λ is the same as the last one (log scale): re-registering would repeat it.
 _THETA_ATOL = 1e-8
+# When the loss at the fresh registrations is worse than the best so far, λ steps back toward
+# the best λ (log scale) this many times, halving the step each time, before the fit stops.
+_STEPS_BACK = 2
 
 
 def _learned_names(learn_thickness: bool, n_deeper: int = 0) -> tuple:
@@ -660,7 +668,7 @@ class _Fitter:
         loss_trace = [float(_objective(theta, (problem, tree, regs)))]
         inner, steps, n_rereg, status = [], 0, 0, "max_reregistrations"
         changed_trace, gain_trace = [], []
-        best = (loss_trace[0], weights, regs)
+        best = (loss_trace[0], weights, regs, theta)
         bar = tqdm(total=max_reregistrations, desc="learning λ", unit="re-registration", disable=not self.progress)
         try:
             while n_rereg < max_reregistrations:
@@ -672,28 +680,38 @@ class _Fitter:
                     # λ did not move, so registering again would give the same registrations.
                     status = "converged"
                     break
-                weights = _as_floats(_weights_of(names, theta[: len(names)], problem.start))
-                new = self.register(weights, I, J, f"re-registering ({n_rereg + 1})")
-                n_rereg += 1
-                bar.update(1)
-                # d² of the old registrations at the new λ: what re-registering improves on.
-                old_d2 = np.asarray(_pair_d2(theta, problem, tree, regs))
-                gain_trace.append(float((old_d2.sum() - new.energy.sum()) / max(old_d2.sum(), 1e-300)))
-                changed_trace.append(int(np.sum(correspondence_changed(regs, new, self.masks))))
-                loss_trace.append(float(_objective(theta, (problem, tree, new))))
+                best_before = best[0]
+                # The inner solve's λ, then, while the loss at fresh registrations is worse than
+                # the best so far, halfway back toward the best λ: the solve's step is right for
+                # the old registrations and may overshoot once they move with λ.
+                for back in range(_STEPS_BACK + 1):
+                    if back:
+                        theta = 0.5 * (best[3] + theta)
+                    weights = _as_floats(_weights_of(names, theta[: len(names)], problem.start))
+                    new = self.register(weights, I, J, f"re-registering ({n_rereg + 1})")
+                    n_rereg += 1
+                    bar.update(1)
+                    # d² of the old registrations at the new λ: what re-registering improves on.
+                    old_d2 = np.asarray(_pair_d2(theta, problem, tree, regs))
+                    gain_trace.append(float((old_d2.sum() - new.energy.sum()) / max(old_d2.sum(), 1e-300)))
+                    changed_trace.append(int(np.sum(correspondence_changed(regs, new, self.masks))))
+                    loss_trace.append(float(_objective(theta, (problem, tree, new))))
+                    bar.set_postfix_str(f"loss {loss_trace[-1]:.4g}, {changed_trace[-1]} pairs re-matched")
+                    if loss_trace[-1] < best[0]:
+                        best = (loss_trace[-1], weights, new, theta)
+                        break
+                    if n_rereg >= max_reregistrations:
+                        break
                 regs = new
-                if loss_trace[-1] < best[0]:
-                    best = (loss_trace[-1], weights, regs)
-                bar.set_postfix_str(f"loss {loss_trace[-1]:.4g}, {changed_trace[-1]} pairs re-matched")
                 if changed_trace[-1] == 0:
                     status = "converged"
                     break
-                if loss_trace[-1] > loss_trace[-2] - tol * abs(loss_trace[-2]):
+                if loss_trace[-1] > best_before - tol * abs(best_before):
                     status = "loss"
                     break
         finally:
             bar.close()
-        _, weights, regs = best
+        _, weights, regs, _ = best
         D = np.zeros((n, n), dtype)
         D[li, lj] = np.sqrt(np.maximum(regs.energy, 0.0))
         D[lj, li] = D[li, lj]

@@ -312,12 +312,47 @@ def test_a_worse_re_registration_stops_and_keeps_the_best(monkeypatch):
         )
 
     monkeypatch.setattr(learn._Fitter, "register", scrambled)
-    res = rs.learn_weights(trees, labels, progress=False, max_reregistrations=4)
-    assert res.status == "loss" and res.n_reregistrations == 1
-    assert res.loss_trace[1] > res.loss_trace[0]
+    res = rs.learn_weights(trees, labels, progress=False, max_reregistrations=6)
+    # The solve's λ, then halfway back toward the start twice: every one worse, so it stops.
+    assert res.status == "loss" and res.n_reregistrations == 1 + learn._STEPS_BACK == 3
+    assert np.all(res.loss_trace[1:] > res.loss_trace[0])
     assert res.weights == Weights()  # the start: the best entry of the trace
     D = np.asarray(rs.pairwise_distances(trees, progress=False))
     np.testing.assert_allclose(res.distances, D, rtol=1e-10, atol=1e-12)
+    # Each step back is halfway in log λ between the best (the start) and the last λ tried.
+    for k in (2, 3):
+        for term in ("main", "position"):
+            half = 0.5 * (np.log(float(getattr(calls[0], term))) + np.log(float(getattr(calls[k - 1], term))))
+            assert np.log(float(getattr(calls[k], term))) == pytest.approx(half, rel=1e-6)
+
+
+def test_a_step_back_that_lowers_the_loss_is_kept(monkeypatch):
+    """The solve's λ overshoots (its fresh registrations are scrambled, so the loss goes up);
+    the λ halfway back registers normally, beats the start and the fit goes on from it."""
+    roots, labels = position_signal_roots()
+    trees = rs.batch(roots, n_points=24, normalise_scale=True, dtype=np.float64)
+    calls = []
+    real = learn._Fitter.register
+
+    def first_scrambled(self, weights, I, J, desc):
+        regs = real(self, weights, I, J, desc)
+        calls.append(weights)
+        if len(calls) != 2:
+            return regs
+        E = np.random.default_rng(0).permutation(regs.unit_energies)
+        return eqx.tree_at(lambda r: (r.unit_energies, r.energy), regs, (E, E @ np.array([0.02, 1.0, 1.0])))
+
+    monkeypatch.setattr(learn._Fitter, "register", first_scrambled)
+    res = rs.learn_weights(trees, labels, progress=False, max_reregistrations=3, tol=0.0)
+    assert res.loss_trace[1] > res.loss_trace[0] > res.loss_trace[2]
+    assert res.n_reregistrations >= 2 and res.weights != Weights()
+    # The third registration was at the λ halfway (log scale) between the start and the solve's.
+    for term in ("main", "position"):
+        half = 0.5 * (np.log(float(getattr(calls[0], term))) + np.log(float(getattr(calls[1], term))))
+        assert np.log(float(getattr(calls[2], term))) == pytest.approx(half, rel=1e-6)
+    # Whatever is returned is the best entry of the trace, with its own registrations.
+    D = np.asarray(rs.pairwise_distances(trees, weights=res.weights, progress=False))
+    np.testing.assert_allclose(res.distances, D, rtol=1e-6)
 
 
 def numpy_held_out_loss(D2, y, folds, softness):
