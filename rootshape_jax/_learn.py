@@ -32,8 +32,8 @@ labelled set gives an exact, cheap objective in λ:
   - the loss at the fresh registrations improved by less than `tol` (relative): the
     registrations minimise each d², not the loss, so the alternation is no descent method and
     a re-registration can make the loss worse; the best entry is returned. Before stopping on
-    a worse loss, λ steps halfway back toward the best λ so far (log scale) and is registered
-    again, at most twice per inner solve: the solve's step is right for the old registrations
+    a worse loss, λ steps back toward the best λ so far (½, then ¼ of the solve's step in log
+    λ) and is registered again: the solve's step is right for the old registrations
     and can overshoot once they move (on CPlantBox species folds the full step's loss was
     worse and the half step's better than the start's), or
   - the inner solve left λ where it was, or after `max_reregistrations`.
@@ -305,21 +305,24 @@ class LearnedWeights(eqx.Module):
     - `softness`: the loss's relative temperature (``τ = softness · mean d²``).
     - `loss_trace`: the NCA loss (penalty included) at freshly registered distances: entry 0
       at the starting λ and τ, entry k after the k-th re-registration, at the λ that an inner
-      solve found or, where that λ's loss was worse than the best so far, at a λ halfway
-      back toward the best (log scale; at most twice per solve).
-    - `inner_loss_trace`: the loss reached by each inner solve (registrations fixed).
-    - `status`: "converged" (no lateral correspondence changed at the last re-registration,
-      or the inner solve left λ where it was), "loss" (the loss at the fresh registrations
-      improved by less than `tol`, relative), or "max_reregistrations".
+      solve found or, where that λ's loss was worse than the best so far, at a step back
+      toward the best λ (½, then ¼ of the solve's step in log λ). Rejected tries are entries
+      too, so the trace is not monotone.
+    - `inner_loss_trace`: the loss reached by each inner solve (registrations fixed); one entry
+      per solve, so shorter than `n_reregistrations` when steps back were taken.
+    - `status`: after the steps back, "converged" (no lateral correspondence changed at an
+      accepted re-registration, or the inner solve left λ where it was), "loss" (the loss at
+      the fresh registrations improved by less than `tol`, relative, or every step back
+      registered worse than the best), or "max_reregistrations".
     - `steps`: inner optimiser steps, summed over the solves.
-    - `n_reregistrations`: registrations of every pair after the first.
+    - `n_reregistrations`: registrations of every pair after the first (steps back included).
     - `distances`: (n, n) matrix at the learned weights (from their registration).
     - `regularisation`: the penalty used; `regularisation_scores`: when several were given,
       each one's inner-CV held-out NCA log-loss (else None).
     - `changed_pairs`: per re-registration, the number of pairs whose lateral correspondence
-      (real lateral to real lateral) changed.
+      (real lateral to real lateral) changed from the registrations the inner solve used.
     - `registration_gain`: per re-registration, the relative decrease of Σ d² that registering
-      again at the new λ found over the previous registrations evaluated at that λ.
+      again at the new λ found over the inner solve's registrations evaluated at that λ.
 
     `weights` and `distances` are those of the registered loss's best entry (the alternation
     is not a descent method: the registrations minimise each d², not the loss).
@@ -680,10 +683,10 @@ class _Fitter:
                     # λ did not move, so registering again would give the same registrations.
                     status = "converged"
                     break
-                best_before = best[0]
+                best_before, accepted = best[0], False
                 # The inner solve's λ, then, while the loss at fresh registrations is worse than
-                # the best so far, halfway back toward the best λ: the solve's step is right for
-                # the old registrations and may overshoot once they move with λ.
+                # the best so far, halfway back toward the best λ (½, then ¼ of the solve's step):
+                # the step is right for the old registrations and may overshoot once they move.
                 for back in range(_STEPS_BACK + 1):
                     if back:
                         theta = 0.5 * (best[3] + theta)
@@ -698,10 +701,15 @@ class _Fitter:
                     loss_trace.append(float(_objective(theta, (problem, tree, new))))
                     bar.set_postfix_str(f"loss {loss_trace[-1]:.4g}, {changed_trace[-1]} pairs re-matched")
                     if loss_trace[-1] < best[0]:
-                        best = (loss_trace[-1], weights, new, theta)
+                        best, accepted = (loss_trace[-1], weights, new, theta), True
                         break
                     if n_rereg >= max_reregistrations:
                         break
+                if not accepted:
+                    # Every λ tried registered worse than the best: stop there (the budget may
+                    # have ended before the last step back).
+                    status = "loss" if back == _STEPS_BACK else "max_reregistrations"
+                    break
                 regs = new
                 if changed_trace[-1] == 0:
                     status = "converged"
@@ -761,6 +769,9 @@ def learn_weights(
     new λ, until no lateral correspondence (real lateral to real lateral) changes, the loss at
     the fresh registrations improves by less than `tol` (relative), or after
     `max_reregistrations`; the λ with the lowest loss at its own registrations is returned.
+    A solve's λ whose loss at its fresh registrations is worse than the best so far is
+    first stepped back toward the best λ (½, then ¼ of the step in log λ, each a
+    re-registration) before the fit stops.
 
     - `labels`: one label per root (any hashable values); at least two classes, each with
       at least two members. Bad labels raise `LabelError` before anything is registered.

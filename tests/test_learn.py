@@ -165,9 +165,9 @@ def test_learned_weights_up_weight_position_and_reproduce_the_matrix():
     assert res.status in ("converged", "loss", "max_reregistrations")
     assert 1 <= res.n_reregistrations <= 2
     assert len(res.loss_trace) == res.n_reregistrations + 1
-    assert len(res.inner_loss_trace) == res.n_reregistrations
+    assert 1 <= len(res.inner_loss_trace) <= res.n_reregistrations  # one per solve; steps back add registrations
     assert len(res.changed_pairs) == len(res.registration_gain) == res.n_reregistrations
-    assert res.loss_trace[-1] < res.loss_trace[0]
+    assert min(res.loss_trace) < res.loss_trace[0]
     # The returned matrix is the engine's at the learned weights.
     D = np.asarray(rs.pairwise_distances(trees, weights=w, progress=False))
     np.testing.assert_allclose(res.distances, D, rtol=1e-10, atol=1e-12)
@@ -316,6 +316,8 @@ def test_a_worse_re_registration_stops_and_keeps_the_best(monkeypatch):
     # The solve's λ, then halfway back toward the start twice: every one worse, so it stops.
     assert res.status == "loss" and res.n_reregistrations == 1 + learn._STEPS_BACK == 3
     assert np.all(res.loss_trace[1:] > res.loss_trace[0])
+    assert len(res.loss_trace) == 4 and len(res.changed_pairs) == len(res.registration_gain) == 3
+    assert len(res.inner_loss_trace) == 1
     assert res.weights == Weights()  # the start: the best entry of the trace
     D = np.asarray(rs.pairwise_distances(trees, progress=False))
     np.testing.assert_allclose(res.distances, D, rtol=1e-10, atol=1e-12)
@@ -324,6 +326,11 @@ def test_a_worse_re_registration_stops_and_keeps_the_best(monkeypatch):
         for term in ("main", "position"):
             half = 0.5 * (np.log(float(getattr(calls[0], term))) + np.log(float(getattr(calls[k - 1], term))))
             assert np.log(float(getattr(calls[k], term))) == pytest.approx(half, rel=1e-6)
+    # A budget that ends before the steps back do: the fit says so, and keeps the start.
+    calls.clear()
+    res = rs.learn_weights(trees, labels, progress=False, max_reregistrations=2)
+    assert res.status == "max_reregistrations" and res.n_reregistrations == 2 and len(res.loss_trace) == 3
+    assert res.weights == Weights()
 
 
 def test_a_step_back_that_lowers_the_loss_is_kept(monkeypatch):
@@ -353,6 +360,46 @@ def test_a_step_back_that_lowers_the_loss_is_kept(monkeypatch):
     # Whatever is returned is the best entry of the trace, with its own registrations.
     D = np.asarray(rs.pairwise_distances(trees, weights=res.weights, progress=False))
     np.testing.assert_allclose(res.distances, D, rtol=1e-6)
+    # The fit went on from the accepted step back: a second solve.
+    assert len(res.inner_loss_trace) == 2 or res.status == "converged"
+
+
+def test_a_step_back_starts_from_the_best_lambda_so_far(monkeypatch):
+    """When the best λ is not the start (a first solve accepted), a later overshoot steps back
+    toward that best λ, not toward the start."""
+    roots, labels = position_signal_roots()
+    trees = rs.batch(roots, n_points=24, normalise_scale=True, dtype=np.float64)
+    calls = []
+    real = learn._Fitter.register
+
+    def second_solve_scrambled(self, weights, I, J, desc):
+        regs = real(self, weights, I, J, desc)
+        calls.append(weights)
+        if len(calls) != 3:
+            return regs
+        E = np.random.default_rng(0).permutation(regs.unit_energies)
+        return eqx.tree_at(lambda r: (r.unit_energies, r.energy), regs, (E, E @ np.array([0.02, 1.0, 1.0])))
+
+    monkeypatch.setattr(learn._Fitter, "register", second_solve_scrambled)
+    # Every re-registration counts as re-matching pairs, and the second solve moves λ, so the
+    # fit does not stop as settled before the overshoot.
+    monkeypatch.setattr(learn, "correspondence_changed", lambda old, new, masks: np.ones(len(new.energy), bool))
+    real_solve = learn._Fitter.solve
+    solves = []
+
+    def moving_solve(self, problem, regs, theta0):
+        theta, loss, k = real_solve(self, problem, regs, theta0)
+        solves.append(theta)
+        return (theta + 0.5 if len(solves) == 2 else theta), loss, k
+
+    monkeypatch.setattr(learn._Fitter, "solve", moving_solve)
+    res = rs.learn_weights(trees, labels, progress=False, max_reregistrations=4, tol=0.0)
+    assert res.loss_trace[1] < res.loss_trace[0]  # the first solve's λ was accepted: the best
+    assert res.loss_trace[2] > res.loss_trace[1]  # the second solve's (scrambled) was not
+    assert len(calls) >= 4
+    for term in ("main", "position"):
+        half = 0.5 * (np.log(float(getattr(calls[1], term))) + np.log(float(getattr(calls[2], term))))
+        assert np.log(float(getattr(calls[3], term))) == pytest.approx(half, rel=1e-6)
 
 
 def numpy_held_out_loss(D2, y, folds, softness):
