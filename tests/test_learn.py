@@ -292,26 +292,40 @@ def test_alternation_stops_when_correspondences_settle():
     assert np.all(res.registration_gain >= -1e-9)  # registering again never does worse than before
 
 
-def test_a_worse_re_registration_stops_and_keeps_the_best(monkeypatch):
-    roots, labels = position_signal_roots()
-    trees = rs.batch(roots, n_points=24, normalise_scale=True, dtype=np.float64)
+def _scramble_registrations(monkeypatch, scramble) -> list:
+    """Make `_Fitter.register`'s k-th call (1-based) return registrations that destroy the class
+    signal where ``scramble(k)`` (shuffled energies, so the loss goes up; correspondences
+    changed, so that the alternation does not stop as settled). Returns the list of the
+    weights of every call, filled as the fit runs."""
     calls = []
     real = learn._Fitter.register
 
-    def scrambled(self, weights, I, J, desc):
+    def register(self, weights, I, J, desc):
         regs = real(self, weights, I, J, desc)
         calls.append(weights)
-        if len(calls) == 1:
+        if not scramble(len(calls)):
             return regs
-        # Re-registrations that destroy the class signal: the loss goes up.
-        # (shuffled energies, correspondences changed so that the alternation does not stop there).
         E = np.random.default_rng(0).permutation(regs.unit_energies)
         perm = np.roll(regs.permutation, 1, axis=1)
         return eqx.tree_at(
             lambda r: (r.unit_energies, r.energy, r.permutation), regs, (E, E @ np.array([0.02, 1.0, 1.0]), perm)
         )
 
-    monkeypatch.setattr(learn._Fitter, "register", scrambled)
+    monkeypatch.setattr(learn._Fitter, "register", register)
+    return calls
+
+
+def _assert_halfway(calls, best: int, last: int, tried: int):
+    """The `tried`-th registration's λ is halfway in log λ between the `best`-th and `last`-th."""
+    for term in ("main", "position"):
+        half = 0.5 * (np.log(float(getattr(calls[best], term))) + np.log(float(getattr(calls[last], term))))
+        assert np.log(float(getattr(calls[tried], term))) == pytest.approx(half, rel=1e-6)
+
+
+def test_a_worse_re_registration_stops_and_keeps_the_best(monkeypatch):
+    roots, labels = position_signal_roots()
+    trees = rs.batch(roots, n_points=24, normalise_scale=True, dtype=np.float64)
+    calls = _scramble_registrations(monkeypatch, lambda k: k > 1)  # every re-registration
     res = rs.learn_weights(trees, labels, progress=False, max_reregistrations=6)
     # The solve's λ, then halfway back toward the start twice: every one worse, so it stops.
     assert res.status == "loss" and res.n_reregistrations == 1 + learn._STEPS_BACK == 3
@@ -323,9 +337,7 @@ def test_a_worse_re_registration_stops_and_keeps_the_best(monkeypatch):
     np.testing.assert_allclose(res.distances, D, rtol=1e-10, atol=1e-12)
     # Each step back is halfway in log λ between the best (the start) and the last λ tried.
     for k in (2, 3):
-        for term in ("main", "position"):
-            half = 0.5 * (np.log(float(getattr(calls[0], term))) + np.log(float(getattr(calls[k - 1], term))))
-            assert np.log(float(getattr(calls[k], term))) == pytest.approx(half, rel=1e-6)
+        _assert_halfway(calls, 0, k - 1, k)
     # A budget that ends before the steps back do: the fit says so, and keeps the start.
     calls.clear()
     res = rs.learn_weights(trees, labels, progress=False, max_reregistrations=2)
@@ -338,25 +350,12 @@ def test_a_step_back_that_lowers_the_loss_is_kept(monkeypatch):
     the λ halfway back registers normally, beats the start and the fit goes on from it."""
     roots, labels = position_signal_roots()
     trees = rs.batch(roots, n_points=24, normalise_scale=True, dtype=np.float64)
-    calls = []
-    real = learn._Fitter.register
-
-    def first_scrambled(self, weights, I, J, desc):
-        regs = real(self, weights, I, J, desc)
-        calls.append(weights)
-        if len(calls) != 2:
-            return regs
-        E = np.random.default_rng(0).permutation(regs.unit_energies)
-        return eqx.tree_at(lambda r: (r.unit_energies, r.energy), regs, (E, E @ np.array([0.02, 1.0, 1.0])))
-
-    monkeypatch.setattr(learn._Fitter, "register", first_scrambled)
+    calls = _scramble_registrations(monkeypatch, lambda k: k == 2)  # the first solve's λ
     res = rs.learn_weights(trees, labels, progress=False, max_reregistrations=3, tol=0.0)
     assert res.loss_trace[1] > res.loss_trace[0] > res.loss_trace[2]
     assert res.n_reregistrations >= 2 and res.weights != Weights()
     # The third registration was at the λ halfway (log scale) between the start and the solve's.
-    for term in ("main", "position"):
-        half = 0.5 * (np.log(float(getattr(calls[0], term))) + np.log(float(getattr(calls[1], term))))
-        assert np.log(float(getattr(calls[2], term))) == pytest.approx(half, rel=1e-6)
+    _assert_halfway(calls, 0, 1, 2)
     # Whatever is returned is the best entry of the trace, with its own registrations.
     D = np.asarray(rs.pairwise_distances(trees, weights=res.weights, progress=False))
     np.testing.assert_allclose(res.distances, D, rtol=1e-6)
@@ -369,18 +368,7 @@ def test_a_step_back_starts_from_the_best_lambda_so_far(monkeypatch):
     toward that best λ, not toward the start."""
     roots, labels = position_signal_roots()
     trees = rs.batch(roots, n_points=24, normalise_scale=True, dtype=np.float64)
-    calls = []
-    real = learn._Fitter.register
-
-    def second_solve_scrambled(self, weights, I, J, desc):
-        regs = real(self, weights, I, J, desc)
-        calls.append(weights)
-        if len(calls) != 3:
-            return regs
-        E = np.random.default_rng(0).permutation(regs.unit_energies)
-        return eqx.tree_at(lambda r: (r.unit_energies, r.energy), regs, (E, E @ np.array([0.02, 1.0, 1.0])))
-
-    monkeypatch.setattr(learn._Fitter, "register", second_solve_scrambled)
+    calls = _scramble_registrations(monkeypatch, lambda k: k == 3)  # the second solve's λ
     # Every re-registration counts as re-matching pairs, and the second solve moves λ, so the
     # fit does not stop as settled before the overshoot.
     monkeypatch.setattr(learn, "correspondence_changed", lambda old, new, masks: np.ones(len(new.energy), bool))
@@ -397,9 +385,7 @@ def test_a_step_back_starts_from_the_best_lambda_so_far(monkeypatch):
     assert res.loss_trace[1] < res.loss_trace[0]  # the first solve's λ was accepted: the best
     assert res.loss_trace[2] > res.loss_trace[1]  # the second solve's (scrambled) was not
     assert len(calls) >= 4
-    for term in ("main", "position"):
-        half = 0.5 * (np.log(float(getattr(calls[1], term))) + np.log(float(getattr(calls[2], term))))
-        assert np.log(float(getattr(calls[3], term))) == pytest.approx(half, rel=1e-6)
+    _assert_halfway(calls, 1, 2, 3)
 
 
 def numpy_held_out_loss(D2, y, folds, softness):
