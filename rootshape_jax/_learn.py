@@ -683,7 +683,7 @@ class _Fitter:
                     # λ did not move, so registering again would give the same registrations.
                     status = "converged"
                     break
-                best_before, accepted = best[0], False
+                best_before = best[0]
                 # The inner solve's λ, then, while the loss at fresh registrations is worse than
                 # the best so far, halfway back toward the best λ (½, then ¼ of the solve's step):
                 # the step is right for the old registrations and may overshoot once they move.
@@ -701,11 +701,11 @@ class _Fitter:
                     loss_trace.append(float(_objective(theta, (problem, tree, new))))
                     bar.set_postfix_str(f"loss {loss_trace[-1]:.4g}, {changed_trace[-1]} pairs re-matched")
                     if loss_trace[-1] < best[0]:
-                        best, accepted = (loss_trace[-1], weights, new, theta), True
+                        best = (loss_trace[-1], weights, new, theta)
                         break
                     if n_rereg >= max_reregistrations:
                         break
-                if not accepted:
+                if best[0] >= best_before:
                     # Every λ tried registered worse than the best: stop there (the budget may
                     # have ended before the last step back).
                     status = "loss" if back == _STEPS_BACK else "max_reregistrations"
@@ -1082,24 +1082,7 @@ def nested_cv_accuracy(
     # The paper's λ is scored at the given weights (λr = 0 means no thickness, as given).
     D_paper = D0 if fitter.start is weights else _matrix_at(fitter, weights, I, J, n)
 
-    out = {
-        k: []
-        for k in (
-            "lnn",
-            "lmean",
-            "pnn",
-            "pmean",
-            "lloss",
-            "ploss",
-            "w",
-            "folds",
-            "rereg",
-            "status",
-            "sec",
-            "reg",
-            "rep",
-        )
-    }
+    out = {k: [] for k in "lnn lmean pnn pmean lloss ploss w folds rereg status sec reg rep".split()}
     for f, (rep, test) in enumerate(_repeated_folds(y, n_folds, seed, n_repeats)):
         train = np.setdiff1d(np.arange(n), test)
         paper = _fold_scores(D_paper[np.ix_(test, train)], D_paper[np.ix_(train, train)], y[test], y[train], softness)

@@ -860,6 +860,7 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
                 # The mean and sd first: the report's table shows the first 20 rows only.
                 table_html=html_table(header, cv_rows[-2:] + cv_rows[:-2]),
             )
+            comparison = cv.fold_comparison()  # folds better / the same / worse, per score
             sec.notes.append(
                 "held-out accuracy (mean ± sd over folds): learned "
                 f"1-NN {100 * s['learned_nn'][0]:.0f} ± {100 * s['learned_nn'][1]:.0f} %, class mean "
@@ -869,11 +870,8 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
                 f"(lower is better): learned {s['learned_log_loss'][0]:.3f}, starting weights "
                 f"{s['paper_log_loss'][0]:.3f}. Folds where the learned weights do better / the same / worse: "
                 + "; ".join(
-                    f"{name} {b} / {t} / {w}"
-                    for name, (b, t, w) in (
-                        (name, cv.fold_comparison()[key])
-                        for name, key in (("1-NN", "nn"), ("class mean", "mean"), ("log-loss", "log_loss"))
-                    )
+                    f"{name} {' / '.join(map(str, comparison[key]))}"
+                    for name, key in (("1-NN", "nn"), ("class mean", "mean"), ("log-loss", "log_loss"))
                 )
                 + "."
             )
