@@ -276,7 +276,7 @@ def pct(v) -> str:
 def markdown(results) -> str:
     import numpy as np
 
-    from rootshape_jax._learn import fold_better
+    from rootshape_jax._learn import fold_better, fold_t_test
 
     a = results["args"]
     default_command = f"`python benchmarks/bench_learn.py --T {a['T']}`"
@@ -337,7 +337,19 @@ def markdown(results) -> str:
                 loss = acc.get("log_loss")
                 cell = f"{np.mean(loss):.3f} ± {np.std(loss):.3f}" if loss is not None else "—"
                 lines.append(f"| {what} | {LABEL[m]} | {pct(acc['nn'])} | {pct(acc['mean'])} | {cell} |")
-    lines += ["", "**Against the targets** (computed from the table; differences in percentage points):", ""]
+
+    def p_text(scores, reference) -> str:
+        test = fold_t_test(scores, reference, n_folds=a["n_folds"])
+        return "no spread, p undefined" if test.p_value != test.p_value else f"p = {test.p_value:.2g}"
+
+    lines += [
+        "",
+        "**Against the targets** (computed from the table; differences in percentage points; p: "
+        "`rootshape_jax.fold_t_test`, the corrected resampled paired t-test of Nadeau & Bengio over the "
+        "same folds, two-sided. Folds share training roots, so a plain t-test over folds would be "
+        "far too confident; p < 0.05 is a difference beyond the folds' spread):",
+        "",
+    ]
     for tag, row in results["sets"].items():
         acc = row["accuracy"]
         mean = {m: (100 * float(np.mean(acc[m]["nn"])), 100 * float(np.mean(acc[m]["mean"]))) for m in acc}
@@ -355,8 +367,9 @@ def markdown(results) -> str:
                 verdict.append(
                     f"{rule}: {'beats' if d_paper > 0 else 'ties' if d_paper == 0 else 'trails'} the paper's λ "
                     f"({d_paper:+.1f}; better in {better} of {len(acc[ours][key])} folds, worse in "
-                    f"{worse}) and {'beats' if d_base > 0 else 'ties' if d_base == 0 else 'trails'} the "
-                    f"best baseline, {LABEL[b]} ({d_base:+.1f})"
+                    f"{worse}; {p_text(acc[ours][key], acc['paper'][key])}) and "
+                    f"{'beats' if d_base > 0 else 'ties' if d_base == 0 else 'trails'} the "
+                    f"best baseline, {LABEL[b]} ({d_base:+.1f}; {p_text(acc[ours][key], acc[b][key])})"
                 )
             if "log_loss" in acc[ours] and "log_loss" in acc["paper"]:
                 mine, theirs = float(np.mean(acc[ours]["log_loss"])), float(np.mean(acc["paper"]["log_loss"]))
@@ -365,7 +378,8 @@ def markdown(results) -> str:
                 lower, _, higher = fold_better(acc[ours]["log_loss"], acc["paper"]["log_loss"], higher_is_better=False)
                 verdict.append(
                     f"held-out log-loss: {word} the paper's λ ({mine:.3f} against {theirs:.3f}; lower in "
-                    f"{lower} of {len(acc[ours]['log_loss'])} folds, higher in {higher})"
+                    f"{lower} of {len(acc[ours]['log_loss'])} folds, higher in {higher}; "
+                    f"{p_text(acc[ours]['log_loss'], acc['paper']['log_loss'])})"
                 )
             who = "learned λ" if ours == "learned" else "learned λ, penalty by inner CV"
             lines.append(f"- {tag}, {who}: " + "; ".join(verdict) + ".")

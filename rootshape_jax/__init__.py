@@ -61,8 +61,10 @@ from ._geodesic import geodesic as geodesic
 from ._groups import PairTest as PairTest, holm as holm, pairwise_permanova as pairwise_permanova
 from ._learn import (
     CVAccuracy as CVAccuracy,
+    FoldTest as FoldTest,
     LearnedWeights as LearnedWeights,
     fold_accuracy as fold_accuracy,
+    fold_t_test as fold_t_test,
     held_out_log_loss as held_out_log_loss,
     learn_weights as learn_weights,
     nested_cv_accuracy as nested_cv_accuracy,

@@ -47,6 +47,7 @@ the test roots are classified by 1-NN and by the nearest class mean.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Hashable, Sequence
@@ -56,6 +57,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+import scipy.stats
 from jaxtyping import Array, Float
 from tqdm.auto import tqdm
 
@@ -915,7 +917,8 @@ class CVAccuracy(eqx.Module):
       were given).
 
     `summary()` gives the mean and spread over folds; `fold_comparison()` counts the folds where
-    the learned λ does better, the same or worse than the starting λ.
+    the learned λ does better, the same or worse than the starting λ; `t_tests()` says whether
+    the mean difference is more than the folds' spread explains (`fold_t_test`).
     """
 
     learned_nn: np.ndarray
@@ -960,9 +963,10 @@ class CVAccuracy(eqx.Module):
             else f"{n_repeats} repeats × {len(self.folds) // n_repeats} folds"
         )
         better = ", ".join(f"{k} {b}/{t}/{w}" for k, (b, t, w) in self.fold_comparison().items())
+        p = ", ".join(f"{k} {test.p_value:.3g}" for k, test in self.t_tests().items())
         return (
             f"CVAccuracy({cells}; {folds}, held-out scores: mean ± sd over folds; "
-            f"folds where learned λ is better/equal/worse: {better})"
+            f"folds where learned λ is better/equal/worse: {better}; corrected paired t-test p: {p})"
         )
 
     def fold_comparison(self) -> dict:
@@ -977,6 +981,81 @@ class CVAccuracy(eqx.Module):
             "mean": fold_better(self.learned_mean, self.paper_mean, higher_is_better=True),
             "log_loss": fold_better(self.learned_log_loss, self.paper_log_loss, higher_is_better=False),
         }
+
+    def t_tests(self) -> dict:
+        """For each score, the corrected resampled paired t-test (`fold_t_test`) of the learned
+        λ against the starting λ on the same folds: ``{"nn": FoldTest, "mean": ...,
+        "log_loss": ...}``; `difference` is learned minus starting (accuracy: > 0 is better;
+        log-loss: < 0 is better)."""
+        n_folds = len(self.folds) // len(np.unique(self.repeats))
+        return {
+            key: fold_t_test(learned, paper, n_folds=n_folds)
+            for key, learned, paper in (
+                ("nn", self.learned_nn, self.paper_nn),
+                ("mean", self.learned_mean, self.paper_mean),
+                ("log_loss", self.learned_log_loss, self.paper_log_loss),
+            )
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class FoldTest:
+    """A corrected resampled paired t-test over cross-validation folds (`fold_t_test`).
+
+    - `difference`: the mean over folds of ``scores − reference``.
+    - `t`, `p_value`: the corrected statistic and its two-sided p-value (Student's t with
+      ``n − 1`` degrees of freedom over the n folds). Both are NaN when every fold differs by
+      the same non-zero amount (no spread to test against); ``t = 0``, ``p = 1`` when every
+      fold ties.
+    - `n`: the number of folds (of every repetition)."""
+
+    difference: float
+    t: float
+    p_value: float
+    n: int
+
+
+def fold_t_test(scores, reference, *, n_folds: int) -> FoldTest:
+    """Is the mean difference between two methods' fold scores more than chance? The corrected
+    resampled paired t-test of Nadeau & Bengio (2003), in the form of Bouckaert & Frank (2004)
+    for repeated k-fold cross-validation.
+
+    The folds of k-fold cross-validation share training roots (and repeated splits share
+    everything), so their scores are correlated and a plain paired t-test over folds is far
+    too confident. The correction inflates the variance of the mean difference from
+    ``σ² / n`` to ``σ² (1/n + n_test/n_train)``, with ``n_test/n_train = 1/(k − 1)`` for k
+    folds: ``t = mean(d) / sqrt((1/n + 1/(k − 1)) · var(d))`` over the n = k·r paired fold
+    scores d = scores − reference of r repetitions (sample variance), two-sided p from
+    Student's t with n − 1 degrees of freedom. It is an approximation (it assumes a
+    correlation of n_test/n_train between folds) and is conservative where that
+    overestimates the correlation; it is the usual test for comparing learners on one
+    small data set.
+
+    `scores`, `reference`: one score per fold, on the same folds in the same order (from
+    `fold_accuracy` or `CVAccuracy`); `n_folds`: k, the folds per repetition."""
+    a, b = np.asarray(scores, np.float64), np.asarray(reference, np.float64)
+    if a.shape != b.shape or a.ndim != 1 or a.size < 2:
+        raise ValueError(
+            "fold_t_test: scores and reference must be 1-D with one score per fold, the same "
+            f"length and at least 2 folds; got shapes {a.shape} and {b.shape}."
+        )
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        raise InputError("fold_t_test: fold scores must be finite.")
+    if isinstance(n_folds, bool) or not isinstance(n_folds, (int, np.integer)) or not 2 <= n_folds <= a.size:
+        raise ValueError(
+            f"fold_t_test: n_folds (the folds per repetition) must be an integer from 2 to the number "
+            f"of scores ({a.size}), got {n_folds!r}."
+        )
+    d = a - b
+    n = d.size
+    mean, var = float(np.mean(d)), float(np.var(d, ddof=1))
+    # Exact ties count as no spread (a variance of rounding noise would give any t).
+    if var <= (1e-12 * max(1.0, float(np.max(np.abs(d))))) ** 2:
+        if np.allclose(d, 0.0, rtol=0.0, atol=1e-12):
+            return FoldTest(difference=mean, t=0.0, p_value=1.0, n=n)
+        return FoldTest(difference=mean, t=math.nan, p_value=math.nan, n=n)
+    t = mean / math.sqrt((1.0 / n + 1.0 / (n_folds - 1)) * var)
+    return FoldTest(difference=mean, t=t, p_value=float(2.0 * scipy.stats.t.sf(abs(t), n - 1)), n=n)
 
 
 def fold_better(scores, reference, *, higher_is_better: bool) -> tuple[int, int, int]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import re
 
 import numpy as np
 import pytest
@@ -80,6 +81,9 @@ def test_learn_weights_end_to_end(labelled_folder, tmp_path):
         same = np.isclose(a, b, rtol=1e-4, atol=1e-12)
         better, worse = np.sum((sign * (a - b) > 0) & ~same), np.sum((sign * (a - b) < 0) & ~same)
         assert f"{name} {better} / {np.sum(same)} / {worse}" in proc.stdout, proc.stdout
+        # And its corrected paired t-test is the one of the table's fold scores (3 folds a repeat).
+        p = float(re.search(rf"{name} p = (nan|\d+(?:\.\d+)?(?:e[+-]\d+)?)", proc.stdout).group(1))
+        assert p == pytest.approx(rs.fold_t_test(a, b, n_folds=3).p_value, rel=1e-2, nan_ok=True)
     assert (out / "loss_trace.png").is_file()
     # --weights weights.csv: what the other commands weigh with is the learned column.
     args = build_parser().parse_args(["distances", str(d), "--weights", str(out / "weights.csv")])

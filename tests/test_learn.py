@@ -497,6 +497,70 @@ def test_fold_comparison_counts_folds_by_direction():
     with pytest.raises(ValueError, match="differ in shape"):
         learn.fold_better([0.3], [0.2, 0.2], higher_is_better=True)
     assert "2 repeats × 2 folds" in repr(cv) and "log_loss 2/1/1" in repr(cv)
+    # t_tests: k = folds per repetition (4 folds over 2 repeats: k = 2), learned − paper.
+    tests = cv.t_tests()
+    assert tests["log_loss"] == rs.fold_t_test(cv.learned_log_loss, cv.paper_log_loss, n_folds=2)
+    assert tests["nn"].difference == pytest.approx(np.mean(cv.learned_nn - cv.paper_nn))
+    assert f"log_loss {tests['log_loss'].p_value:.3g}" in repr(cv)
+
+
+def reference_fold_t_test(a, b, k):
+    """The corrected resampled t-test written out (Nadeau & Bengio 2003; Bouckaert & Frank
+    2004): loops for the moments, the two-sided Student-t tail as a regularised incomplete
+    beta function, ``p = I_{ν/(ν+t²)}(ν/2, 1/2)``."""
+    import scipy.special
+
+    d = [x - y for x, y in zip(a, b)]
+    n = len(d)
+    mean = sum(d) / n
+    var = sum((x - mean) ** 2 for x in d) / (n - 1)
+    t = mean / math.sqrt((1 / n + 1 / (k - 1)) * var)
+    nu = n - 1
+    return mean, t, float(scipy.special.betainc(nu / 2, 0.5, nu / (nu + t * t)))
+
+
+@pytest.mark.parametrize("n_folds, n_repeats", [(5, 1), (5, 3), (3, 4), (10, 2)])
+def test_fold_t_test_reference_and_properties(n_folds, n_repeats):
+    import scipy.stats
+
+    rng = np.random.default_rng(n_folds * 10 + n_repeats)
+    n = n_folds * n_repeats
+    a = rng.uniform(0.1, 0.4, n)
+    b = a + rng.normal(0.03, 0.05, n)
+    test = rs.fold_t_test(a, b, n_folds=n_folds)
+    mean, t, p = reference_fold_t_test(a, b, n_folds)
+    assert test.n == n
+    assert test.difference == pytest.approx(mean, rel=1e-12)
+    assert test.t == pytest.approx(t, rel=1e-10)
+    assert test.p_value == pytest.approx(p, rel=1e-8)
+    # The correction only shrinks a plain paired t-test's statistic, by √((1/n) / (1/n + 1/(k−1))).
+    plain = scipy.stats.ttest_rel(a, b)
+    assert test.t == pytest.approx(plain.statistic * math.sqrt((1 / n) / (1 / n + 1 / (n_folds - 1))), rel=1e-10)
+    assert test.p_value > plain.pvalue
+    # Swapping the methods flips the sign only; a shift of both scores changes nothing.
+    swapped = rs.fold_t_test(b, a, n_folds=n_folds)
+    assert (swapped.difference, swapped.t) == pytest.approx((-test.difference, -test.t), rel=1e-12)
+    assert swapped.p_value == pytest.approx(test.p_value, rel=1e-12)
+    shifted = rs.fold_t_test(a + 3.0, b + 3.0, n_folds=n_folds)
+    assert (shifted.t, shifted.p_value) == pytest.approx((test.t, test.p_value), rel=1e-9)
+
+
+def test_fold_t_test_ties_and_bad_input():
+    same = rs.fold_t_test([1.0, 0.8, 1.0], [1.0, 0.8, 1.0], n_folds=3)
+    assert (same.difference, same.t, same.p_value) == (0.0, 0.0, 1.0)
+    # Every fold better by the same amount: no spread to test against, said as NaN (not p = 0).
+    constant = rs.fold_t_test([0.9, 0.7, 0.9], [0.8, 0.6, 0.8], n_folds=3)
+    assert constant.difference == pytest.approx(0.1)
+    assert math.isnan(constant.t) and math.isnan(constant.p_value)
+    with pytest.raises(ValueError, match="same length"):
+        rs.fold_t_test([0.1, 0.2], [0.1, 0.2, 0.3], n_folds=2)
+    with pytest.raises(ValueError, match="at least 2 folds"):
+        rs.fold_t_test([0.1], [0.2], n_folds=2)
+    with pytest.raises(rs.InputError, match="finite"):
+        rs.fold_t_test([0.1, np.nan], [0.2, 0.3], n_folds=2)
+    for bad in (1, 4, 2.0, True):
+        with pytest.raises(ValueError, match="n_folds"):
+            rs.fold_t_test([0.1, 0.2, 0.3], [0.2, 0.3, 0.1], n_folds=bad)
 
 
 def _reference_log_loss(D_tt, D_tr, y_test, y_train, softness):

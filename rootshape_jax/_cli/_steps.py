@@ -861,6 +861,7 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
                 table_html=html_table(header, cv_rows[-2:] + cv_rows[:-2]),
             )
             comparison = cv.fold_comparison()  # folds better / the same / worse, per score
+            t_tests = cv.t_tests()
             sec.notes.append(
                 "held-out accuracy (mean ± sd over folds): learned "
                 f"1-NN {100 * s['learned_nn'][0]:.0f} ± {100 * s['learned_nn'][1]:.0f} %, class mean "
@@ -871,6 +872,12 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
                 f"{s['paper_log_loss'][0]:.3f}. Folds where the learned weights do better / the same / worse: "
                 + "; ".join(
                     f"{name} {' / '.join(map(str, comparison[key]))}"
+                    for name, key in (("1-NN", "nn"), ("class mean", "mean"), ("log-loss", "log_loss"))
+                )
+                + ". Corrected paired t-test over the folds (Nadeau & Bengio; p < 0.05 is a difference "
+                "beyond the folds' spread): "
+                + "; ".join(
+                    f"{name} p = {t_tests[key].p_value:.3g}"
                     for name, key in (("1-NN", "nn"), ("class mean", "mean"), ("log-loss", "log_loss"))
                 )
                 + "."
