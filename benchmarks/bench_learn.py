@@ -276,6 +276,7 @@ def pct(v) -> str:
 def markdown(results) -> str:
     import numpy as np
 
+    from rootshape_jax import holm
     from rootshape_jax._learn import fold_better, fold_t_test
 
     a = results["args"]
@@ -338,18 +339,31 @@ def markdown(results) -> str:
                 cell = f"{np.mean(loss):.3f} ± {np.std(loss):.3f}" if loss is not None else "—"
                 lines.append(f"| {what} | {LABEL[m]} | {pct(acc['nn'])} | {pct(acc['mean'])} | {cell} |")
 
-    def p_text(scores, reference) -> str:
-        test = fold_t_test(scores, reference, n_folds=a["n_folds"])
-        return "no spread, p undefined" if test.p_value != test.p_value else f"p = {test.p_value:.2g}"
+    def test(scores, reference):
+        return fold_t_test(scores, reference, n_folds=a["n_folds"])
+
+    def p_text(t) -> str:
+        return "no spread, p undefined" if t.p_value != t.p_value else f"p = {t.p_value:.3g}"
+
+    def word(diff: float, t) -> str:
+        """diff > 0: ours better. Beats / trails only beyond the folds' spread."""
+        if diff == 0:
+            return "ties"
+        if t.p_value < 0.05:
+            return "beats" if diff > 0 else "trails"
+        return "is level with"
 
     lines += [
         "",
         "**Against the targets** (computed from the table; differences in percentage points; p: "
         "`rootshape_jax.fold_t_test`, the corrected resampled paired t-test of Nadeau & Bengio over the "
-        "same folds, two-sided. Folds share training roots, so a plain t-test over folds would be "
-        "far too confident; p < 0.05 is a difference beyond the folds' spread):",
+        "same folds, two-sided, per comparison (not adjusted for the many in this list). Folds share "
+        "training roots, so a plain t-test over folds would be far too confident. *Beats* / *trails*: "
+        "p < 0.05; *is level with*: a difference within the folds' spread. The best baseline is "
+        "picked by its mean, which makes a *beats it* conservative and a *trails it* optimistic):",
         "",
     ]
+    loss_tests = {}
     for tag, row in results["sets"].items():
         acc = row["accuracy"]
         mean = {m: (100 * float(np.mean(acc[m]["nn"])), 100 * float(np.mean(acc[m]["mean"]))) for m in acc}
@@ -364,25 +378,37 @@ def markdown(results) -> str:
                 d_base = mean[ours][k] - mean[b][k]
                 better, _, worse = fold_better(acc[ours][key], acc["paper"][key], higher_is_better=True)
                 d_paper, d_base = round(d_paper, 6), round(d_base, 6)  # a float mean's last bits are no win
+                t_paper, t_base = test(acc[ours][key], acc["paper"][key]), test(acc[ours][key], acc[b][key])
                 verdict.append(
-                    f"{rule}: {'beats' if d_paper > 0 else 'ties' if d_paper == 0 else 'trails'} the paper's λ "
+                    f"{rule}: {word(d_paper, t_paper)} the paper's λ "
                     f"({d_paper:+.1f}; better in {better} of {len(acc[ours][key])} folds, worse in "
-                    f"{worse}; {p_text(acc[ours][key], acc['paper'][key])}) and "
-                    f"{'beats' if d_base > 0 else 'ties' if d_base == 0 else 'trails'} the "
-                    f"best baseline, {LABEL[b]} ({d_base:+.1f}; {p_text(acc[ours][key], acc[b][key])})"
+                    f"{worse}; {p_text(t_paper)}) and {word(d_base, t_base)} the "
+                    f"best baseline, {LABEL[b]} ({d_base:+.1f}; {p_text(t_base)})"
                 )
             if "log_loss" in acc[ours] and "log_loss" in acc["paper"]:
                 mine, theirs = float(np.mean(acc[ours]["log_loss"])), float(np.mean(acc["paper"]["log_loss"]))
-                word = "beats" if mine < theirs else "ties" if mine == theirs else "trails"
+                t_loss = test(acc[ours]["log_loss"], acc["paper"]["log_loss"])
+                if ours == "learned":
+                    loss_tests[tag] = t_loss
                 # Fold by fold (the same folds): is the mean's difference consistent or one fold's?
                 lower, _, higher = fold_better(acc[ours]["log_loss"], acc["paper"]["log_loss"], higher_is_better=False)
                 verdict.append(
-                    f"held-out log-loss: {word} the paper's λ ({mine:.3f} against {theirs:.3f}; lower in "
-                    f"{lower} of {len(acc[ours]['log_loss'])} folds, higher in {higher}; "
-                    f"{p_text(acc[ours]['log_loss'], acc['paper']['log_loss'])})"
+                    f"held-out log-loss: {word(theirs - mine, t_loss)} the paper's λ ({mine:.3f} against "
+                    f"{theirs:.3f}; lower in {lower} of {len(acc[ours]['log_loss'])} folds, higher in {higher}; "
+                    f"{p_text(t_loss)})"
                 )
             who = "learned λ" if ours == "learned" else "learned λ, penalty by inner CV"
             lines.append(f"- {tag}, {who}: " + "; ".join(verdict) + ".")
+    usable = {tag: t.p_value for tag, t in loss_tests.items() if t.p_value == t.p_value}
+    if len(usable) > 1:
+        adjusted = holm(list(usable.values()))
+        lines += [
+            "",
+            "The learned λ's held-out log-loss against the paper's λ, read as one family over the "
+            f"{len(usable)} sets (Holm-adjusted p): "
+            + ", ".join(f"{tag} {p:.3g}" for tag, p in zip(usable, adjusted))
+            + ".",
+        ]
     lines += [
         "",
         "One held-out root is worth "

@@ -917,8 +917,8 @@ class CVAccuracy(eqx.Module):
       were given).
 
     `summary()` gives the mean and spread over folds; `fold_comparison()` counts the folds where
-    the learned λ does better, the same or worse than the starting λ; `t_tests()` says whether
-    the mean difference is more than the folds' spread explains (`fold_t_test`).
+    the learned λ does better, the same or worse than the starting λ; `t_tests()` gives a
+    p-value for each mean difference against the folds' spread (`fold_t_test`).
     """
 
     learned_nn: np.ndarray
@@ -963,7 +963,7 @@ class CVAccuracy(eqx.Module):
             else f"{n_repeats} repeats × {len(self.folds) // n_repeats} folds"
         )
         better = ", ".join(f"{k} {b}/{t}/{w}" for k, (b, t, w) in self.fold_comparison().items())
-        p = ", ".join(f"{k} {test.p_value:.3g}" for k, test in self.t_tests().items())
+        p = ", ".join(f"{k} {test.p_value:.3g}" for k, test in self.t_tests().items()) if len(self.folds) > 1 else "—"
         return (
             f"CVAccuracy({cells}; {folds}, held-out scores: mean ± sd over folds; "
             f"folds where learned λ is better/equal/worse: {better}; corrected paired t-test p: {p})"
@@ -1006,7 +1006,7 @@ class FoldTest:
     - `t`, `p_value`: the corrected statistic and its two-sided p-value (Student's t with
       ``n − 1`` degrees of freedom over the n folds). Both are NaN when every fold differs by
       the same non-zero amount (no spread to test against); ``t = 0``, ``p = 1`` when every
-      fold ties.
+      fold ties (within a relative 1e-4, as `fold_better`).
     - `n`: the number of folds (of every repetition)."""
 
     difference: float
@@ -1016,46 +1016,54 @@ class FoldTest:
 
 
 def fold_t_test(scores, reference, *, n_folds: int) -> FoldTest:
-    """Is the mean difference between two methods' fold scores more than chance? The corrected
+    """A p-value for the mean difference between two methods' fold scores: the corrected
     resampled paired t-test of Nadeau & Bengio (2003), in the form of Bouckaert & Frank (2004)
     for repeated k-fold cross-validation.
 
     The folds of k-fold cross-validation share training roots (and repeated splits share
     everything), so their scores are correlated and a plain paired t-test over folds is far
-    too confident. The correction inflates the variance of the mean difference from
-    ``σ² / n`` to ``σ² (1/n + n_test/n_train)``, with ``n_test/n_train = 1/(k − 1)`` for k
-    folds: ``t = mean(d) / sqrt((1/n + 1/(k − 1)) · var(d))`` over the n = k·r paired fold
-    scores d = scores − reference of r repetitions (sample variance), two-sided p from
-    Student's t with n − 1 degrees of freedom. It is an approximation (it assumes a
-    correlation of n_test/n_train between folds) and is conservative where that
-    overestimates the correlation; it is the usual test for comparing learners on one
-    small data set.
+    too confident. Nadeau & Bengio take the correlation between two folds' differences to be
+    ``ρ = n_test / n = 1/k``, which adds ``ρ / (1 − ρ) = n_test/n_train = 1/(k − 1)`` to the
+    ``1/n`` of the variance of the mean: ``t = mean(d) / sqrt((1/n + 1/(k − 1)) · var(d))``
+    over the n = k·r paired fold scores d = scores − reference of r repetitions (sample
+    variance), two-sided p from Student's t with n − 1 degrees of freedom. It is a
+    heuristic correction (ρ is assumed, not estimated; 1/(k − 1) is exact for folds of equal
+    size), the usual test for comparing learners on one small data set. The p-value is per
+    comparison: adjust a family of them (e.g. `holm`) before reading several at once.
+
+    Folds whose two scores are equal within a relative 1e-4 (`fold_better`'s tie) count as a
+    difference of 0 in the test, so that a learned λ that stayed at the start is no
+    "significant" difference of rounding; `difference` is the plain mean of scores − reference.
 
     `scores`, `reference`: one score per fold, on the same folds in the same order (from
-    `fold_accuracy` or `CVAccuracy`); `n_folds`: k, the folds per repetition."""
-    a, b = np.asarray(scores, np.float64), np.asarray(reference, np.float64)
+    `fold_accuracy` or `CVAccuracy`: k·r of them); `n_folds`: k, the folds per repetition."""
+    a, b = np.asarray(scores), np.asarray(reference)
     if a.shape != b.shape or a.ndim != 1 or a.size < 2:
         raise ValueError(
             "fold_t_test: scores and reference must be 1-D with one score per fold, the same "
             f"length and at least 2 folds; got shapes {a.shape} and {b.shape}."
         )
+    if isinstance(n_folds, bool) or not isinstance(n_folds, (int, np.integer)) or n_folds < 2 or a.size % n_folds:
+        raise ValueError(
+            f"fold_t_test: n_folds (k, the folds per repetition) must be an integer >= 2 that divides the "
+            f"number of scores ({a.size} = k × repetitions), got {n_folds!r}."
+        )
+    kind = np.result_type(a, b)
+    eps = float(np.finfo(kind).eps) if np.issubdtype(kind, np.floating) else float(np.finfo(np.float64).eps)
+    a, b = a.astype(np.float64), b.astype(np.float64)
     if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
         raise InputError("fold_t_test: fold scores must be finite.")
-    if isinstance(n_folds, bool) or not isinstance(n_folds, (int, np.integer)) or not 2 <= n_folds <= a.size:
-        raise ValueError(
-            f"fold_t_test: n_folds (the folds per repetition) must be an integer from 2 to the number "
-            f"of scores ({a.size}), got {n_folds!r}."
-        )
-    d = a - b
-    n = d.size
-    mean, var = float(np.mean(d)), float(np.var(d, ddof=1))
-    # Exact ties count as no spread (a variance of rounding noise would give any t).
-    if var <= (1e-12 * max(1.0, float(np.max(np.abs(d))))) ** 2:
-        if np.allclose(d, 0.0, rtol=0.0, atol=1e-12):
-            return FoldTest(difference=mean, t=0.0, p_value=1.0, n=n)
-        return FoldTest(difference=mean, t=math.nan, p_value=math.nan, n=n)
-    t = mean / math.sqrt((1.0 / n + 1.0 / (n_folds - 1)) * var)
-    return FoldTest(difference=mean, t=t, p_value=float(2.0 * scipy.stats.t.sf(abs(t), n - 1)), n=n)
+    n = a.size
+    difference = float(np.mean(a - b))
+    d = np.where(np.isclose(a, b, rtol=1e-4, atol=1e-12), 0.0, a - b)
+    if not np.any(d):
+        return FoldTest(difference=difference, t=0.0, p_value=1.0, n=n)
+    # A spread at the level of the scores' rounding is no spread: every fold differs by the
+    # same amount, and any t would be the rounding's.
+    if np.std(d) <= 16 * eps * float(max(np.max(np.abs(a)), np.max(np.abs(b)))):
+        return FoldTest(difference=difference, t=math.nan, p_value=math.nan, n=n)
+    t = float(np.mean(d)) / math.sqrt((1.0 / n + 1.0 / (n_folds - 1)) * float(np.var(d, ddof=1)))
+    return FoldTest(difference=difference, t=t, p_value=float(2.0 * scipy.stats.t.sf(abs(t), n - 1)), n=n)
 
 
 def fold_better(scores, reference, *, higher_is_better: bool) -> tuple[int, int, int]:

@@ -545,22 +545,44 @@ def test_fold_t_test_reference_and_properties(n_folds, n_repeats):
     assert (shifted.t, shifted.p_value) == pytest.approx((test.t, test.p_value), rel=1e-9)
 
 
-def test_fold_t_test_ties_and_bad_input():
+def test_fold_t_test_known_value_and_ties():
+    # d = 1..5 over k = 5 folds: mean 3, var 2.5, t = 3 / √((1/5 + 1/4) · 2.5) = 2√2.
+    known = rs.fold_t_test(np.arange(1.0, 6.0), np.zeros(5), n_folds=np.int64(5))
+    assert known.t == pytest.approx(2 * math.sqrt(2), rel=1e-12)
+    assert known.p_value == pytest.approx(0.047421, abs=1e-6)
+    assert known.difference == 3.0 and known.n == 5
     same = rs.fold_t_test([1.0, 0.8, 1.0], [1.0, 0.8, 1.0], n_folds=3)
     assert (same.difference, same.t, same.p_value) == (0.0, 0.0, 1.0)
-    # Every fold better by the same amount: no spread to test against, said as NaN (not p = 0).
-    constant = rs.fold_t_test([0.9, 0.7, 0.9], [0.8, 0.6, 0.8], n_folds=3)
-    assert constant.difference == pytest.approx(0.1)
-    assert math.isnan(constant.t) and math.isnan(constant.p_value)
+    # Folds equal within fold_better's relative 1e-4 are ties here too: a λ that stayed at the
+    # start is no significant difference, however consistent its rounding.
+    start = np.array([0.2, 0.3, 0.25, 0.4])
+    rounding = rs.fold_t_test(start * (1 + 1e-6), start, n_folds=2)
+    assert (rounding.t, rounding.p_value) == (0.0, 1.0) and rounding.difference > 0
+    assert learn.fold_better(start * (1 + 1e-6), start, higher_is_better=True) == (0, 4, 0)
+    # Every fold better by the same amount: no spread to test against, said as NaN (not p = 0),
+    # also when the differences carry the scores' rounding (float64 and float32).
+    for dtype in (np.float64, np.float32):
+        a = np.array([2 / 3, 1.0, 2 / 3], dtype)
+        b = np.array([1 / 3, 2 / 3, 1 / 3], dtype)
+        constant = rs.fold_t_test(a, b, n_folds=3)
+        assert constant.difference == pytest.approx(1 / 3, rel=1e-6)
+        assert math.isnan(constant.t) and math.isnan(constant.p_value), dtype
+
+
+def test_fold_t_test_counts_repeats_and_bad_input():
+    assert rs.fold_t_test([0.1, 0.3, 0.2, 0.5, 0.4, 0.2], [0.2] * 6, n_folds=3).n == 6  # 2 repeats × 3
     with pytest.raises(ValueError, match="same length"):
         rs.fold_t_test([0.1, 0.2], [0.1, 0.2, 0.3], n_folds=2)
     with pytest.raises(ValueError, match="at least 2 folds"):
         rs.fold_t_test([0.1], [0.2], n_folds=2)
     with pytest.raises(rs.InputError, match="finite"):
         rs.fold_t_test([0.1, np.nan], [0.2, 0.3], n_folds=2)
-    for bad in (1, 4, 2.0, True):
+    # k must divide the number of scores (k folds × repetitions).
+    for bad in (1, 4, 2.0, True, np.bool_(True)):
         with pytest.raises(ValueError, match="n_folds"):
             rs.fold_t_test([0.1, 0.2, 0.3], [0.2, 0.3, 0.1], n_folds=bad)
+    with pytest.raises(ValueError, match="divides"):
+        rs.fold_t_test([0.1] * 7, [0.2] * 7, n_folds=3)
 
 
 def _reference_log_loss(D_tt, D_tr, y_test, y_train, softness):

@@ -874,10 +874,11 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
                     f"{name} {' / '.join(map(str, comparison[key]))}"
                     for name, key in (("1-NN", "nn"), ("class mean", "mean"), ("log-loss", "log_loss"))
                 )
-                + ". Corrected paired t-test over the folds (Nadeau & Bengio; p < 0.05 is a difference "
-                "beyond the folds' spread): "
+                + ". Corrected paired t-test over the folds (Nadeau & Bengio; two-sided, per score): "
                 + "; ".join(
                     f"{name} p = {t_tests[key].p_value:.3g}"
+                    if t_tests[key].p_value == t_tests[key].p_value
+                    else f"{name} p undefined (every fold differs by the same amount)"
                     for name, key in (("1-NN", "nn"), ("class mean", "mean"), ("log-loss", "log_loss"))
                 )
                 + "."
