@@ -327,7 +327,8 @@ class LearnedWeights(eqx.Module):
       again at the new λ found over the inner solve's registrations evaluated at that λ.
 
     `weights` and `distances` are those of the registered loss's best entry (the alternation
-    is not a descent method: the registrations minimise each d², not the loss).
+    is not a descent method: the registrations minimise each d², not the loss); `kept()` says
+    which entries of `loss_trace` the fit kept.
     """
 
     weights: Weights
@@ -353,6 +354,13 @@ class LearnedWeights(eqx.Module):
             f"steps={self.steps}, n_reregistrations={self.n_reregistrations}, softness={self.softness:.4g}, "
             f"regularisation={self.regularisation:.4g}, distances=<{n}×{n} matrix>)"
         )
+
+    def kept(self) -> np.ndarray:
+        """Per entry of `loss_trace`, whether the fit kept it: the start, and every try whose
+        loss was below the best before it (the fit's rule; a try that was not is followed by
+        a step back or the stop). The last kept entry is the one returned."""
+        loss = np.asarray(self.loss_trace, np.float64)
+        return loss < np.minimum.accumulate(np.concatenate([[np.inf], loss[:-1]]))
 
 
 def _regularisation_candidates(regularisation) -> tuple[float, ...]:

@@ -333,6 +333,7 @@ def test_a_worse_re_registration_stops_and_keeps_the_best(monkeypatch):
     assert len(res.loss_trace) == 4 and len(res.changed_pairs) == len(res.registration_gain) == 3
     assert len(res.inner_loss_trace) == 1
     assert res.weights == Weights()  # the start: the best entry of the trace
+    assert res.kept().tolist() == [True, False, False, False]
     D = np.asarray(rs.pairwise_distances(trees, progress=False))
     np.testing.assert_allclose(res.distances, D, rtol=1e-10, atol=1e-12)
     # Each step back is halfway in log λ between the best (the start) and the last λ tried.
@@ -356,6 +357,10 @@ def test_a_step_back_that_lowers_the_loss_is_kept(monkeypatch):
     assert res.n_reregistrations >= 2 and res.weights != Weights()
     # The third registration was at the λ halfway (log scale) between the start and the solve's.
     _assert_halfway(calls, 0, 1, 2)
+    # The overshoot is the one try not kept, and what is returned is the last kept entry.
+    kept = res.kept()
+    assert kept[:3].tolist() == [True, False, True]
+    assert calls[np.flatnonzero(kept)[-1]] == res.weights
     # Whatever is returned is the best entry of the trace, with its own registrations.
     D = np.asarray(rs.pairwise_distances(trees, weights=res.weights, progress=False))
     np.testing.assert_allclose(res.distances, D, rtol=1e-6)
@@ -384,6 +389,7 @@ def test_a_step_back_starts_from_the_best_lambda_so_far(monkeypatch):
     res = rs.learn_weights(trees, labels, progress=False, max_reregistrations=4, tol=0.0)
     assert res.loss_trace[1] < res.loss_trace[0]  # the first solve's λ was accepted: the best
     assert res.loss_trace[2] > res.loss_trace[1]  # the second solve's (scrambled) was not
+    assert res.kept()[:3].tolist() == [True, True, False]
     assert len(calls) >= 4
     _assert_halfway(calls, 1, 2, 3)
 

@@ -779,13 +779,26 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
         from matplotlib.ticker import MaxNLocator
 
         fig, ax = plt.subplots(figsize=(4.5, 3.2))
-        ax.plot(np.arange(len(res.loss_trace)), res.loss_trace, "o-")
+        loss = np.asarray(res.loss_trace)
+        x = np.arange(len(loss))
+        kept = res.kept()
+        ax.step(x, np.minimum.accumulate(loss), where="post", color="C0", label="best so far")
+        ax.plot(x[kept], loss[kept], "o", color="C0", label="kept")
+        if not kept.all():
+            ax.plot(x[~kept], loss[~kept], "o", mfc="none", color="C3", label="tried, not kept")
+        ax.legend(fontsize="small", frameon=False)
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # registrations are whole numbers
         ax.set_xlabel("registration (0 = starting weights)")
         ax.set_ylabel("soft nearest-neighbour loss")
         ax.set_title("learning the weights")
         fig.tight_layout()
-        out.figure(sec, fig, "loss_trace.png", "loss at the registered distances after each re-registration")
+        out.figure(
+            sec,
+            fig,
+            "loss_trace.png",
+            "loss at the registered distances after each re-registration; a try whose loss was not "
+            "below the best so far is not kept (the fit steps back toward the best weights or stops)",
+        )
         w = ",".join(f"{float(v):.4g}" for _, v in res.weights.items()) + " (main, lateral, position, thickness)"
         if res.weights.deeper:
             w += ", --level-weights " + ";".join(f"{float(ls):.4g},{float(lp):.4g}" for ls, lp in res.weights.deeper)
