@@ -9,8 +9,8 @@ alternated with the DP, rtol 1e-4, up to 10 iterations). Each call is warmed up 
 compile time is reported apart). Then `--rounds` interleaved rounds, each timing the public
 call (best of 3), the plain ``vmap`` (best of 3) and fdasrsf (float64, its C DP, one pair at
 a time on 40 of the pairs), so that every ratio to fdasrsf compares runs seconds apart: on a
-shared VM the speed of the host drifts by tens of percent within minutes, and one round's
-ratio moved from 23× to 52× between runs. The median ratio over rounds is the result; the
+shared VM the speed of the host drifts by tens of percent within minutes, and single runs'
+ratios ranged from 23× to 52×. The median ratio over rounds is the result; the
 spread (min–max) is reported with it. Writes ``results/curves_public.json``.
 """
 
@@ -24,6 +24,13 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).parent))
 from _common import machine, write_json  # noqa: E402
 from bench_curves import _curves, _per_pair_time  # noqa: E402
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
+    return value
 
 
 def _best(fn, *args, repeats=3):
@@ -49,7 +56,7 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--batch", type=int, default=256)
     p.add_argument("--T", type=int, default=100)
-    p.add_argument("--rounds", type=int, default=5, help="interleaved timing rounds (median ratio reported)")
+    p.add_argument("--rounds", type=_positive, default=5, help="interleaved timing rounds (median ratio reported)")
     args = p.parse_args(argv)
     import jax
     import jax.numpy as jnp

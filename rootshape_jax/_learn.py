@@ -307,7 +307,7 @@ class LearnedWeights(eqx.Module):
     - `softness`: the loss's relative temperature (``τ = softness · mean d²``).
     - `loss_trace`: the NCA loss (penalty included) at freshly registered distances: entry 0
       at the starting λ and τ, entry k after the k-th re-registration, at the λ that an inner
-      solve found or, where that λ's loss was worse than the best so far, at a step back
+      solve found or, where that λ's loss was not below the best so far, at a step back
       toward the best λ (½, then ¼ of the solve's step in log λ). Rejected tries are entries
       too, so the trace is not monotone.
     - `inner_loss_trace`: the loss reached by each inner solve (registrations fixed); one entry
@@ -360,7 +360,13 @@ class LearnedWeights(eqx.Module):
         loss was below the best before it (the fit's rule; a try that was not is followed by
         a step back or the stop). The last kept entry is the one returned."""
         loss = np.asarray(self.loss_trace, np.float64)
-        return loss < np.minimum.accumulate(np.concatenate([[np.inf], loss[:-1]]))
+        kept = np.zeros(loss.shape, bool)
+        best = np.nan
+        for i, value in enumerate(loss):
+            # The fit's own comparison, so that a NaN loss is handled as the fit handles it.
+            kept[i] = i == 0 or value < best
+            best = value if kept[i] else best
+        return kept
 
 
 def _regularisation_candidates(regularisation) -> tuple[float, ...]:

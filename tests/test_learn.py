@@ -346,6 +346,24 @@ def test_a_worse_re_registration_stops_and_keeps_the_best(monkeypatch):
     assert res.weights == Weights()
 
 
+def test_kept_is_the_fits_rule():
+    """The start, then each entry strictly below the best before it (a tie is not kept; the
+    best so far, not the previous entry, is the bar); a NaN loss is never below anything."""
+    zeros = np.zeros(0)
+
+    def kept(trace):
+        return learn.LearnedWeights(
+            weights=Weights(), softness=0.1, loss_trace=np.asarray(trace), inner_loss_trace=zeros,
+            status="loss", steps=0, n_reregistrations=len(trace) - 1, distances=np.zeros((2, 2)),
+            changed_pairs=zeros, registration_gain=zeros, regularisation=0.0, regularisation_scores=None,
+        ).kept().tolist()  # fmt: skip
+
+    assert kept([1.0, 2, 1.5, 0.9, 0.95, 0.9, 0.8]) == [True, False, False, True, False, False, True]
+    assert kept([1.0]) == [True]
+    assert kept([1.0, np.nan, 0.5]) == [True, False, True]
+    assert kept([np.nan, 1.0, 0.5]) == [True, False, False]  # the fit keeps the start then
+
+
 def test_a_step_back_that_lowers_the_loss_is_kept(monkeypatch):
     """The solve's λ overshoots (its fresh registrations are scrambled, so the loss goes up);
     the λ halfway back registers normally, beats the start and the fit goes on from it."""

@@ -782,12 +782,14 @@ def run_learn_weights(ctx: Context, out: Output, args) -> None:
         loss = np.asarray(res.loss_trace)
         x = np.arange(len(loss))
         kept = res.kept()
-        ax.step(x, np.minimum.accumulate(loss), where="post", color="C0", label="best so far")
+        best = loss[np.maximum.accumulate(np.where(kept, x, 0))]  # the last kept entry's loss
+        ax.step(x, best, where="post", color="C0", label="best so far")
         ax.plot(x[kept], loss[kept], "o", color="C0", label="kept")
         if not kept.all():
             ax.plot(x[~kept], loss[~kept], "o", mfc="none", color="C3", label="tried, not kept")
         ax.legend(fontsize="small", frameon=False)
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # registrations are whole numbers
+        ax.set_xlim(-0.5, max(len(loss) - 1, 1) + 0.5)  # whole-number ticks for a one-entry trace too
         ax.set_xlabel("registration (0 = starting weights)")
         ax.set_ylabel("soft nearest-neighbour loss")
         ax.set_title("learning the weights")
