@@ -44,14 +44,6 @@ def _best(fn, *args, repeats=3):
     return best
 
 
-def _first(fn, *args):
-    import jax
-
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(*args))
-    return time.perf_counter() - t0
-
-
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--batch", type=int, default=256)
@@ -75,7 +67,7 @@ def main(argv=None):
         "rs.elastic_curve_distances (public, default)": public,
         "jax.jit(jax.vmap(rs.elastic_curve_distance))": vmapped,
     }
-    first = {name: _first(fn, c1, c2) for name, fn in calls.items()}
+    first = {name: _best(fn, c1, c2, repeats=1) for name, fn in calls.items()}  # compilation included
     try:
         import fdasrsf.curve_functions as cf
     except ImportError:

@@ -1069,7 +1069,7 @@ def fold_t_test(scores, reference, *, n_folds: int) -> FoldTest:
         raise InputError("fold_t_test: fold scores must be finite.")
     n = a.size
     difference = float(np.mean(a - b))
-    d = np.where(np.isclose(a, b, rtol=1e-4, atol=1e-12), 0.0, a - b)
+    d = np.where(_fold_ties(a, b), 0.0, a - b)
     if not np.any(d):
         return FoldTest(difference=difference, t=0.0, p_value=1.0, n=n)
     # A spread at the level of the scores' rounding is no spread: every fold differs by the
@@ -1080,13 +1080,19 @@ def fold_t_test(scores, reference, *, n_folds: int) -> FoldTest:
     return FoldTest(difference=difference, t=t, p_value=float(2.0 * scipy.stats.t.sf(abs(t), n - 1)), n=n)
 
 
+def _fold_ties(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per fold, whether two scores count as equal: within a relative 1e-4 (and 1e-12
+    absolute), so that rounding is no win (`fold_better`, `fold_t_test`)."""
+    return np.isclose(a, b, rtol=1e-4, atol=1e-12)
+
+
 def fold_better(scores, reference, *, higher_is_better: bool) -> tuple[int, int, int]:
     """(better, equal, worse): fold by fold, how `scores` compare with `reference` on the same
     folds. Equal means within a relative 1e-4 (and 1e-12 absolute) of each other."""
     a, b = np.asarray(scores, np.float64), np.asarray(reference, np.float64)
     if a.shape != b.shape:
         raise ValueError(f"fold_better: scores and reference differ in shape, {a.shape} and {b.shape}.")
-    equal = np.isclose(a, b, rtol=1e-4, atol=1e-12)
+    equal = _fold_ties(a, b)
     up = (a > b) if higher_is_better else (a < b)
     return int(np.sum(up & ~equal)), int(np.sum(equal)), int(np.sum(~up & ~equal))
 
