@@ -2,7 +2,7 @@
 from Python with default settings, on three populations, scale-normalised and not.
 
     python benchmarks/bench_populations.py [--populations synthetic pea rootnav]
-        [--what matrix mean rounds] [--baseline /path/to/old/checkout] [--paths default all-cores]
+        [--what matrix mean rounds profile] [--baseline /path/to/old/checkout] [--paths default all-cores]
 
 Populations:
 - ``synthetic``: the bundled 53 (`datasets.default_dataset`, 2D, ~10 laterals);
@@ -19,6 +19,10 @@ the roots (same chunk shapes), reported apart; the mean's is its first call minu
 ``--paths all-cores`` runs the same after ``rs.use_all_cores()`` (one XLA device per core).
 ``rounds``: lateral DPs run and skipped per alternation round, on 32 random pairs (the engine
 is deterministic, so round r's counts are the difference of runs capped at r and r − 1 rounds).
+``profile``: where the engine's time goes, on 64 random pairs in one call: the engine's time,
+its DPs (lateral and main-root), the DP kernel alone on as many random lateral pairs of the
+population (its share of the engine's time), and the energy and DPs with the alternation
+capped at 1–4 rounds against it run to a standstill (12 rounds, no tolerance).
 With ``--baseline`` every run is repeated with that checkout of the package, interleaved, and
 reported as a ratio (rounds: both DP counts side by side). Results: ``results/populations.json``.
 """
@@ -98,6 +102,60 @@ elif what == "rounds":
         prev = now
     out["pairs"] = int(len(pick))
     out["rounds"] = rounds
+elif what == "profile":
+    import functools
+    from rootshape_jax._engine import RegistrationOptions, register_pairs_jit
+    from rootshape_jax._warp import dp_warp_if
+    s = rs.to_srvf(trees)
+    n = s.q0.shape[0]
+    rng = np.random.default_rng(0)
+    I, J = np.triu_indices(n, 1)
+    pick = rng.choice(len(I), size=min(64, len(I)), replace=False)
+    a = jax.tree.map(lambda x: x[I[pick]], s)
+    b = jax.tree.map(lambda x: x[J[pick]], s)
+    w = rs.Weights()
+
+    def best_of(f, repeats=3):
+        f()
+        best = np.inf
+        for _ in range(repeats):
+            t0 = time.perf_counter(); f(); best = min(best, time.perf_counter() - t0)
+        return best
+
+    # The engine on these pairs, as the matrix calls it (default options, one call).
+    reg = register_pairs_jit(a, b, w, RegistrationOptions())
+    # Lateral DPs, and one main-root DP per pair and round.
+    n_dp = int(np.sum(reg.n_lateral_dp)) + int(np.sum(np.asarray(reg.n_iterations)))
+    engine_s = best_of(lambda: jax.block_until_ready(register_pairs_jit(a, b, w, RegistrationOptions()).energy))
+    # The DP kernel alone on as many random real lateral pairs of the population, in slabs of
+    # 32 (the engine's default `dp_batch_size`).
+    q = np.asarray(s.q).reshape((-1,) + s.q.shape[-2:])[np.asarray(s.mask).reshape(-1)]
+    slabs = -(-n_dp // 32)
+    L1 = rng.integers(0, len(q), (slabs, 32)); L2 = rng.integers(0, len(q), (slabs, 32))
+    kernel = jax.jit(jax.vmap(functools.partial(dp_warp_if, neighbourhood=7, check=False)))
+    on = np.ones((32,), bool)
+    def dps():
+        for k in range(slabs):
+            jax.block_until_ready(kernel(q[L1[k]], q[L2[k]], on))
+    dp_s = best_of(dps)
+    out["pairs"] = int(len(pick))
+    out["engine_seconds"] = engine_s
+    out["dps"] = n_dp
+    out["dp_kernel_seconds"] = dp_s * n_dp / (slabs * 32)
+    out["dp_ms_each"] = 1e3 * dp_s / (slabs * 32)
+    out["dp_share"] = out["dp_kernel_seconds"] / engine_s
+    # What the alternation rounds buy: energy and DPs capped at r rounds, against the
+    # alternation run to a standstill (12 rounds, no tolerance).
+    caps = []
+    for r, rtol in ((1, 1e-4), (2, 1e-4), (3, 1e-4), (4, 1e-4), (12, 0.0)):
+        o = RegistrationOptions(max_iterations=r, rtol=rtol)
+        reg = register_pairs_jit(a, b, w, o)
+        sec = best_of(lambda: jax.block_until_ready(register_pairs_jit(a, b, w, o).energy), repeats=1)
+        caps.append({"max_iterations": r, "rtol": rtol, "energy": float(np.sum(reg.energy)),
+                     "lateral_dps": int(np.sum(reg.n_lateral_dp)), "seconds": sec})
+    for c in caps:
+        c["energy_above_converged"] = c["energy"] / caps[-1]["energy"] - 1
+    out["caps"] = caps
 print("RESULT " + json.dumps(out))
 """
 
@@ -130,7 +188,7 @@ def main(argv=None):
             continue
         for norm in args.normalise:
             for what in args.what:
-                paths = [p == "all-cores" for p in args.paths] if what != "rounds" else [False]
+                paths = [p == "all-cores" for p in args.paths] if what not in ("rounds", "profile") else [False]
                 for all_cores in paths:
                     spec = {
                         "population": pop,
