@@ -57,6 +57,18 @@ trees = rs.batch(roots, n_points=100, normalise_scale=spec["normalise"])
 out = {"package": rs.__file__, "n_roots": len(roots), "capacity": int(trees.capacity),
        "laterals_mean": float(np.mean([r.n_laterals for r in roots])), "devices": len(jax.devices())}
 what = spec["what"]
+
+
+def random_pairs(trees, count):
+    # The SRVFs, `count` random distinct pairs of them (a, b, their indices) and the seeded
+    # generator that drew them.
+    s = rs.to_srvf(trees)
+    rng = np.random.default_rng(0)
+    I, J = np.triu_indices(s.q0.shape[0], 1)
+    pick = rng.choice(len(I), size=min(count, len(I)), replace=False)
+    return s, jax.tree.map(lambda x: x[I[pick]], s), jax.tree.map(lambda x: x[J[pick]], s), pick, rng
+
+
 if what == "matrix":
     t0 = time.perf_counter()
     rs.pairwise_distances(jax.tree.map(lambda x: x[:2], trees), progress=False)
@@ -84,13 +96,7 @@ elif what == "mean":
     out["objective"] = float(res.energy)
 elif what == "rounds":
     from rootshape_jax._engine import RegistrationOptions, register_pairs_jit
-    s = rs.to_srvf(trees)
-    n = s.q0.shape[0]
-    rng = np.random.default_rng(0)
-    I, J = np.triu_indices(n, 1)
-    pick = rng.choice(len(I), size=min(32, len(I)), replace=False)
-    a = jax.tree.map(lambda x: x[I[pick]], s)
-    b = jax.tree.map(lambda x: x[J[pick]], s)
+    s, a, b, pick, rng = random_pairs(trees, 32)
     prev = np.zeros(2)
     rounds = []
     for r in range(1, 5):
@@ -106,13 +112,7 @@ elif what == "profile":
     import functools
     from rootshape_jax._engine import RegistrationOptions, register_pairs_jit
     from rootshape_jax._warp import dp_warp_if
-    s = rs.to_srvf(trees)
-    n = s.q0.shape[0]
-    rng = np.random.default_rng(0)
-    I, J = np.triu_indices(n, 1)
-    pick = rng.choice(len(I), size=min(64, len(I)), replace=False)
-    a = jax.tree.map(lambda x: x[I[pick]], s)
-    b = jax.tree.map(lambda x: x[J[pick]], s)
+    s, a, b, pick, rng = random_pairs(trees, 64)
     w = rs.Weights()
 
     def best_of(f, repeats=3):
