@@ -21,8 +21,8 @@ the roots (same chunk shapes), reported apart; the mean's is its first call minu
 is deterministic, so round r's counts are the difference of runs capped at r and r − 1 rounds).
 ``profile``: where the engine's time goes, on 64 random pairs in one call: the engine's time,
 its DPs (lateral and main-root), the DP kernel alone on as many random lateral pairs of the
-population (its share of the engine's time), and the energy and DPs with the alternation
-capped at 1–4 rounds against it run to a standstill (12 rounds, no tolerance).
+population (its share of the engine's time), and the energy, DPs and time (best of 3) with the
+alternation capped at 1–4 rounds against it run to a standstill (12 rounds, no tolerance).
 With ``--baseline`` every run is repeated with that checkout of the package, interleaved, and
 reported as a ratio (rounds: both DP counts side by side). Results: ``results/populations.json``.
 """
@@ -150,7 +150,7 @@ elif what == "profile":
     for r, rtol in ((1, 1e-4), (2, 1e-4), (3, 1e-4), (4, 1e-4), (12, 0.0)):
         o = RegistrationOptions(max_iterations=r, rtol=rtol)
         reg = register_pairs_jit(a, b, w, o)
-        sec = best_of(lambda: jax.block_until_ready(register_pairs_jit(a, b, w, o).energy), repeats=1)
+        sec = best_of(lambda: jax.block_until_ready(register_pairs_jit(a, b, w, o).energy))
         caps.append({"max_iterations": r, "rtol": rtol, "energy": float(np.sum(reg.energy)),
                      "lateral_dps": int(np.sum(reg.n_lateral_dp)), "seconds": sec})
     for c in caps:
