@@ -1307,9 +1307,11 @@ def main(argv=None):
     results["cache_hits"] = cache.hits
     results["section_seconds"] = section_s
     results["figures"] = report.figures
-    learned = out / "learn_weights.md"
-    if learned.is_file():  # written by bench_learn.py (nested CV of learned weights)
-        report.add(learned.read_text())
+    # Written by bench_learn.py (nested CV of learned weights) and learn_oracle.py (what any
+    # fixed λ could reach on the same folds).
+    for part in ("learn_weights.md", "learn_oracle.md"):
+        if (out / part).is_file():
+            report.add((out / part).read_text())
     path = report.write()
     if out.resolve() == RESULTS.resolve():
         jpath = write_json(NAME, results)
