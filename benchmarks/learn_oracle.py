@@ -115,11 +115,13 @@ def learned_scores(learned: dict | None, tag: str, row: dict, args: dict) -> dic
     folds, seed and splits, and the paper's λ scoring the same fold by fold."""
     if learned is None or tag not in learned.get("sets", {}):
         return {}
-    la = learned["args"]
+    la = learned.get("args", {})
     mine = (args["T"], args["n_folds"], args["seed"], args["repeats"])
     if (la.get("T"), la.get("n_folds"), la.get("seed"), la.get("repeats", 1)) != mine:
         return {"paper_matches_bench_learn": False, "paper_largest_difference": None}
-    acc = learned["sets"][tag]["accuracy"]
+    acc = learned["sets"][tag].get("accuracy", {})
+    if "paper" not in acc or "learned" not in acc:
+        return {"paper_matches_bench_learn": False, "paper_largest_difference": None}
     paper = row["grid_scores"][_key(PAPER)]
     gap = max(float(np.max(np.abs(np.asarray(acc["paper"][k]) - np.asarray(paper[k])))) for k, _, _ in SCORES)
     out = {"paper_matches_bench_learn": gap < 1e-3, "paper_largest_difference": gap}
@@ -128,9 +130,10 @@ def learned_scores(learned: dict | None, tag: str, row: dict, args: dict) -> dic
     return out
 
 
-def summary(row: dict, n_folds: int) -> dict:
+def summary(row: dict, grid: dict, n_folds: int) -> dict:
     """Per score: the paper's λ, the learned λ, the best fixed λ in hindsight, the smallest p on
-    the grid and the per-fold oracle (see the module docstring)."""
+    the grid (unadjusted, and Holm-adjusted over the λ it is the smallest of) and the per-fold
+    oracle (see the module docstring)."""
     import rootshape_jax as rs
 
     keys = list(row["grid_scores"])
@@ -142,20 +145,26 @@ def summary(row: dict, n_folds: int) -> dict:
         sign = 1.0 if higher else -1.0
         means = {key: sign * float(np.mean(v)) for key, v in scores.items()}
         top = max(means.values())
-        # Ties (within rounding) go to the paper's λ, then to the first on the grid.
-        best = paper_key if means[paper_key] >= top - 1e-12 else next(key for key in keys if means[key] >= top - 1e-12)
+        tied = [key for key in keys if means[key] >= top - 1e-12]
+        # Ties (within rounding) go to the paper's λ, then to an inner grid λ, then to the first.
+        inner = [key for key in tied if not _on_edge(key, grid)]
+        best = paper_key if paper_key in tied else (inner or tied)[0]
         better = [key for key in keys if means[key] > means[paper_key] + 1e-12]
-        tests = {key: rs.fold_t_test(scores[key], paper, n_folds=n_folds) for key in better}
-        finite = {key: t.p_value for key, t in tests.items() if not math.isnan(t.p_value)}
+        tests = {key: rs.fold_t_test(scores[key], paper, n_folds=n_folds).p_value for key in better}
+        # NaN: the λ gains the same amount in every fold (no spread to test against).
+        finite = {key: p for key, p in tests.items() if not math.isnan(p)}
         stacked = np.stack(list(scores.values()))
         entry = {
             "paper": float(np.mean(paper)),
             "hindsight_lambda": best,
             "hindsight": float(np.mean(scores[best])),
-            "hindsight_p": None if best == paper_key else tests[best].p_value,
+            "hindsight_p": None if best == paper_key else rs.fold_t_test(scores[best], paper, n_folds=n_folds).p_value,
+            "hindsight_on_edge": all(_on_edge(key, grid) for key in tied) and not (higher and top >= 1.0),
             "n_better": len(better),
+            "n_undefined_p": len(tests) - len(finite),
             "smallest_p": min(finite.values()) if finite else None,
             "smallest_p_lambda": min(finite, key=finite.get) if finite else None,
+            "smallest_p_holm": float(np.min(rs.holm(list(finite.values())))) if finite else None,
             "oracle": float(np.mean(stacked.max(axis=0) if higher else stacked.min(axis=0))),
         }
         if "learned_scores" in row:
@@ -164,6 +173,11 @@ def summary(row: dict, n_folds: int) -> dict:
             entry["learned_p"] = rs.fold_t_test(ls, paper, n_folds=n_folds).p_value
         out[k] = entry
     return out
+
+
+def _on_edge(key: str, grid: dict) -> bool:
+    lm, lp = (float(x) for x in key.split(","))
+    return lm in (min(grid["main"]), max(grid["main"])) or lp in (min(grid["position"]), max(grid["position"]))
 
 
 def _p(p) -> str:
@@ -180,25 +194,27 @@ def markdown(results: dict) -> str:
         f"({results['machine'].get('date', '')}, package at {results['machine'].get('git', '?')}). Every pair "
         f"of each set registered at each λ of a grid, λ_main in {list(grid['main'])} × λ_position in "
         f"{list(grid['position'])} (λ_lateral = 1), and scored on the same {a['n_folds']} folds × "
-        f"{a['repeats']} splits as the table above. These pick λ by the held-out roots, so they are no "
-        "result: they say how much a better λ could gain on a set at all. *Best fixed λ in hindsight*: the "
-        "grid λ (λ_main, λ_position) with the best mean score (ties to the paper's λ), and its p against "
-        "the paper's λ (`fold_t_test`; optimistic, being the best of many λ on the same folds). *Smallest "
-        "p*: of every grid λ better than the paper's in the mean (a steadier, smaller gain can test "
-        "better than the best mean); at 0.05 or above, no fixed λ on the grid can be shown to beat the "
-        "paper's λ with these folds. *(grid edge)*: the best λ is on the grid's border, so a λ beyond it "
-        "may do better still. A learned λ changes from fold to fold and lies between grid points, "
+        f"{a['repeats']} splits as bench_learn's table (`learn_weights.md`). These pick λ by the held-out "
+        "roots, so they are no result: they say how much a better λ could gain on a set at all. *Best "
+        "fixed λ in hindsight*: the grid λ (λ_main, λ_position) with the best mean score (ties to the "
+        "paper's λ, then to a λ inside the grid), and its p against the paper's λ (`fold_t_test`, "
+        "unadjusted; optimistic, being the best of many λ on the same folds); *(grid edge)*: every λ with "
+        "that score is on the grid's border, so a λ beyond it may do better still. *Smallest p*: the "
+        "smallest unadjusted p of the N grid λ better than the paper's in the mean (a steadier, smaller "
+        "gain can test better than the best mean), and Holm-adjusted over those N. At 0.05 or above "
+        "unadjusted, no fixed λ on the grid can be shown to beat the paper's λ with these folds; below "
+        "0.05 after Holm, some can. A learned λ changes from fold to fold and lies between grid points, "
         "so this is a reference for it, not a bound on its p. *Per-fold oracle*: the mean of each fold's "
         "best score on the grid, the most a λ chosen per fold on this grid could reach (no p: it is "
-        "never behind the paper's λ, which is on the grid). p values are per comparison, not adjusted.",
+        "never behind the paper's λ, which is on the grid).",
         "",
-        "| set | score | paper λ | learned λ (nested CV), p | best fixed λ in hindsight, p | smallest p on the grid | per-fold oracle |",
+        "| set | score | paper λ | learned λ (nested CV), p | best fixed λ in hindsight, p | smallest p on the grid (N; Holm) | per-fold oracle |",
         "|---|---|---:|---:|---:|---:|---:|",
     ]
     readings = []
     for tag, row in results["sets"].items():
-        summ = summary(row, a["n_folds"])
-        beyond, within, none = [], [], []
+        summ = summary(row, grid, a["n_folds"])
+        beyond, unsure, within, none = [], [], [], []
         for k, name, _ in SCORES:
             e = summ[k]
 
@@ -206,40 +222,58 @@ def markdown(results: dict) -> str:
                 return f"{100 * v:.1f} %" if k != "log_loss" else f"{v:.3f}"
 
             learned = f"{fmt(e['learned'])}, {_p(e['learned_p'])}" if "learned" in e else "—"
-            best = "(" + e["hindsight_lambda"].replace(",", ", ") + ")"
-            lm, lp = (float(x) for x in e["hindsight_lambda"].split(","))
-            at_top = k != "log_loss" and e["hindsight"] >= 1.0  # 100 %: nothing beyond it
-            edge = lm in (min(grid["main"]), max(grid["main"])) or lp in (min(grid["position"]), max(grid["position"]))
-            if edge and not at_top:
-                best += " (grid edge)"  # the best over all λ may lie beyond the grid
+            best = (
+                "("
+                + e["hindsight_lambda"].replace(",", ", ")
+                + ")"
+                + (" (grid edge)" if e["hindsight_on_edge"] else "")
+            )
             hind = f"{fmt(e['hindsight'])} at {best}" + (
                 f", {_p(e['hindsight_p'])}" if e["hindsight_p"] is not None else ""
             )
-            small = (
-                "—"
-                if e["smallest_p"] is None
-                else f"{_p(e['smallest_p'])} at ({e['smallest_p_lambda'].replace(',', ', ')})"
-            )
+            if e["n_better"] == 0:
+                small = "— (none better)"
+            elif e["smallest_p"] is None:
+                small = f"undefined ({e['n_better']})"
+            else:
+                small = (
+                    f"{_p(e['smallest_p'])} at ({e['smallest_p_lambda'].replace(',', ', ')}) "
+                    f"({e['n_better']}; {_p(e['smallest_p_holm'])})"
+                )
             lines.append(
                 f"| {tag} (n = {row['n']}) | {name} | {fmt(e['paper'])} | {learned} | {hind} | {small} | "
                 f"{fmt(e['oracle'])} |"
             )
+            undefined = (
+                f"; {e['n_undefined_p']} of them gain the same in every fold, p undefined" if e["n_undefined_p"] else ""
+            )
             if e["n_better"] == 0:
                 none.append(name)
-            elif e["smallest_p"] is not None and e["smallest_p"] < 0.05:
-                beyond.append(f"{name} (smallest p {_p(e['smallest_p'])})")
+            elif e["smallest_p"] is None:
+                within.append(f"{name} (every better λ gains the same in every fold: p undefined)")
+            elif e["smallest_p_holm"] < 0.05:
+                beyond.append(f"{name} (smallest p {_p(e['smallest_p'])}, Holm {_p(e['smallest_p_holm'])}{undefined})")
+            elif e["smallest_p"] < 0.05:
+                unsure.append(
+                    f"{name} (smallest p {_p(e['smallest_p'])} of {e['n_better']}, Holm {_p(e['smallest_p_holm'])}"
+                    f"{undefined})"
+                )
             else:
-                # No finite p (every better λ differs from the paper's by the same amount in every
-                # fold) is no evidence either way: said as it is.
-                why = "no p defined" if e["smallest_p"] is None else f"smallest p {_p(e['smallest_p'])}"
-                within.append(f"{name} ({why})")
+                within.append(f"{name} (smallest p {_p(e['smallest_p'])}{undefined})")
         parts = []
         if beyond:
-            parts.append("some fixed λ on the grid beats the paper's beyond the folds' spread on " + ", ".join(beyond))
+            parts.append(
+                "some fixed λ on the grid beats the paper's λ beyond the folds' spread on " + ", ".join(beyond)
+            )
+        if unsure:
+            parts.append(
+                "some fixed λ beats the paper's λ at p < 0.05 unadjusted but not after Holm over the grid on "
+                + ", ".join(unsure)
+            )
         if within:
-            parts.append("no fixed λ on the grid beats it beyond the folds' spread on " + ", ".join(within))
+            parts.append("no fixed λ on the grid beats the paper's λ beyond the folds' spread on " + ", ".join(within))
         if none:
-            parts.append("no λ on the grid scores better than the paper's on " + ", ".join(none))
+            parts.append("no λ on the grid scores better than the paper's λ on " + ", ".join(none))
         e = summ["log_loss"]
         if "learned" in e and e["hindsight"] < e["paper"]:
             share = (e["paper"] - e["learned"]) / (e["paper"] - e["hindsight"])
@@ -249,10 +283,9 @@ def markdown(results: dict) -> str:
             )
         readings.append(f"- {tag}: " + "; ".join(parts) + ".")
         if row.get("paper_matches_bench_learn") is False:
-            readings.append(
-                f"  (The learned column is left out: bench_learn's JSON has other folds, or the paper's λ "
-                f"scores differently there; largest difference {row.get('paper_largest_difference')}.)"
-            )
+            gap = row.get("paper_largest_difference")
+            why = "its folds differ" if gap is None else f"the paper's λ scores up to {gap:.3g} differently there"
+            readings.append(f"  (The learned column is left out: {why}.)")
     return "\n".join(lines + [""] + readings) + "\n"
 
 
