@@ -66,7 +66,7 @@ def main(argv=None):
     if args.markdown_only:
         results = json.loads((out / "learn_oracle.json").read_text())
         for tag, row in results["sets"].items():  # bench_learn's JSON may be newer than this one
-            for stale in ("learned_scores", "paper_matches_bench_learn", "paper_largest_difference", "scores"):
+            for stale in ("learned_scores", "paper_matches_bench_learn", "paper_largest_difference"):
                 row.pop(stale, None)
             row.update(learned_scores(learned, tag, row, results["args"]))
         (out / "learn_oracle.md").write_text(markdown(results))
@@ -101,8 +101,9 @@ def main(argv=None):
         results["sets"][tag] = row
         out.mkdir(parents=True, exist_ok=True)
         (out / "learn_oracle.json").write_text(json.dumps(results, indent=1))
-    (out / "learn_oracle.md").write_text(markdown(results))
-    print(markdown(results))
+    text = markdown(results)
+    (out / "learn_oracle.md").write_text(text)
+    print(text)
     return results
 
 
