@@ -2,7 +2,7 @@
 from Python with default settings, on three populations, scale-normalised and not.
 
     python benchmarks/bench_populations.py [--populations synthetic pea rootnav]
-        [--what matrix mean rounds profile] [--baseline /path/to/old/checkout] [--paths default all-cores]
+        [--what matrix mean rounds profile dp] [--baseline /path/to/old/checkout] [--paths default all-cores]
 
 Populations:
 - ``synthetic``: the bundled 53 (`datasets.default_dataset`, 2D, ~10 laterals);
@@ -23,6 +23,8 @@ is deterministic, so round r's counts are the difference of runs capped at r and
 its DPs (lateral and main-root), the DP kernel alone on as many random lateral pairs of the
 population (its share of the engine's time), and the energy, DPs and time (best of 3) with the
 alternation capped at 1–4 rounds against it run to a standstill (12 rounds, no tolerance).
+``dp``: the first half of ``profile`` only (the engine call and the DP kernel alone), for
+comparing DP kernels with ``--baseline``.
 With ``--baseline`` every run is repeated with that checkout of the package, interleaved, and
 reported as a ratio (rounds: both DP counts side by side). Results: ``results/populations.json``.
 """
@@ -108,7 +110,7 @@ elif what == "rounds":
         prev = now
     out["pairs"] = int(len(pick))
     out["rounds"] = rounds
-elif what == "profile":
+elif what in ("profile", "dp"):
     import functools
     from rootshape_jax._engine import RegistrationOptions, register_pairs_jit
     from rootshape_jax._warp import dp_warp_if
@@ -150,13 +152,14 @@ elif what == "profile":
     # What the alternation rounds buy: energy and DPs capped at r rounds, against the
     # alternation run to a standstill (12 rounds, no tolerance).
     caps = []
-    for r, rtol in ((1, 1e-4), (2, 1e-4), (3, 1e-4), (4, 1e-4), (12, 0.0)):
+    for r, rtol in ((1, 1e-4), (2, 1e-4), (3, 1e-4), (4, 1e-4), (12, 0.0)) if what == "profile" else ():
         sec, reg = best_of(lambda: register(RegistrationOptions(max_iterations=r, rtol=rtol)))
         caps.append({"max_iterations": r, "rtol": rtol, "energy": float(np.sum(reg.energy)),
                      "lateral_dps": int(np.sum(reg.n_lateral_dp)), "seconds": sec})
     for c in caps:
         c["energy_above_converged"] = c["energy"] / caps[-1]["energy"] - 1
-    out["caps"] = caps
+    if caps:
+        out["caps"] = caps
 print("RESULT " + json.dumps(out))
 """
 
@@ -189,7 +192,7 @@ def main(argv=None):
             continue
         for norm in args.normalise:
             for what in args.what:
-                paths = [p == "all-cores" for p in args.paths] if what not in ("rounds", "profile") else [False]
+                paths = [p == "all-cores" for p in args.paths] if what not in ("rounds", "profile", "dp") else [False]
                 for all_cores in paths:
                     spec = {
                         "population": pop,
@@ -207,6 +210,9 @@ def main(argv=None):
                         row[label] = run_child(spec, package)
                     if "baseline" in row and "seconds" in row["new"]:
                         row["speedup"] = row["baseline"]["seconds"] / row["new"]["seconds"]
+                    if "baseline" in row and "engine_seconds" in row["new"]:
+                        row["engine_speedup"] = row["baseline"]["engine_seconds"] / row["new"]["engine_seconds"]
+                        row["dp_kernel_speedup"] = row["baseline"]["dp_ms_each"] / row["new"]["dp_ms_each"]
                     results["runs"].append(row)
                     print(json.dumps(row), flush=True)
                     write_json(args.out, results)

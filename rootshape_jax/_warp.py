@@ -94,15 +94,16 @@ class _Stencil:
         p1 = np.zeros((m_count, n + 1))
         n2 = np.zeros((m_count, n + 1))
         p2 = np.zeros((m_count, n + 1))
-        cross: dict[tuple[int, int], np.ndarray] = {}
+        # Cross weights in exact rationals (times √slope·h, applied at the end): weights equal
+        # within a move are then bitwise equal floats, which `_forward` factors out.
+        cross: dict[tuple[int, int], list[Fraction]] = {}
 
         def add_cross(m, r, o, c):
-            cross.setdefault((r, o), np.zeros(m_count))[m] += c
+            cross.setdefault((r, o), [Fraction(0)] * m_count)[m] += c
 
         for m, (a, b) in enumerate(moves):
             a, b = int(a), int(b)
             slope = b / a
-            rs = math.sqrt(slope)
             pts = segment_points(a, b)
             for i, sig in enumerate(pts):
                 lo = pts[i - 1] if i > 0 else sig
@@ -122,16 +123,20 @@ class _Stencil:
                 if fy:
                     n2[m, o0 - 1] += w * slope * fy**2
                     p2[m, o0] += w * slope * 2 * fy * (1 - fy)
-                for dr, cx in ((0, 1 - fx), (1, fx)):
-                    for do, cy in ((0, 1 - fy), (1, fy)):
+                wq = (hi - lo) / 2 * a  # w / h, exact
+                fxq, fyq = x - math.floor(x), y - math.floor(y)
+                for dr, cx in ((0, 1 - fxq), (1, fxq)):
+                    for do, cy in ((0, 1 - fyq), (1, fyq)):
                         if cx and cy:
-                            add_cross(m, r0 - dr, o0 - do, w * rs * cx * cy)
+                            add_cross(m, r0 - dr, o0 - do, wq * cx * cy)
         keys = sorted(cross)
+        scale = np.array([math.sqrt(b / a) * h for a, b in moves])
         self.neighbourhood = n
         self.moves = moves
         self.n1, self.p1, self.n2, self.p2 = n1, p1, n2, p2
         self.pairs = np.array(keys, dtype=np.int64).reshape(-1, 2)
-        self.kern = np.stack([cross[k] for k in keys], axis=1)  # (M, U)
+        exact = np.array([[float(c) for c in cross[k]] for k in keys]).T  # (M, U)
+        self.kern = exact * scale[:, None]
 
 
 @functools.lru_cache(maxsize=64)
@@ -211,15 +216,16 @@ def _edge_terms(q: Array, n_coef: np.ndarray, p_coef: np.ndarray) -> Array:
 _TERMS_PER_LOOP = 400
 
 
-def _move_groups(terms) -> list[list[int]]:
-    """Consecutive moves, split so that each group has at most ~_TERMS_PER_LOOP cross terms."""
+def _move_groups(counts) -> list[list[int]]:
+    """Consecutive moves, split so that each group has at most ~_TERMS_PER_LOOP cross terms
+    (``counts[m]``: move m's)."""
     groups, current, count = [], [], 0
-    for m, t in enumerate(terms):
-        if current and count + len(t) > _TERMS_PER_LOOP:
+    for m, c in enumerate(counts):
+        if current and count + c > _TERMS_PER_LOOP:
             groups.append(current)
             current, count = [], 0
         current.append(m)
-        count += len(t)
+        count += c
     groups.append(current)
     return groups
 
@@ -246,20 +252,30 @@ def _forward(q1: Array, q2: Array, n: int):
     # −2·kern: the cross term's factor folded into the coefficients (exact: a power of two),
     # one multiply less per move and cell (~3 % of the row loop).
     kern = (-2 * st.kern).astype(np.dtype(dtype))
-    terms = [[(u, kern[m, u]) for u in np.flatnonzero(kern[m])] for m in range(len(a))]
+    # Per move, its cross terms grouped by weight: c·(G_u + G_v + ...) instead of c·G_u + c·G_v
+    # + ... Within a move the weights are small multiples of one value (the stencil makes equal
+    # weights bitwise equal), so this halves the multiplies (362 → 171 at neighbourhood 7); the
+    # row loop is bound by its arithmetic, and runs ~1.2× faster.
+    terms = []
+    for m in range(len(a)):
+        by_weight: dict[float, list[int]] = {}
+        for u in np.flatnonzero(kern[m]):
+            by_weight.setdefault(kern[m, u], []).append(u)
+        terms.append([(c, us) for c, us in by_weight.items()])
+
+    def window(win, u):
+        return win[n - st.pairs[u, 0], n - st.pairs[u, 1] : n - st.pairs[u, 1] + size]
 
     def group_min(best, win, hist, r1_k, members):
         # One chain of elementwise ops over (T, B): XLA fuses it into a single vectorised loop.
         # (A stacked (M, T, B) array reduced by min *and* argmin is computed twice by XLA.)
         for m in members:
-            cross = sum(
-                c * win[n - st.pairs[u, 0], n - st.pairs[u, 1] : n - st.pairs[u, 1] + size] for u, c in terms[m]
-            )
+            cross = sum(c * sum(window(win, u) for u in us) for c, us in terms[m])
             prev = hist[n - a[m], n - b[m] : n - b[m] + size]
             best = jnp.minimum(best, prev + (r1_k[m] + r2[m] + cross))
         return best
 
-    groups = _move_groups(terms)
+    groups = _move_groups([sum(len(us) for _, us in t) for t in terms])
 
     def row(table, xs):
         k, r1_k = xs
