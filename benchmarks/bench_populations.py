@@ -25,14 +25,16 @@ population (its share of the engine's time), and the energy, DPs and time (best 
 alternation capped at 1–4 rounds against it run to a standstill (12 rounds, no tolerance).
 ``dp``: the first half of ``profile`` only (the engine call and the DP kernel alone), for
 comparing DP kernels with ``--baseline``.
-With ``--baseline`` every run is repeated with that checkout of the package, interleaved, and
-reported as a ratio (rounds: both DP counts side by side). Results: ``results/populations.json``.
+With ``--baseline`` every run is repeated with that checkout of the package, interleaved
+(``--repeats N``: alternated N times, the median ratio and its range), and reported as a
+ratio (rounds: both DP counts side by side). Results: ``results/populations.json``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import sys
 from pathlib import Path
 
@@ -164,6 +166,11 @@ print("RESULT " + json.dumps(out))
 """
 
 
+# Ratios reported with --baseline: name → the timing it divides (the baseline's over the new
+# run's; with --repeats, the median over the repeats and their range).
+RATIOS = {"speedup": "seconds", "engine_speedup": "engine_seconds", "dp_kernel_speedup": "dp_ms_each"}
+
+
 def run_child(spec: dict, package: Path | None) -> dict:
     return _common.run_child(CHILD, spec, package)
 
@@ -181,6 +188,7 @@ def main(argv=None):
         choices=["default", "all-cores"],
         help="Python defaults, and/or after rs.use_all_cores()",
     )
+    p.add_argument("--repeats", type=int, default=1, help="with --baseline: alternate the two this many times")
     p.add_argument("--mean-calls", type=int, default=2, help="mean calls per process (the last is timed)")
     p.add_argument("--out", default="populations", help="name of the JSON file in results/")
     args = p.parse_args(argv)
@@ -206,13 +214,20 @@ def main(argv=None):
                     if args.baseline is not None:
                         versions = [("baseline", args.baseline), ("new", None)]
                     row = dict(spec)
-                    for label, package in versions:
-                        row[label] = run_child(spec, package)
-                    if "baseline" in row and "seconds" in row["new"]:
-                        row["speedup"] = row["baseline"]["seconds"] / row["new"]["seconds"]
-                    if "baseline" in row and "engine_seconds" in row["new"]:
-                        row["engine_speedup"] = row["baseline"]["engine_seconds"] / row["new"]["engine_seconds"]
-                        row["dp_kernel_speedup"] = row["baseline"]["dp_ms_each"] / row["new"]["dp_ms_each"]
+                    # Baseline and new alternate, a fresh process each: on a host whose speed
+                    # drifts, each ratio compares two neighbouring runs.
+                    runs = [
+                        {label: run_child(spec, package) for label, package in versions} for _ in range(args.repeats)
+                    ]
+                    row.update(runs[0])
+                    if len(runs) > 1:
+                        row["repeats"] = runs
+                    if "baseline" in row:
+                        for key, timing in RATIOS.items():
+                            ratios = [r["baseline"][timing] / r["new"][timing] for r in runs if timing in r["new"]]
+                            if ratios:
+                                row[key] = statistics.median(ratios)
+                                row[key + "_range"] = [min(ratios), max(ratios)]
                     results["runs"].append(row)
                     print(json.dumps(row), flush=True)
                     write_json(args.out, results)
