@@ -95,7 +95,8 @@ class _Stencil:
         n2 = np.zeros((m_count, n + 1))
         p2 = np.zeros((m_count, n + 1))
         # Cross weights in exact rationals (times √slope·h, applied at the end): weights equal
-        # within a move are then bitwise equal floats, which `_forward` factors out.
+        # within a move are then bitwise equal floats in float64 too (float32 rounding alone
+        # already merged them), which `_forward` factors out.
         cross: dict[tuple[int, int], list[Fraction]] = {}
 
         def add_cross(m, r, o, c):
@@ -211,8 +212,9 @@ def _edge_terms(q: Array, n_coef: np.ndarray, p_coef: np.ndarray) -> Array:
     )
 
 
-# Cross terms per fused loop. LLVM stopped vectorising the loop beyond ~600 terms (55 moves);
-# groups of this size vectorise (checked in the dumped IR) and cost one switch branch each.
+# Cross terms per fused loop. LLVM stopped vectorising the loop beyond ~600 terms (55 moves;
+# measured with one multiply per term, before `_forward` grouped the terms by weight); groups
+# of this size vectorise (checked in the dumped IR) and cost one switch branch each.
 _TERMS_PER_LOOP = 400
 
 
@@ -253,15 +255,15 @@ def _forward(q1: Array, q2: Array, n: int):
     # one multiply less per move and cell (~3 % of the row loop).
     kern = (-2 * st.kern).astype(np.dtype(dtype))
     # Per move, its cross terms grouped by weight: c·(G_u + G_v + ...) instead of c·G_u + c·G_v
-    # + ... Within a move the weights are small multiples of one value (the stencil makes equal
-    # weights bitwise equal), so this halves the multiplies (362 → 171 at neighbourhood 7); the
-    # row loop is bound by its arithmetic, and runs ~1.2× faster.
+    # + ... Within a move the weights are small rational multiples of one value (the stencil
+    # makes equal weights bitwise equal), so this halves the multiplies (362 → 171 at
+    # neighbourhood 7); the row loop is bound by its arithmetic and runs ~1.1–1.2× faster.
     terms = []
     for m in range(len(a)):
-        by_weight: dict[float, list[int]] = {}
+        by_weight: dict = {}  # weight (a numpy scalar of the input dtype) → term indices
         for u in np.flatnonzero(kern[m]):
             by_weight.setdefault(kern[m, u], []).append(u)
-        terms.append([(c, us) for c, us in by_weight.items()])
+        terms.append(list(by_weight.items()))
 
     def window(win, u):
         return win[n - st.pairs[u, 0], n - st.pairs[u, 1] : n - st.pairs[u, 1] + size]
