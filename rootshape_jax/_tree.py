@@ -575,9 +575,15 @@ def _deeper_levels(root, placed, lats, capacities, *, n_points, scale):
             )
         L0 = polyline_length(node.main) * scale
         L = polyline_length(parent_poly)
+        joined_parent = len(parent_poly) != len(node.main)
         for k, (child, s) in enumerate(zip(node.laterals, node.attach)):
             # The fraction along the node's own polyline, moved to the joined parent polyline.
-            frac = float(np.clip((L - L0 + float(s) * L0) / L, 0.0, 1.0)) if L > 0 else 0.0
+            # An unjoined parent keeps `s` bitwise (its lengths L, L0 differ in the last bit), so
+            # that a one-axis plant's level 2 is exactly its taproot's laterals.
+            if not joined_parent:
+                frac = float(s)
+            else:
+                frac = float(np.clip((L - L0 + float(s) * L0) / L, 0.0, 1.0)) if L > 0 else 0.0
             poly = child.astype(np.float64) * scale
             rad = None if node.lateral_radii is None else node.lateral_radii[k].astype(np.float64) * scale
             base = _point_at_fraction(parent_poly, frac)
