@@ -580,7 +580,7 @@ def _deeper_levels(root, placed, lats, capacities, *, n_points, scale):
             # The fraction along the node's own polyline, moved to the joined parent polyline.
             # An unjoined parent keeps `s` bitwise (its lengths L, L0 differ in the last bit), so
             # that a one-axis plant's level 2 is exactly its taproot's laterals.
-            if not joined_parent:
+            if not joined_parent and L > 0:
                 frac = float(s)
             else:
                 frac = float(np.clip((L - L0 + float(s) * L0) / L, 0.0, 1.0)) if L > 0 else 0.0
