@@ -580,10 +580,12 @@ def _deeper_levels(root, placed, lats, capacities, *, n_points, scale):
             # The fraction along the node's own polyline, moved to the joined parent polyline.
             # An unjoined parent keeps `s` bitwise (its lengths L, L0 differ in the last bit), so
             # that a one-axis plant's level 2 is exactly its taproot's laterals.
-            if not joined_parent and L > 0:
-                frac = float(s)
+            if not L > 0:
+                frac = 0.0
+            elif joined_parent:
+                frac = float(np.clip((L - L0 + float(s) * L0) / L, 0.0, 1.0))
             else:
-                frac = float(np.clip((L - L0 + float(s) * L0) / L, 0.0, 1.0)) if L > 0 else 0.0
+                frac = float(s)
             poly = child.astype(np.float64) * scale
             rad = None if node.lateral_radii is None else node.lateral_radii[k].astype(np.float64) * scale
             base = _point_at_fraction(parent_poly, frac)

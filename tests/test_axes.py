@@ -247,10 +247,11 @@ def test_real_rootnav_plants_equal_taproots_and_a_two_seedling_system_ignores_ax
     assert [p.metadata["n_axes"] for p in plants] == [1, 1, 1] and len(taps) == 3
     t_root = rs.batch(taps, n_points=16, depth=2, normalise_scale=True, dtype=np.float64)
     t_plant = rs.batch(plants, n_points=16, depth=3, normalise_scale=True, dtype=np.float64)
-    # The two batches hold bitwise the same curves (test below), so the two analyses agree to
-    # rounding with or without the rotation search (measured 1.6e-16 and 0). Inputs apart in
-    # the last bit are not enough here: the piecewise-straight RootNav polylines make DP ties,
-    # and a tie decided the other way moved a distance by 3e-6 (the CI failure of stop 53).
+    # The two batches hold bitwise the same curves (test_one_axis_plant_batches_bitwise_as_its_
+    # taproot, above), so the two analyses agree to rounding with or without the rotation
+    # search (measured 1.6e-16 and 0). Inputs apart in the last bit are not enough here: the
+    # piecewise-straight RootNav polylines make DP ties, and a tie decided the other way moved
+    # a distance by 3e-6 (the CI failure of stop 53).
     np.testing.assert_allclose(_matrix(t_plant, rotation=False), _matrix(t_root, rotation=False), rtol=1e-9, atol=0)
     np.testing.assert_allclose(_matrix(t_plant), _matrix(t_root), rtol=1e-9, atol=0)
 
